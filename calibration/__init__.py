@@ -1,0 +1,1 @@
+"""Stereo calibration of the camera rig (``iscd calibrate``)."""

@@ -1,0 +1,156 @@
+"""The camera interface that every backend (mock, GenICam, V4L2) implements.
+
+A camera is opened, configured, started, read frame by frame and stopped::
+
+    cam = SomeCamera(...)
+    cam.open()
+    cam.configure(CameraSettings(fps=1000, exposure_s=1e-3))
+    cam.start()
+    frame = cam.read(timeout_s=0.1)   # -> Frame, or raises CameraTimeout
+    cam.stop(); cam.close()
+
+Cameras are context managers (``with cam: ...`` opens and closes). A stereo rig is
+two cameras on one shared hardware trigger: ``frame_id`` counts trigger pulses, so a
+left and a right frame with the same ``frame_id`` were exposed together.
+"""
+
+from __future__ import annotations
+
+import abc
+from dataclasses import dataclass, field, replace
+from typing import Literal
+
+import numpy as np
+
+TriggerMode = Literal["free", "master", "slave", "software"]
+"""``free``: the camera runs on its own clock; ``master``: it runs on its own clock and
+outputs a trigger pulse per frame on a line; ``slave``: it exposes on each pulse from the
+master's line; ``software``: one frame per :meth:`Camera.trigger` call."""
+
+
+class CameraError(RuntimeError):
+    """A camera could not be opened, configured or read."""
+
+
+class CameraTimeout(CameraError):
+    """No frame arrived within the read timeout."""
+
+
+class CameraLost(CameraError):
+    """The device vanished (unplugged, producer error); reopen to recover."""
+
+
+@dataclass(frozen=True)
+class Roi:
+    """Region of interest on the sensor, in px: offset (x, y) and size (width, height)."""
+
+    x: int = 0
+    y: int = 0
+    width: int = 512
+    height: int = 512
+
+    def __post_init__(self) -> None:
+        if self.width <= 0 or self.height <= 0 or self.x < 0 or self.y < 0:
+            raise ValueError(f"invalid ROI {self}")
+
+
+@dataclass(frozen=True)
+class CameraSettings:
+    """What :meth:`Camera.configure` applies (SFNC names in brackets).
+
+    fps: frame rate in frames/s [AcquisitionFrameRate].
+    exposure_s: exposure time in s [ExposureTime, which is in µs].
+    gain_db: analogue gain in dB [Gain].
+    roi: sensor window in px [Width, Height, OffsetX, OffsetY].
+    trigger: see :data:`TriggerMode` [TriggerSelector/Mode/Source/Activation, LineSource].
+    pixel_format: ``Mono8`` (8-bit) or ``Mono12``/``Mono16`` (delivered as uint16).
+    """
+
+    fps: float = 1000.0
+    exposure_s: float = 1e-3
+    gain_db: float = 0.0
+    roi: Roi = field(default_factory=Roi)
+    trigger: TriggerMode = "free"
+    pixel_format: str = "Mono8"
+
+    def __post_init__(self) -> None:
+        if not self.fps > 0:
+            raise ValueError(f"fps must be > 0, got {self.fps}")
+        if not 0 < self.exposure_s <= 1.0 / self.fps + 1e-12:
+            raise ValueError(
+                f"exposure_s must be in (0, 1/fps = {1.0 / self.fps:g}] s, got {self.exposure_s}")
+
+    def with_(self, **kw: object) -> "CameraSettings":
+        return replace(self, **kw)  # type: ignore[arg-type]
+
+    @property
+    def bit_depth(self) -> int:
+        return {"Mono8": 8, "Mono10": 10, "Mono12": 12, "Mono16": 16}.get(self.pixel_format, 8)
+
+
+@dataclass(frozen=True)
+class Frame:
+    """One image from one camera.
+
+    camera: the camera's name in the rig (``"left"``/``"right"``) or its serial number.
+    frame_id: trigger/sequence counter from the device (increments by 1 per exposure;
+      a gap means frames were lost).
+    timestamp_ns: start of exposure in ns on the device clock (or host monotonic clock
+      where the device has none).
+    image: (height, width) array, uint8 for Mono8, uint16 otherwise. Treat as read-only:
+      backends may hand out views of reused buffers only until the next :meth:`read`.
+    """
+
+    camera: str
+    frame_id: int
+    timestamp_ns: int
+    image: np.ndarray
+
+
+class Camera(abc.ABC):
+    """Abstract camera. Subclasses implement the ``_``-free methods below."""
+
+    name: str = "camera"
+
+    @abc.abstractmethod
+    def open(self) -> None:
+        """Connect to the device. Raises :class:`CameraError` if it cannot be found."""
+
+    @abc.abstractmethod
+    def configure(self, settings: CameraSettings) -> CameraSettings:
+        """Apply settings (only while stopped); return what the device actually accepted."""
+
+    @abc.abstractmethod
+    def start(self) -> None:
+        """Start acquisition."""
+
+    @abc.abstractmethod
+    def read(self, timeout_s: float = 1.0) -> Frame:
+        """Next frame, in acquisition order. Raises :class:`CameraTimeout` after
+        ``timeout_s`` s without one and :class:`CameraLost` if the device vanished."""
+
+    @abc.abstractmethod
+    def stop(self) -> None:
+        """Stop acquisition (idempotent)."""
+
+    @abc.abstractmethod
+    def close(self) -> None:
+        """Release the device (idempotent)."""
+
+    def trigger(self) -> None:
+        """Fire one software trigger (only with ``trigger="software"``)."""
+        raise CameraError(f"{type(self).__name__} has no software trigger")
+
+    @property
+    def settings(self) -> CameraSettings | None:
+        return getattr(self, "_settings", None)
+
+    def __enter__(self) -> "Camera":
+        self.open()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        try:
+            self.stop()
+        finally:
+            self.close()

@@ -1,0 +1,5 @@
+import sys
+
+from iscd.cli import main
+
+sys.exit(main())

@@ -1,0 +1,63 @@
+"""The ``iscd`` console command: ``iscd <subcommand> --help`` explains each one."""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import logging
+import sys
+from collections.abc import Sequence
+
+from iscd import __version__
+from iscd.commands import COMMANDS
+
+
+class UserError(Exception):
+    """An error caused by the user's input: printed as one line, exit status 2."""
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="iscd",
+        description=(
+            "Image-sensor-communication daemon: decodes data sent by road LEDs (PWM-M) from two "
+            "synchronized 1000 fps cameras and measures the distance to them by stereo vision. "
+            "With no hardware, 'iscd run' runs the embedded mock rig."),
+        epilog="See 'iscd <command> --help' for each command's options.")
+    parser.add_argument("--version", action="version", version=f"iscd {__version__}")
+    parser.add_argument("-v", "--verbose", action="count", default=0, help="more log output (-vv for debug)")
+    parser.add_argument("-q", "--quiet", action="store_true", help="only warnings and errors")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    for name in COMMANDS:
+        try:
+            mod = importlib.import_module(f"iscd.commands.{name}")
+        except ModuleNotFoundError as e:
+            if e.name == f"iscd.commands.{name}":
+                continue  # not implemented yet
+            raise
+        mod.register(sub)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    level = logging.WARNING if args.quiet else (logging.INFO if args.verbose <= 1 else logging.DEBUG)
+    logging.basicConfig(level=level, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    if not getattr(args, "func", None):
+        parser.print_help()
+        return 2
+    from iscd.config import ConfigError
+
+    try:
+        return int(args.func(args) or 0)
+    except (UserError, ConfigError) as e:
+        print(f"iscd {args.command}: error: {e}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print(f"iscd {args.command}: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())
