@@ -29,6 +29,10 @@ class RecordingError(Exception):
         super().__init__(f"{self.path}: {self.problem}")
 
 
+class RecordingWarning(UserWarning):
+    """A recording was readable but not quite whole (e.g. a partial trailing record)."""
+
+
 class Recording(abc.ABC):
     """A recorded frame sequence of one camera.
 
@@ -151,6 +155,7 @@ class Recording(abc.ABC):
             "exposure_s": None if self.exposure_s is None else float(self.exposure_s),
             "first_frame_id": int(self.frame_ids[0]) if n else None,
             "last_frame_id": int(self.frame_ids[-1]) if n else None,
+            "missing_frame_ids": missing_ids(self.frame_ids),
             "extra": self._extra_info(),
         }
 
@@ -164,6 +169,15 @@ class Recording(abc.ABC):
         fps = "?" if self.fps is None else f"{self.fps:g}"
         return (f"<{type(self).__name__} {str(self.path)!r} {self.n_frames}x{self.height}x{self.width} "
                 f"{np.dtype(self.dtype).name} {self.bit_depth}-bit {fps} fps>")
+
+
+def missing_ids(frame_ids: np.ndarray) -> int | None:
+    """How many ids are missing between the first and last frame (dropped frames);
+    None if the ids do not strictly increase."""
+    ids = np.asarray(frame_ids, dtype=np.int64)
+    if ids.size and not np.all(np.diff(ids) > 0):
+        return None
+    return int(ids[-1] - ids[0] + 1 - ids.size) if ids.size else 0
 
 
 def match_frames(left_ids: np.ndarray, right_ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -1,0 +1,178 @@
+"""A folder of image files as a recording (one camera, one file per frame).
+
+Frames are the folder's PNG / TIFF (also PGM, BMP) files in natural name order
+(``frame_2`` before ``frame_10``); hidden files and other files are ignored. Pixels are
+read with OpenCV unchanged (8- or 16-bit grey); colour images are converted to grey.
+All frames must have the size and dtype of the first one (PNG sizes are checked when
+the folder is opened, other formats when a frame is read).
+
+Frame ids are the last number in each file name when every name has one and they
+increase (``left_000052.png`` -> 52), else 0, 1, 2, ... An optional sidecar
+``recording.json`` in the folder may give ``fps``, ``exposure_s``, ``camera`` and
+``bit_depth``; without fps, timestamps are all 0.
+"""
+
+from __future__ import annotations
+
+import json
+import re
+import struct
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+
+from iscd.recording.base import Recording, RecordingError
+
+EXTENSIONS = (".png", ".tif", ".tiff", ".pgm", ".bmp")
+SIDECAR = "recording.json"
+_NUM = re.compile(r"(\d+)")
+
+
+def natural_key(name: str) -> list[Any]:
+    """Sort key that orders embedded numbers by value: ``f2`` < ``f10``."""
+    return [int(t) if i % 2 else t.lower() for i, t in enumerate(_NUM.split(name))]
+
+
+def list_frames(folder: Path) -> list[Path]:
+    """The frame files of ``folder`` in natural name order (may be empty)."""
+    files = [p for p in folder.iterdir()
+             if p.suffix.lower() in EXTENSIONS and not p.name.startswith(".") and p.is_file()]
+    return sorted(files, key=lambda p: natural_key(p.name))
+
+
+def ids_from_names(files: list[Path]) -> np.ndarray:
+    """Last number of each file stem if all have one and they strictly increase, else 0..n-1."""
+    nums = [_NUM.findall(p.stem) for p in files]
+    if files and all(nums):
+        ids = np.array([int(n[-1]) for n in nums], dtype=np.int64)
+        if ids.size < 2 or np.all(np.diff(ids) > 0):
+            return ids
+    return np.arange(len(files), dtype=np.int64)
+
+
+def _png_size(path: Path) -> tuple[int, int] | None:
+    """(width, height) from a PNG's IHDR chunk, or None if it is not a PNG."""
+    with open(path, "rb") as f:
+        head = f.read(24)
+    if len(head) == 24 and head[:8] == b"\x89PNG\r\n\x1a\n" and head[12:16] == b"IHDR":
+        w, h = struct.unpack(">II", head[16:24])
+        return int(w), int(h)
+    return None
+
+
+def load_grey(path: Path) -> np.ndarray:
+    """One image file as a (height, width) uint8/uint16 grey array, or RecordingError."""
+    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if img is None:
+        raise RecordingError(path, "cannot read image (unreadable, corrupt or not an image)")
+    if img.ndim == 3:
+        if img.shape[2] == 1:
+            img = img[:, :, 0]
+        elif img.shape[2] == 3:
+            img = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
+        elif img.shape[2] == 4:
+            img = cv2.cvtColor(img, cv2.COLOR_BGRA2GRAY)
+        else:
+            raise RecordingError(path, f"unsupported image with {img.shape[2]} channels")
+    if img.dtype not in (np.uint8, np.uint16):
+        raise RecordingError(path, f"unsupported pixel type {img.dtype} (need 8- or 16-bit grey)")
+    return img
+
+
+def _read_sidecar(folder: Path) -> dict[str, Any]:
+    p = folder / SIDECAR
+    if not p.is_file():
+        return {}
+    try:
+        data = json.loads(p.read_text(encoding="utf-8"))
+        if not isinstance(data, dict):
+            raise ValueError("expected a JSON object")
+        out: dict[str, Any] = {}
+        for key in ("fps", "exposure_s"):
+            if data.get(key) is not None:
+                v = data[key]
+                if isinstance(v, bool) or not isinstance(v, (int, float)) or not v > 0:
+                    raise ValueError(f"{key} must be a number > 0, got {v!r}")
+                out[key] = float(v)
+        if data.get("camera") is not None:
+            out["camera"] = str(data["camera"])
+        if data.get("bit_depth") is not None:
+            v = data["bit_depth"]
+            if isinstance(v, bool) or not isinstance(v, int) or not 1 <= v <= 16:
+                raise ValueError(f"bit_depth must be an integer 1..16, got {v!r}")
+            out["bit_depth"] = v
+        return out
+    except (OSError, UnicodeDecodeError, ValueError) as e:
+        raise RecordingError(p, f"bad sidecar: {e}") from None
+
+
+class ImageFolderRecording(Recording):
+    """Reader of a folder of PNG/TIFF frames (see the module docstring)."""
+
+    format = "images"
+
+    def __init__(self, path: str | Path) -> None:
+        self.path = Path(path)
+        if not self.path.is_dir():
+            raise RecordingError(self.path, "not a folder")
+        try:
+            self.files = list_frames(self.path)
+        except OSError as e:
+            raise RecordingError(self.path, f"cannot list folder: {e.strerror or e}") from None
+        if not self.files:
+            others = [p for p in self.path.iterdir() if not p.name.startswith(".")]
+            if not others:
+                raise RecordingError(self.path, "empty folder: no PNG/TIFF frames")
+            jpgs = sum(1 for p in others if p.suffix.lower() in (".jpg", ".jpeg"))
+            hint = f"; {jpgs} are JPEG, which is lossy and not accepted" if jpgs else ""
+            raise RecordingError(self.path, f"no PNG/TIFF frames in this folder "
+                                            f"({len(others)} other entries{hint})")
+        side = _read_sidecar(self.path)
+        first = load_grey(self.files[0])
+        self.height, self.width = first.shape
+        self.dtype = first.dtype
+        nbits = 8 * self.dtype.itemsize
+        self.bit_depth = int(side.get("bit_depth", nbits))
+        if self.bit_depth > nbits:
+            raise RecordingError(self.path / SIDECAR, f"bit_depth {self.bit_depth} exceeds the "
+                                                      f"frames' {self.dtype.name}")
+        self.fps = side.get("fps")
+        self.exposure_s = side.get("exposure_s")
+        self.camera = side.get("camera")
+        self._check_png_sizes()
+        self.frame_ids = ids_from_names(self.files)
+        rel = self.frame_ids - self.frame_ids[0]
+        self.timestamps_ns = (np.round(rel * (1e9 / self.fps)).astype(np.int64) if self.fps
+                              else np.zeros(len(self.files), dtype=np.int64))
+
+    def _check_png_sizes(self) -> None:
+        for p in self.files:
+            try:
+                size = _png_size(p)
+            except OSError as e:
+                raise RecordingError(p, f"cannot read: {e.strerror or e}") from None
+            if size is not None and size != (self.width, self.height):
+                raise RecordingError(p, f"frame size {size[0]}x{size[1]} differs from the first "
+                                        f"frame's {self.width}x{self.height} ({self.files[0].name})")
+
+    def _load(self, path: Path) -> np.ndarray:
+        img = load_grey(path)
+        if img.shape != (self.height, self.width):
+            raise RecordingError(path, f"frame size {img.shape[1]}x{img.shape[0]} differs from the "
+                                       f"first frame's {self.width}x{self.height} ({self.files[0].name})")
+        if img.dtype != self.dtype:
+            raise RecordingError(path, f"pixel type {img.dtype} differs from the first frame's "
+                                       f"{self.dtype.name} ({self.files[0].name})")
+        return img
+
+    def _read(self, start: int, stop: int) -> np.ndarray:
+        out = np.empty((stop - start, self.height, self.width), dtype=self.dtype)
+        for k, p in enumerate(self.files[start:stop]):
+            out[k] = self._load(p)
+        return out
+
+    def _extra_info(self) -> dict[str, Any]:
+        return {"first_file": self.files[0].name, "last_file": self.files[-1].name,
+                "sidecar": (self.path / SIDECAR).is_file()}
