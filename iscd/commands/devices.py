@@ -1,0 +1,165 @@
+"""``iscd devices``: the cameras per backend (GenICam per producer, V4L2) and LED boards."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+from typing import Any
+
+log = logging.getLogger(__name__)
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "devices", help="list the cameras (GenICam, V4L2) and LED boards attached",
+        description=(
+            "Lists the GenICam cameras of each GenTL producer (the .cti given with --producer "
+            "or [rig] producer, else every .cti in the GENICAM_GENTL64_PATH directories), the "
+            "V4L2 capture devices (/dev/video*) and the LED transmitter boards on USB "
+            "([board] vid:pid). Use a camera's serial number or user id (GenICam) or device "
+            "path (V4L2) as [rig] left/right. '--producer simulated' lists the three "
+            "simulated cameras of the producer shipped with the genicam package."))
+    p.add_argument("--producer", metavar="CTI", action="append", default=None,
+                   help="GenTL producer file (.cti) to ask for GenICam cameras, or 'simulated'; "
+                        "repeat for several (default: [rig] producer, else GENICAM_GENTL64_PATH)")
+    p.add_argument("--backend", choices=("genicam", "v4l2", "all"), default="all",
+                   help="which camera backend to list (default: all)")
+    p.add_argument("--no-boards", action="store_true", help="do not look for LED boards")
+    p.add_argument("--config", metavar="FILE",
+                   help="config file whose [rig] producer and [board] vid/pid to use")
+    p.add_argument("--json", action="store_true",
+                   help="print one JSON object {genicam: {producers, cameras}, v4l2: {cameras}, "
+                        "boards, notes} instead of text")
+    p.set_defaults(func=run)
+
+
+def _genicam(producers: list[str] | None, notes: list[str]) -> dict[str, Any]:
+    from drivers.base import CameraError
+    from drivers import genicam
+    from iscd.cli import UserError
+
+    try:
+        ctis = ([c for p in producers for c in genicam.find_producers(p)] if producers
+                else genicam.find_producers())
+    except CameraError as e:
+        raise UserError(str(e)) from None
+    ctis = list(dict.fromkeys(ctis))
+    if not ctis:
+        notes.append(f"genicam: no GenTL producer: pass --producer CTI or set {genicam.ENV_VAR} "
+                     f"to the directory of your camera vendor's .cti")
+    cameras: list[dict[str, Any]] = []
+    for cti in ctis:
+        try:
+            cameras.extend(genicam.list_devices(cti))
+        except CameraError as e:
+            notes.append(f"genicam: {cti}: {e}")
+        except Exception as e:  # noqa: BLE001 - a broken producer must not end the listing
+            notes.append(f"genicam: {cti}: producer failed: {type(e).__name__}: {e}")
+    return {"producers": ctis, "cameras": cameras}
+
+
+def _v4l2(notes: list[str]) -> dict[str, Any]:
+    from drivers.base import CameraError
+    from drivers import v4l2
+
+    try:
+        cams = v4l2.list_devices()
+    except CameraError as e:
+        notes.append(f"v4l2: {e}")
+        cams = []
+    return {"pattern": v4l2.V4L2_GLOB, "cameras": cams}
+
+
+def _boards(cfg: Any, notes: list[str]) -> list[dict[str, Any]]:
+    try:
+        from drivers.board import discovery
+    except ImportError:
+        notes.append("boards: board discovery is not available")
+        return []
+    kwargs: dict[str, Any] = {}
+    if cfg is not None:
+        try:
+            from drivers.board.settings import board_settings
+
+            bs = board_settings(cfg)
+            kwargs = {"vid": bs.vid, "pid": bs.pid}
+        except ImportError:
+            pass
+    try:
+        found = discovery.find_boards(**kwargs)
+    except Exception as e:  # noqa: BLE001 - USB/serial enumeration errors are reported, not fatal
+        notes.append(f"boards: search failed: {type(e).__name__}: {e}")
+        return []
+    return [b.as_dict() if hasattr(b, "as_dict") else dict(b) for b in found]
+
+
+def collect(producers: list[str] | None = None, backend: str = "all", boards: bool = True,
+            cfg: Any = None) -> dict[str, Any]:
+    """Everything ``iscd devices`` reports, as a JSON-ready dict."""
+    notes: list[str] = []
+    out: dict[str, Any] = {}
+    if producers is None and cfg is not None and cfg.rig.producer:
+        producers = [cfg.rig.producer]
+    if backend in ("genicam", "all"):
+        out["genicam"] = _genicam(producers, notes)
+    if backend in ("v4l2", "all"):
+        out["v4l2"] = _v4l2(notes)
+    if boards:
+        out["boards"] = _boards(cfg, notes)
+    out["notes"] = notes
+    return out
+
+
+def _fmt(v: Any) -> str:
+    return "-" if v in (None, "") else str(v)
+
+
+def render(report: dict[str, Any]) -> str:
+    """The report as text, one device a line."""
+    lines: list[str] = []
+    if "genicam" in report:
+        g = report["genicam"]
+        lines.append(f"GenICam cameras ({len(g['cameras'])}):")
+        for cti in g["producers"]:
+            cams = [c for c in g["cameras"] if c["producer"] == cti]
+            lines.append(f"  producer {cti}: {len(cams)} camera(s)")
+            for c in cams:
+                state = "available" if c.get("available", True) else "in use"
+                lines.append(f"    serial {_fmt(c['serial'])}  user id {_fmt(c['user_id'])}  "
+                             f"{_fmt(c['vendor'])} {_fmt(c['model'])}  id {_fmt(c['id'])}  {state}")
+    if "v4l2" in report:
+        v = report["v4l2"]
+        lines.append(f"V4L2 cameras ({len(v['cameras'])}):")
+        if not v["cameras"]:
+            lines.append(f"  none found ({v['pattern']})")
+        for c in v["cameras"]:
+            if "error" in c:
+                lines.append(f"  {c['device']}: cannot open: {c['error']}")
+            else:
+                mono = "" if c.get("mono") else "  (no Mono format)"
+                lines.append(f"  {c['device']}  {c['card']} ({c['driver']}, {c['bus']})  "
+                             f"formats {' '.join(c['formats']) or '-'}{mono}")
+    if "boards" in report:
+        b = report["boards"]
+        lines.append(f"LED boards ({len(b)}):")
+        if not b:
+            lines.append("  none found")
+        for d in b:
+            lines.append(f"  {_fmt(d.get('device'))}  serial {_fmt(d.get('serial_number'))}  "
+                         f"usb {_fmt(d.get('usb_id'))} at {_fmt(d.get('location'))}  "
+                         f"{_fmt(d.get('description'))}")
+    for n in report.get("notes", []):
+        lines.append(f"note: {n}")
+    return "\n".join(lines)
+
+
+def run(args: argparse.Namespace) -> int:
+    cfg = None
+    if args.config:
+        from iscd.config import load
+
+        cfg = load(args.config)
+    report = collect(args.producer, args.backend, not args.no_boards, cfg)
+    print(json.dumps(report, indent=2) if args.json else render(report))
+    return 0
