@@ -1,0 +1,438 @@
+"""Acquisition worker: two cameras -> pairer -> shared-memory ring, with camera faults.
+
+``FakeCamera`` is a small in-test camera on a shared trigger clock: trigger t is exposed at
+``t0 + t * period`` (its timestamp) and its image is a function of (t, side), so the
+consumer can check every pair it reads against ground truth: both images must show the
+trigger that the timestamps name. Faults are scripted per trigger.
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+import os
+import time
+from collections.abc import Callable, Iterator
+
+import numpy as np
+import pytest
+
+from drivers.base import Camera, CameraError, CameraLost, CameraSettings, CameraTimeout, Frame
+from iscd.acquisition import (Acquisition, AcquisitionOptions, AcquisitionProcess,
+                              AcquisitionStats)
+from iscd.ringbuffer import ReadSlot, StereoRing
+
+pytestmark = pytest.mark.skipif(not os.path.isdir("/dev/shm"), reason="needs Linux /dev/shm")
+SHAPE = (16, 24)
+
+
+def image(t: int, side: str, shape: tuple[int, int] = SHAPE) -> np.ndarray:
+    base = np.arange(shape[0] * shape[1], dtype=np.int64).reshape(shape)
+    return ((base * (3 if side == "left" else 5) + t * 7) % 256).astype(np.uint8)
+
+
+class FakeCamera(Camera):
+    """A camera of a rig whose trigger t fires at ``t0_ns + t * period_ns``.
+
+    script: trigger -> fault, each fired once when that trigger is next:
+      ``timeout`` (a CameraTimeout first), ``error`` (a CameraError first), ``lost``
+      (CameraLost: the camera is gone; ``open_failures`` opens fail, then it restarts at
+      the current trigger, its ids from 0 if ``reset_ids``), ``boom`` (a RuntimeError, a
+      driver bug), ``bad`` (this trigger's image has the wrong size).
+    period_ns = 0: frames come as fast as they are read.
+    """
+
+    def __init__(self, name: str, n: int, t0_ns: int, period_ns: int, *,
+                 script: dict[int, str] | None = None, open_failures: int = 0,
+                 reset_ids: bool = False) -> None:
+        self.name = name
+        self.n, self.t0_ns, self.period_ns = n, t0_ns, period_ns
+        self.script = dict(script or {})
+        self.open_failures = open_failures
+        self.reset_ids = reset_ids
+        self.cursor = 0
+        self.id_base = 0
+        self.state = "closed"
+        self.injected_timeouts = 0
+        self.exhausted_timeouts = 0
+        self.configured: list[CameraSettings] = []
+        self.opens = 0
+
+    @property
+    def exhausted(self) -> bool:
+        return self.cursor >= self.n
+
+    def open(self) -> None:
+        if self.state == "lost" and self.open_failures > 0:
+            self.open_failures -= 1
+            raise CameraError(f"{self.name}: device not found")
+        self.opens += 1
+        if self.state == "lost" and self.period_ns:  # triggers fired meanwhile are gone
+            now_t = math.ceil((time.monotonic_ns() - self.t0_ns) / self.period_ns)
+            if self.reset_ids:
+                self.id_base = max(self.cursor, now_t)
+            self.cursor = max(self.cursor, now_t)
+        self.state = "open"
+
+    def configure(self, settings: CameraSettings) -> CameraSettings:
+        self.configured.append(settings)
+        return settings
+
+    def start(self) -> None:
+        self.state = "running"
+
+    def stop(self) -> None:
+        if self.state == "running":
+            self.state = "open"
+
+    def close(self) -> None:
+        if self.state != "lost":
+            self.state = "closed"
+
+    def read(self, timeout_s: float = 1.0) -> Frame:
+        if self.state != "running":
+            raise CameraError(f"{self.name}: not running ({self.state})")
+        t = self.cursor
+        if t >= self.n:
+            time.sleep(timeout_s)
+            self.exhausted_timeouts += 1
+            raise CameraTimeout(f"{self.name}: no more frames")
+        fault = self.script.pop(t, None)
+        if fault == "timeout":
+            self.injected_timeouts += 1
+            raise CameraTimeout(f"{self.name}: injected timeout")
+        if fault == "error":
+            raise CameraError(f"{self.name}: injected error")
+        if fault == "boom":
+            raise RuntimeError(f"{self.name}: injected driver bug")
+        if fault == "lost":
+            self.state = "lost"
+            raise CameraLost(f"{self.name}: injected unplug")
+        ts = self.t0_ns + t * self.period_ns
+        wait = (ts - time.monotonic_ns()) / 1e9
+        if wait > timeout_s:
+            time.sleep(timeout_s)
+            raise CameraTimeout(f"{self.name}: not yet")
+        if wait > 0:
+            time.sleep(wait)
+        self.cursor = t + 1
+        img = image(t, self.name) if fault != "bad" else np.zeros((4, 4), np.uint8)
+        return Frame(self.name, t - self.id_base, ts, img)
+
+
+def fake_rig(n: int, period_ns: int, left_script: dict[int, str] | None = None,
+             right_script: dict[int, str] | None = None, **right_kw: object,
+             ) -> tuple[FakeCamera, FakeCamera]:
+    """Module level, so a spawned worker process can build it (via functools.partial)."""
+    t0 = time.monotonic_ns() + 30_000_000
+    return (FakeCamera("left", n, t0, period_ns, script=left_script),
+            FakeCamera("right", n, t0, period_ns, script=right_script,
+                       **right_kw))  # type: ignore[arg-type]
+
+
+@pytest.fixture
+def ring() -> Iterator[StereoRing]:
+    r = StereoRing.create(height=SHAPE[0], width=SHAPE[1], capacity=256)
+    try:
+        yield r
+    finally:
+        r.close()
+        assert not os.path.exists(f"/dev/shm/{r.name}")
+
+
+def check_pair(p: ReadSlot, t0_ns: int, period_ns: int) -> int:
+    """Assert that a ring pair is one trigger's left and right image; return the trigger."""
+    assert p.ts_left_ns == p.ts_right_ns
+    t = (p.ts_left_ns - t0_ns) // period_ns
+    assert p.ts_left_ns == t0_ns + t * period_ns
+    for side, img in (("left", p.left), ("right", p.right)):
+        assert np.array_equal(img, image(t, side)), \
+            f"{side} image of pair {p.frame_id} is not trigger {t}'s"
+    return t
+
+
+def consume(ring: StereoRing, t0_ns: int, period_ns: int, until: Callable[[], bool],
+            quiet_s: float = 0.3, limit_s: float = 30.0) -> list[tuple[int, int]]:
+    """Read and check pairs until ``until()`` and no pair came for ``quiet_s`` s."""
+    got: list[tuple[int, int]] = []
+    last = time.monotonic()
+    end = last + limit_s
+    while time.monotonic() < end:
+        p = ring.read(timeout_s=0.05)
+        if p is None:
+            if ring.finished or (until() and time.monotonic() - last > quiet_s):
+                break
+            continue
+        with p:
+            got.append((p.frame_id, check_pair(p, t0_ns, period_ns)))
+        last = time.monotonic()
+    return got
+
+
+def test_clean_rig_every_trigger_reaches_the_ring_in_threads(ring: StereoRing) -> None:
+    n, period = 150, 2_000_000
+    left, right = fake_rig(n, period)
+    settings = (CameraSettings(fps=500, exposure_s=1e-3, trigger="master"),
+                CameraSettings(fps=500, exposure_s=1e-3, trigger="slave"))
+    acq = Acquisition(left, right, ring, settings=settings)
+    acq.start()
+    try:
+        got = consume(ring, left.t0_ns, period, lambda: left.exhausted and right.exhausted)
+    finally:
+        st = acq.stop()
+    assert [t for _, t in got] == list(range(n))
+    assert [fid for fid, _ in got] == list(range(n))
+    assert (st.frames_left, st.frames_right, st.pairs_written) == (n, n, n)
+    assert st.frames_dropped == 0 and st.lost_left == st.lost_right == 0
+    assert st.timeouts_left == left.exhausted_timeouts  # only the end of the script
+    assert left.configured == [settings[0]] and right.configured == [settings[1]]
+    assert left.state == right.state == "closed"
+    assert st.state == AcquisitionStats.STOPPED
+    assert AcquisitionStats.from_ring(ring) == st  # published to shared memory
+    assert ring.finished
+
+
+def test_camera_faults_are_counted_and_acquisition_recovers(ring: StereoRing) -> None:
+    """Right camera: a timeout, an error, then unplugged at trigger 60 (two failed
+    reopens; its ids restart at 0). Left camera: a wrong-size frame at 200 and a driver
+    bug (RuntimeError) at 250. No pair is ever wrong, every fault is counted once, and
+    pairs flow again after each fault."""
+    n, period = 320, 2_000_000
+    left, right = fake_rig(n, period, left_script={200: "bad", 250: "boom"},
+                           right_script={30: "timeout", 40: "error", 60: "lost"},
+                           open_failures=2, reset_ids=True)
+    opts = AcquisitionOptions(reopen_backoff_s=0.01, read_timeout_s=0.05)
+    acq = Acquisition(left, right, ring, options=opts)
+    acq.start()
+    try:
+        got = consume(ring, left.t0_ns, period, lambda: left.exhausted and right.exhausted)
+    finally:
+        st = acq.stop()
+    triggers = [t for _, t in got]
+    ids = [fid for fid, _ in got]
+    assert all(b > a for a, b in zip(ids, ids[1:]))
+    assert all(fid == t for fid, t in got)  # pair ids stay the left camera's across the faults
+    assert st.timeouts_right == right.injected_timeouts + right.exhausted_timeouts
+    assert right.injected_timeouts == 1
+    assert (st.errors_right, st.lost_right, st.open_failures_right,
+            st.reopens_right) == (1, 1, 2, 1)
+    assert (st.errors_left, st.lost_left, st.reopens_left, st.bad_frames_left) == (1, 1, 1, 1)
+    assert st.resyncs == 1  # the right camera's ids restarted
+    assert st.pairs_written == len(got)
+    assert any(60 < t < 200 for t in triggers), "no pairs after the right camera's return"
+    assert any(t > 255 for t in triggers), "no pairs after the left camera's reopen"
+    assert 200 not in triggers and set(range(60)) <= set(triggers)
+    assert len(got) > n - 120
+
+
+def test_slow_consumer_never_stalls_the_cameras() -> None:
+    """The consumer takes 20 ms per pair; the cameras deliver 400 pairs at 2000 fps:
+    the worker commits every pair (the ring drops the oldest) long before the consumer
+    could have read them, and the counters add up."""
+    n = 400
+    ring = StereoRing.create(height=SHAPE[0], width=SHAPE[1], capacity=4)
+    try:
+        left, right = fake_rig(n, 500_000)
+        acq = Acquisition(left, right, ring)
+        acq.start()
+        t_start = time.monotonic()
+        read = 0
+        while not (left.exhausted and right.exhausted) and time.monotonic() - t_start < 30:
+            p = ring.read(timeout_s=0.05)
+            if p is not None:
+                with p:
+                    time.sleep(0.02)  # a slow decode step, holding the slot
+                    read += 1
+        produced_in = time.monotonic() - t_start
+        st = acq.stop()
+        rs = ring.stats()
+        assert st.pairs_written == n == rs.committed
+        assert read <= produced_in / 0.02 + 2 and read < n / 4  # it saw only a fraction
+        assert rs.dropped_overflow > n / 2
+        assert rs.consumed + rs.dropped_overflow + rs.queued == rs.committed
+    finally:
+        ring.close()
+
+
+def test_wrong_ring_size_is_counted_not_fatal() -> None:
+    ring = StereoRing.create(height=8, width=8, capacity=8)
+    try:
+        left, right = fake_rig(20, 0)
+        st = Acquisition(left, right, ring).run(duration_s=0.5)
+        assert st.bad_frames_left == st.bad_frames_right == 20
+        assert st.pairs_written == 0 and st.state == AcquisitionStats.STOPPED
+    finally:
+        ring.close()
+
+
+def test_camera_that_never_opens_is_retried_until_stop(ring: StereoRing) -> None:
+    left, right = fake_rig(10, 0)
+    right.state, right.open_failures = "lost", 10**6
+    opts = AcquisitionOptions(reopen_backoff_s=0.005, reopen_backoff_max_s=0.02)
+    st = Acquisition(left, right, ring, options=opts).run(duration_s=0.4)
+    assert st.open_failures_right >= 10 and st.reopens_right == 0
+    assert st.frames_left == 10 and st.pairs_written == 0 and st.unpaired_left == 10
+
+
+def test_stop_from_another_thread_is_prompt(ring: StereoRing) -> None:
+    left, right = fake_rig(10**6, 1_000_000)
+    acq = Acquisition(left, right, ring, options=AcquisitionOptions(read_timeout_s=0.05))
+    acq.start()
+    time.sleep(0.3)
+    t = time.monotonic()
+    st = acq.stop()
+    assert time.monotonic() - t < 2.0
+    assert st.state == AcquisitionStats.STOPPED and st.pairs_written > 50
+
+
+def test_options_come_from_a_toml_table(ring: StereoRing) -> None:
+    from iscd.config import ConfigError, build_section
+
+    opt = build_section(AcquisitionOptions, {"ts_tolerance_s": 1e-4, "resync_after": 0},
+                        "daemon.acquisition")
+    assert opt.tolerance_ns(1000) == 100_000 and opt.resync_after == 0
+    assert AcquisitionOptions().tolerance_ns(1000) == 250_000
+    assert AcquisitionOptions().tolerance_ns(None) == 250_000
+    with pytest.raises(ConfigError, match="daemon.acquisition.max_pending"):
+        build_section(AcquisitionOptions, {"max_pending": 0}, "daemon.acquisition")
+    left, right = fake_rig(1, 0)
+    s = CameraSettings(fps=1000, exposure_s=1e-3)
+    with pytest.raises(ValueError, match="half the frame period"):
+        Acquisition(left, right, ring, settings=(s, s),
+                    options=AcquisitionOptions(ts_tolerance_s=6e-4))
+
+
+# ---------------------------------------------------------------------- process worker
+def test_worker_process_feeds_the_ring_by_name(ring: StereoRing) -> None:
+    n, period = 200, 2_000_000
+    factory = functools.partial(fake_rig, n, period)
+    with AcquisitionProcess(factory, ring) as acq:
+        t_wait = time.monotonic()
+        while acq.stats().state != AcquisitionStats.RUNNING and time.monotonic() - t_wait < 30:
+            time.sleep(0.01)
+        st = acq.stats()
+        assert st.pid == acq.pid != os.getpid()
+        # the child's t0 is unknown here: take it from the first pair
+        first = ring.read(timeout_s=10)
+        assert first is not None
+        with first:
+            t0 = first.ts_left_ns - first.frame_id * period
+            check_pair(first, t0, period)
+        got = consume(ring, t0, period, lambda: acq.stats().frames_left >= n)
+        hb1 = acq.stats().heartbeat_ns
+        time.sleep(0.15)
+        assert acq.stats().heartbeat_ns > hb1  # alive
+    st = acq.stats()
+    assert acq.exitcode == 0
+    assert [t for _, t in got] == list(range(1, n))
+    assert st.pairs_written == n and st.frames_dropped == 0
+    assert st.state == AcquisitionStats.STOPPED and ring.finished
+
+
+class _HangingCamera(FakeCamera):
+    def read(self, timeout_s: float = 1.0) -> Frame:
+        time.sleep(3600)  # a driver that ignores its timeout
+        raise AssertionError
+
+
+def hanging_rig() -> tuple[Camera, Camera]:
+    t0 = time.monotonic_ns()
+    return _HangingCamera("left", 1, t0, 0), _HangingCamera("right", 1, t0, 0)
+
+
+def broken_factory() -> tuple[Camera, Camera]:
+    raise CameraError("no cameras here")
+
+
+def test_hung_worker_is_terminated_on_stop(ring: StereoRing) -> None:
+    acq = AcquisitionProcess(hanging_rig, ring)
+    acq.start()
+    t_wait = time.monotonic()
+    while acq.stats().state != AcquisitionStats.RUNNING and time.monotonic() - t_wait < 30:
+        time.sleep(0.01)
+    t = time.monotonic()
+    acq.stop(timeout_s=0.5)
+    assert not acq.is_alive() and time.monotonic() - t < 10
+
+
+def test_factory_failure_is_reported(ring: StereoRing) -> None:
+    acq = AcquisitionProcess(broken_factory, ring)
+    acq.start()
+    acq._proc.join(30)
+    assert acq.exitcode == 3
+    assert acq.stats().state == AcquisitionStats.FAILED and ring.finished
+
+
+# ---------------------------------------------------------------------- the mock rig
+def test_mock_rig_with_faults_feeds_only_true_pairs() -> None:
+    """drivers.mock.MockRig (the simulated scene) with a dropped left frame, a duplicated
+    right frame, the right camera's ids stepping out of line and the right camera
+    vanishing for 40 ms: every pair in the ring is one trigger's two rendered images
+    (checked against the scene), and pairs flow again after each fault."""
+    mock = pytest.importorskip("drivers.mock")
+    from drivers.registry import settings_from_config
+    from iscd.config import loads
+
+    cfg = loads("""
+[transmitter]
+rows = 2
+cols = 2
+symbol_rate_hz = 100
+[camera]
+fps = 200
+exposure_s = 0.002
+width = 64
+height = 48
+[rig]
+pace = true
+[[rig.faults]]
+kind = "drop"
+camera = "left"
+frame = 20
+[[rig.faults]]
+kind = "duplicate"
+camera = "right"
+frame = 30
+[[rig.faults]]
+kind = "id_offset"
+camera = "right"
+frame = 60
+offset = 2
+[[rig.faults]]
+kind = "vanish"
+camera = "right"
+frame = 120
+duration_ms = 40
+""")
+    left, right = mock.MockRig.from_config(cfg)
+    rig = left.rig
+    ring = StereoRing.create(height=48, width=64, capacity=512)
+    try:
+        acq = Acquisition(left, right, ring, settings=(settings_from_config(cfg, "left"),
+                                                       settings_from_config(cfg, "right")))
+        st = acq.run(duration_s=0.9)
+        pairs = []
+        while (p := ring.read()) is not None:
+            with p:
+                pairs.append((p.frame_id, p.left_id, p.right_id, p.ts_left_ns, p.ts_right_ns,
+                              p.left.copy(), p.right.copy()))
+    finally:
+        ring.close()
+    assert st.pairs_written == len(pairs) > 100
+    assert st.duplicates_right == 1 and st.resyncs == 1
+    assert st.lost_right == 1 and st.reopens_right == 1 and st.lost_left == 0
+    assert st.unpaired_right >= 1  # trigger 20's right frame
+    ids = [p[0] for p in pairs]
+    assert 20 not in ids and all(b > a for a, b in zip(ids, ids[1:]))
+    assert any(70 < i < 120 for i in ids) and any(i > 140 for i in ids)
+    period = 1e9 / cfg.camera.fps
+    checked = 0
+    for fid, lid, rid, tl, tr, limg, rimg in pairs:
+        assert tl == tr
+        n = round((tl - rig.trigger_time_ns(0)) / period)
+        assert fid == lid == n and rid == n + (2 if n >= 60 else 0)
+        if fid % 10 == 0 or 55 <= fid <= 75:  # render a sample of them again
+            want_l, want_r = rig.scene.render_pair(n)
+            assert np.array_equal(limg, want_l) and np.array_equal(rimg, want_r)
+            checked += 1
+    assert checked > 20
