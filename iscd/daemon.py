@@ -1,0 +1,264 @@
+"""The real-time daemon: cameras -> ring buffer -> streaming decode -> outputs.
+
+Process layout (2 cores, so decoding and acquisition do not share a GIL):
+
+* the acquisition process (:class:`iscd.acquisition.AcquisitionProcess`) reads both
+  cameras (mock, GenICam or V4L2, per ``[rig]``), pairs frames by trigger id and timestamp
+  and writes pairs into a shared-memory ring (:class:`iscd.ringbuffer.StereoRing`), dropping
+  the oldest pair if the decoder falls behind (counted, never blocking the cameras);
+* this process takes pairs from the ring in small blocks (at most ``block_max`` pairs, so
+  that latency stays low), copies only the pixels the decoder needs once the transmitter
+  is tracked, runs :class:`iscd.pipeline.StreamDecoder` and hands records to the outputs
+  (JSON Lines, optional ZeroMQ socket, optional Rerun view).
+
+A ``stats`` record is written every ``stats_interval_s`` and once at the end. SIGTERM and
+SIGINT stop the loop gracefully (the final stats record is written and the files flushed);
+under systemd the service reports READY/STATUS/WATCHDOG through ``NOTIFY_SOCKET``.
+"""
+
+from __future__ import annotations
+
+import functools
+import logging
+import os
+import signal
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from iscd.config import Config, build_section
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class DaemonSettings:
+    """``[daemon]`` section."""
+
+    ring_ms: float = field(default=250.0, metadata={"lo": 10, "hi": 60_000, "doc": "ring buffer length, ms of frames"})
+    block_max: int = field(default=16, metadata={"lo": 1, "hi": 1024, "doc": "most pairs decoded in one step"})
+    block_wait_ms: float = field(default=4.0, metadata={"lo": 0, "hi": 1000, "doc": "wait this long to fill a block"})
+    stats_interval_s: float = field(default=1.0, metadata={"lo": 0.05, "doc": "stats record period, s"})
+    out: str = field(default="", metadata={"doc": "JSON Lines output (default: none unless --out)"})
+    rotate_mb: float = field(default=256.0, metadata={"lo": 0.001, "doc": "rotate the output file at this size, MiB"})
+    socket: str = field(default="", metadata={"doc": "ZeroMQ PUB endpoint, e.g. tcp://127.0.0.1:5556 ('' = off)"})
+    calibration: str = field(default="", metadata={"doc": "stereo calibration YAML ('' = ideal rig of [camera])"})
+    restart_backoff_s: float = field(default=1.0, metadata={"lo": 0, "doc": "wait before restarting a dead acquisition"})
+
+
+class Daemon:
+    """One run of the daemon (see module docstring)."""
+
+    def __init__(self, cfg: Config, *, out: str | None = None, duration_s: float | None = None,
+                 rerun: dict[str, Any] | None = None, socket: str | None = None,
+                 calibration: str | None = None, install_signals: bool = True) -> None:
+        self.cfg = cfg
+        self.settings: DaemonSettings = build_section(DaemonSettings, dict(cfg.extra.get("daemon", {})), "daemon")
+        self.out_path = out or self.settings.out or None
+        self.duration_s = duration_s
+        self.rerun_opts = rerun
+        self.socket_endpoint = socket if socket is not None else (self.settings.socket or None)
+        self.calibration_path = calibration or self.settings.calibration or None
+        self.install_signals = install_signals
+        self._stop = False
+        self.final_stats: dict[str, Any] | None = None
+        self.records_written = 0
+        self.extra_outputs: list[Any] = []
+
+    def request_stop(self, *_: object) -> None:
+        self._stop = True
+
+    # ------------------------------------------------------------------ helpers
+    def _outputs(self) -> list[Any]:
+        outs: list[Any] = list(self.extra_outputs)
+        if self.out_path:
+            from iscd.outputs.jsonl import JsonlWriter
+
+            Path(self.out_path).parent.mkdir(parents=True, exist_ok=True)
+            outs.append(JsonlWriter(self.out_path, rotate_bytes=int(self.settings.rotate_mb * 2**20)))
+        if self.socket_endpoint:
+            from iscd.outputs.socket import ZmqPublisher
+
+            outs.append(ZmqPublisher(self.socket_endpoint))
+        return outs
+
+    def _rerun(self) -> Any:
+        if not self.rerun_opts:
+            return None
+        from iscd.outputs.rerun_view import RerunView
+
+        return RerunView(**self.rerun_opts)
+
+    # ------------------------------------------------------------------ main loop
+    def run(self) -> dict[str, Any]:
+        """Run until the duration elapses or a stop is requested; returns the final stats."""
+        from calibration.io import load_calibration
+        from drivers.registry import make_stereo, settings_from_config
+        from iscd.acquisition import AcquisitionProcess, AcquisitionStats
+        from iscd.notify import Notifier
+        from iscd.pipeline import StreamDecoder
+        from iscd.ringbuffer import StereoRing, capacity_for
+        from iscd.stats import CpuMeter, LatencyWindow
+
+        cfg, st = self.cfg, self.settings
+        cal = load_calibration(self.calibration_path) if self.calibration_path else None
+        decoder = StreamDecoder(cfg, cal)
+        H, W = cfg.camera.height, cfg.camera.width
+        dtype = np.uint8 if cfg.camera.bit_depth == 8 else np.uint16
+        ring = StereoRing.create(height=H, width=W, capacity=capacity_for(st.ring_ms, cfg.camera.fps), dtype=dtype)
+        factory = functools.partial(make_stereo, cfg)
+        cam_settings = (settings_from_config(cfg, "left"), settings_from_config(cfg, "right"))
+        acq = AcquisitionProcess(factory, ring, settings=cam_settings)
+        outputs = self._outputs()
+        view = self._rerun()
+        notifier = Notifier.from_env()
+        old_handlers = {}
+        if self.install_signals:
+            for sig in (signal.SIGTERM, signal.SIGINT):
+                old_handlers[sig] = signal.signal(sig, self.request_stop)
+        lat = LatencyWindow()
+        cpu = CpuMeter()
+        B = st.block_max
+        blk_l = np.zeros((B, H, W), dtype)
+        blk_r = np.zeros((B, H, W), dtype)
+        ids = np.zeros(B, np.int64)
+        t_s = np.zeros(B, np.float64)
+        arrival = np.zeros(B, np.int64)
+        fps = cfg.camera.fps
+        counters = {"pairs_decoded": 0, "pair_gaps": 0, "acquisition_restarts": 0, "output_errors": 0}
+        t_start = time.monotonic()
+        next_stats = t_start + st.stats_interval_s
+        deadline = t_start + self.duration_s if self.duration_s else None
+        last_frame = -1
+        last_image_frame = -10**9
+        acq.start()
+        notifier.ready(status="acquiring")
+        log.info("daemon started: backend %s, %dx%d @ %g fps, ring %d pairs", cfg.rig.backend, W, H, fps,
+                 ring.capacity)
+
+        def emit(records: list[dict]) -> None:
+            for r in records:
+                for o in outputs:
+                    try:
+                        o.write(r)
+                    except Exception as e:  # an output must never stop decoding
+                        counters["output_errors"] += 1
+                        log.error("output %s failed: %s", type(o).__name__, e)
+                if view is not None:
+                    view.log_record(r)
+            self.records_written += len(records)
+
+        def stats_record(final: bool) -> dict[str, Any]:
+            a = acq.stats()
+            rs = ring.stats()
+            p50, p99 = lat.take()
+            share, rss = cpu.sample([os.getpid()] + ([acq.pid] if acq.pid else []))
+            rec = {"type": "stats", "tx": 0, "frame": int(last_frame), "t_s": round(time.monotonic() - t_start, 3),
+                   "final": final,
+                   "frames_in": int(a.frames_left + a.frames_right),
+                   "frames_dropped": int(a.frames_dropped + rs.dropped_overflow),
+                   "ring_dropped": int(rs.dropped_overflow), "ring_fill": int(rs.queued),
+                   "ring_capacity": int(ring.capacity),
+                   "pairs_decoded": counters["pairs_decoded"],
+                   "packets_ok": decoder.counters["packets_ok"], "packets_bad": decoder.counters["packets_bad"],
+                   "ranges": decoder.counters["ranges"], "tracking": decoder.track is not None,
+                   "latency_ms_p50": p50, "latency_ms_p99": p99,
+                   "cpu_cores": share, "rss_mb": round(rss / 2**20, 1),
+                   "pair_gaps": counters["pair_gaps"],
+                   "acquisition": a.as_dict(), "acquisition_restarts": counters["acquisition_restarts"],
+                   "output_errors": counters["output_errors"]}
+            return rec
+
+        try:
+            while not self._stop:
+                now = time.monotonic()
+                if deadline is not None and now >= deadline:
+                    break
+                if now >= next_stats:
+                    rec = stats_record(False)
+                    emit([rec])
+                    notifier.status(f"pairs {rec['pairs_decoded']} packets ok {rec['packets_ok']} "
+                                    f"bad {rec['packets_bad']} dropped {rec['frames_dropped']}")
+                    next_stats += st.stats_interval_s
+                    if next_stats < now:
+                        next_stats = now + st.stats_interval_s
+                notifier.watchdog()
+                if not acq.is_alive():
+                    log.error("acquisition process died (exit code %s); restarting", acq.exitcode)
+                    counters["acquisition_restarts"] += 1
+                    time.sleep(st.restart_backoff_s)
+                    acq = AcquisitionProcess(factory, ring, settings=cam_settings)
+                    acq.start()
+                    continue
+                # ---- take up to B pairs, waiting at most block_wait_ms for the block to fill
+                n = 0
+                windows = decoder.needed_windows() if hasattr(decoder, "needed_windows") else None
+                t_fill = time.monotonic() + st.block_wait_ms / 1000
+                while n < B:
+                    timeout = max(0.0, t_fill - time.monotonic()) if n else 0.05
+                    slot = ring.read(timeout_s=timeout)
+                    if slot is None:
+                        break
+                    try:
+                        if windows is None:
+                            blk_l[n] = slot.left
+                            blk_r[n] = slot.right
+                        else:
+                            for (x0, y0, x1, y1), src, dst in ((windows[0], slot.left, blk_l),
+                                                               (windows[1], slot.right, blk_r)):
+                                dst[n, y0:y1, x0:x1] = src[y0:y1, x0:x1]
+                        ids[n] = slot.frame_id
+                        t_s[n] = slot.ts_left_ns * 1e-9 if slot.ts_left_ns else slot.frame_id / fps
+                        arrival[n] = slot.arrival_ns
+                    finally:
+                        slot.release()
+                    n += 1
+                    if time.monotonic() >= t_fill:
+                        break
+                if n == 0:
+                    if ring.finished:
+                        break
+                    continue
+                prev = last_frame if last_frame >= 0 else int(ids[0]) - 1
+                steps = np.diff(np.concatenate([[prev], ids[:n]]))
+                counters["pair_gaps"] += int(np.clip(steps - 1, 0, None).sum())
+                records = decoder.push(ids[:n].copy(), t_s[:n].copy(), blk_l[:n], blk_r[:n])
+                done_ns = time.monotonic_ns()
+                counters["pairs_decoded"] += n
+                last_frame = int(ids[n - 1])
+                lat.add((done_ns - arrival[:n]) / 1e6)
+                emit(records)
+                if view is not None and last_frame - last_image_frame >= getattr(view, "image_every", 50):
+                    last_image_frame = last_frame
+                    tr = decoder.track
+                    boxes_l = boxes_r = None
+                    if tr is not None:
+                        boxes_l = np.array([tr.left.bbox(2)], float)
+                        boxes_r = np.array([tr.right.bbox(2)], float)
+                    view.log_images(last_frame, float(t_s[n - 1]), blk_l[n - 1], blk_r[n - 1], boxes_l, boxes_r)
+            records = decoder.finish()
+            emit(records)
+            final = stats_record(True)
+            emit([final])
+            self.final_stats = final
+            notifier.stopping(status="stopped")
+            return final
+        finally:
+            try:
+                acq.stop()
+            except Exception as e:  # pragma: no cover - best effort on the way out
+                log.error("stopping acquisition: %s", e)
+            for o in outputs:
+                try:
+                    o.close()
+                except Exception as e:  # pragma: no cover
+                    log.error("closing output: %s", e)
+            if view is not None:
+                view.close()
+            ring.close()
+            notifier.close()
+            for sig, h in old_handlers.items():
+                signal.signal(sig, h)

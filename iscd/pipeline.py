@@ -1,0 +1,276 @@
+"""The streaming decode pipeline shared by ``iscd run`` (live) and ``iscd replay`` (offline).
+
+Stereo frames arrive in blocks (ids, timestamps, left and right images); the pipeline
+
+1. acquires the transmitter (:func:`iscd.receiver.detect.detect_array` on both cameras,
+   matched on the same rectified rows) and then tracks it block by block;
+2. extracts each LED's luminance in both cameras (ROI mean, eq. 3.10) and feeds the
+   packet assembler (timing, channel estimation, decision, CRC: :mod:`iscd.receiver`);
+3. measures the range every frame (:class:`iscd.stereo_range.StereoRanger`);
+
+and returns JSON-ready records (SPEC section 7). It holds no threads and does no I/O, so
+``replay`` and the daemon produce the same records from the same frames.
+
+A candidate that blinks but never sends a header within ``verify_packets`` packet
+durations (a flickering lamp) is excluded and acquisition starts again; a steady light
+never shows in the temporal gradient at all.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from collections import deque
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from calibration.io import StereoCalibration
+from iscd.airinterface import AirInterface
+from iscd.config import Config, build_section
+from iscd.receiver.detect import GridFit, detect_array, match_stereo, track_array
+from iscd.stereo_range import RangingSettings, StereoRanger
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class PipelineSettings:
+    """``[receiver]`` section keys used by the pipeline."""
+
+    acquire_frames: int = field(default=64, metadata={"lo": 8, "hi": 1024, "doc": "frames per detection attempt"})
+    track_every_frames: int = field(default=32, metadata={"lo": 4, "hi": 4096, "doc": "re-fit the LED grid this often"})
+    verify_packets: float = field(default=2.5, metadata={"lo": 1.2, "doc": "packets to wait for a header before rejecting a candidate"})
+    lost_score_ratio: float = field(default=0.2, metadata={"lo": 0, "hi": 1, "doc": "grid score below this share of the first fit = lost"})
+    roi_radius_px: int = field(default=1, metadata={"lo": 0, "hi": 8, "doc": "luminance ROI half-size, px ((2r+1)^2 pixels)"})
+    rule: str = field(default="iscd", metadata={"choices": ("iscd", "dissertation", "left", "right"), "doc": "decision rule"})
+    ranging: bool = field(default=True, metadata={"doc": "measure the range every frame"})
+
+
+def roi_mean(frames: np.ndarray, centers: np.ndarray, radius: int = 1) -> np.ndarray:
+    """Mean grey level of a (2r+1)² ROI around each LED centre in each frame (eq. 3.10).
+
+    frames: (n, H, W); centers: (N, 2) x, y px. Returns (n, N) float32. ROIs are clipped to
+    the image. Only the ROI pixels are read (one fancy-indexing gather for all LEDs).
+    """
+    n, H, W = frames.shape
+    off = np.arange(-radius, radius + 1)
+    cx = np.clip(np.rint(centers[:, 0]).astype(np.int64), 0, W - 1)
+    cy = np.clip(np.rint(centers[:, 1]).astype(np.int64), 0, H - 1)
+    xs = np.clip(cx[:, None, None] + off[None, None, :], 0, W - 1)  # (N, 1, k)
+    ys = np.clip(cy[:, None, None] + off[None, :, None], 0, H - 1)  # (N, k, 1)
+    vals = frames[:, ys, xs]  # (n, N, k, k)
+    return vals.reshape(n, centers.shape[0], -1).mean(axis=2, dtype=np.float32)
+
+
+def _clip(b: tuple[int, int, int, int], W: int, H: int) -> tuple[int, int, int, int]:
+    return max(0, b[0]), max(0, b[1]), min(W, b[2]), min(H, b[3])
+
+
+def _union(a: tuple[int, int, int, int], b: tuple[int, int, int, int]) -> tuple[int, int, int, int]:
+    return min(a[0], b[0]), min(a[1], b[1]), max(a[2], b[2]), max(a[3], b[3])
+
+
+def _track_window(fit: GridFit, W: int, H: int) -> tuple[int, int, int, int]:
+    """The pixels that tracking and luminance read around a fit (as track_array's margin)."""
+    return _clip(fit.bbox(2 * fit.pitch_px + 4), W, H)
+
+
+@dataclass
+class _Track:
+    left: GridFit
+    right: GridFit
+    first_score: float
+    since_frame: int
+    last_header_frame: int | None = None
+    low_blocks: int = 0
+
+
+class StreamDecoder:
+    """Decodes one transmitter from a stream of stereo frame blocks (see module docstring)."""
+
+    def __init__(self, cfg: Config, calibration: StereoCalibration | None = None, *, tx_index: int = 0,
+                 settings: PipelineSettings | None = None, ranging: RangingSettings | None = None) -> None:
+        self.cfg = cfg
+        self.tx_index = tx_index
+        self.settings = settings or build_section(PipelineSettings, dict(cfg.extra.get("receiver", {})), "receiver")
+        rs = ranging or build_section(RangingSettings, dict(cfg.extra.get("ranging", {})), "ranging")
+        self.cal = calibration or StereoCalibration.ideal(cfg.camera)
+        self.ranger = StereoRanger(self.cal, rs) if self.settings.ranging else None
+        self.air = AirInterface.from_config(cfg.transmitter)
+        self.rows, self.cols = cfg.transmitter.rows, cfg.transmitter.cols
+        self.fps = cfg.camera.fps
+        self.packet_frames = self.air.period_symbols * self.fps / cfg.transmitter.symbol_rate_hz
+        self.track: _Track | None = None
+        self.excluded: list[tuple[int, int, int, int]] = []
+        self._acq_l: deque[np.ndarray] = deque(maxlen=self.settings.acquire_frames)
+        self._acq_r: deque[np.ndarray] = deque(maxlen=self.settings.acquire_frames)
+        self._since_fit = 0
+        self._blk_l: list[np.ndarray] = []
+        self._blk_r: list[np.ndarray] = []
+        self._win: tuple[tuple[int, int, int, int], tuple[int, int, int, int]] = ((0, 0, 0, 0), (0, 0, 0, 0))
+        self.assembler = self._make_assembler()
+        self.counters: dict[str, int] = {"acquisitions": 0, "losses": 0, "rejected_candidates": 0,
+                                         "packets_ok": 0, "packets_bad": 0, "ranges": 0,
+                                         "frames_decoded": 0}
+
+    # ------------------------------------------------------------------ demodulation hook
+    def _make_assembler(self) -> Any:
+        from iscd.receiver.packets import PacketAssembler
+
+        return PacketAssembler(self.cfg.transmitter, fps=self.fps, exposure_s=self.cfg.camera.exposure_s,
+                               rule=self.settings.rule)
+
+    def _demod(self, frame_ids: np.ndarray, t_s: np.ndarray, lum_l: np.ndarray, lum_r: np.ndarray) -> list[dict]:
+        out: list[dict] = []
+        for pkt in self.assembler.push(frame_ids, t_s, lum_l, lum_r):
+            ok = bool(pkt.crc_ok)
+            self.counters["packets_ok" if ok else "packets_bad"] += 1
+            if self.track is not None:
+                self.track.last_header_frame = int(pkt.frame)
+            rec: dict[str, Any] = {"type": "packet", "tx": self.tx_index, "frame": int(pkt.frame),
+                                   "t_s": float(pkt.t_s), "crc_ok": ok,
+                                   "payload_hex": pkt.payload.hex() if ok else "",
+                                   "levels": np.asarray(pkt.levels).astype(int).ravel().tolist()}
+            for k in ("drift_ppm", "margin", "rule"):
+                v = getattr(pkt, k, None)
+                if v is not None:
+                    rec[k] = float(v) if isinstance(v, (float, np.floating)) else v
+            out.append(rec)
+        return out
+
+    # ------------------------------------------------------------------ main entry
+    def push(self, frame_ids: np.ndarray, t_s: np.ndarray, left: np.ndarray, right: np.ndarray) -> list[dict]:
+        """Process a block of stereo frames; returns the records it produced.
+
+        frame_ids: (n,) int (left-camera frame ids of the pairs); t_s: (n,) exposure start,
+        s; left/right: (n, H, W) images of the same pairs.
+        """
+        n = len(frame_ids)
+        if n == 0:
+            return []
+        records: list[dict] = []
+        if self.track is None:
+            self._acquire(frame_ids, left, right)
+            if self.track is None:
+                return records
+        tr = self.track
+        self.counters["frames_decoded"] += n
+        lum_l = roi_mean(left, tr.left.centers, self.settings.roi_radius_px)
+        lum_r = roi_mean(right, tr.right.centers, self.settings.roi_radius_px)
+        records += self._demod(np.asarray(frame_ids), np.asarray(t_s, dtype=np.float64), lum_l, lum_r)
+        if self.ranger is not None:
+            res = self.ranger.measure(left, right, tr.left, tr.right)
+            for i in range(n):
+                if math.isfinite(res.z_m[i]):
+                    records.append({"type": "range", "tx": self.tx_index, "frame": int(frame_ids[i]),
+                                    "t_s": float(t_s[i]), "z_m": float(res.z_m[i]),
+                                    "disparity_px": float(res.disparity_px[i]),
+                                    "sigma_m": float(res.sigma_m[i])})
+            self.counters["ranges"] += int(np.isfinite(res.z_m).sum())
+        self._retrack(frame_ids, left, right)
+        return records
+
+    def finish(self) -> list[dict]:
+        """End of stream: decode what the assembler still holds."""
+        flush = getattr(self.assembler, "flush", None)
+        if flush is None:
+            return []
+        out: list[dict] = []
+        for pkt in flush():
+            ok = bool(pkt.crc_ok)
+            self.counters["packets_ok" if ok else "packets_bad"] += 1
+            out.append({"type": "packet", "tx": self.tx_index, "frame": int(pkt.frame), "t_s": float(pkt.t_s),
+                        "crc_ok": ok, "payload_hex": pkt.payload.hex() if ok else "",
+                        "levels": np.asarray(pkt.levels).astype(int).ravel().tolist()})
+        return out
+
+    def needed_windows(self) -> tuple[tuple[int, int, int, int], tuple[int, int, int, int]] | None:
+        """(left, right) pixel windows (x0, y0, x1, y1) that :meth:`push` will read, or
+        ``None`` while acquiring (then it needs whole frames). Lets the daemon copy only
+        these pixels out of the ring."""
+        tr = self.track
+        if tr is None:
+            return None
+        W, H = self.cfg.camera.width, self.cfg.camera.height
+        wl, wr = _track_window(tr.left, W, H), _track_window(tr.right, W, H)
+        if self._blk_l:
+            wl, wr = _union(wl, self._win[0]), _union(wr, self._win[1])
+        if self.ranger is not None:
+            x0l, y0, x0r, w, h = self.ranger.patch_geometry(tr.left, tr.right)
+            if self.ranger.identity:
+                wl = _union(wl, _clip((x0l, y0, x0l + w, y0 + h), W, H))
+                wr = _union(wr, _clip((x0r, y0, x0r + w, y0 + h), W, H))
+            else:  # rectification reads around the patch: be generous
+                return None
+        return wl, wr
+
+    # ------------------------------------------------------------------ acquisition/tracking
+    def _acquire(self, frame_ids: np.ndarray, left: np.ndarray, right: np.ndarray) -> None:
+        for i in range(len(frame_ids)):  # copies: the caller may reuse its buffers
+            self._acq_l.append(np.array(left[i]))
+            self._acq_r.append(np.array(right[i]))
+        if len(self._acq_l) < self._acq_l.maxlen:  # type: ignore[operator]
+            return
+        L = np.stack(self._acq_l)
+        R = np.stack(self._acq_r)
+        self._acq_l.clear()
+        self._acq_r.clear()
+        fl = detect_array(L, self.rows, self.cols, exclude=self.excluded)
+        if fl is None:
+            return
+        fr = detect_array(R, self.rows, self.cols)
+        cands = [fr] if fr is not None else []
+        fr = match_stereo(fl, cands, max_dy=3.0 + 0.5 * fl.spot_px) if cands else None
+        if fr is None:
+            log.debug("transmitter seen in the left camera at %s but not matched in the right", fl.center)
+            return
+        self.track = _Track(left=fl, right=fr, first_score=min(fl.score, fr.score),
+                            since_frame=int(frame_ids[-1]))
+        self.counters["acquisitions"] += 1
+        self.assembler = self._make_assembler()
+        log.info("transmitter acquired: left %.1f,%.1f right %.1f,%.1f pitch %.2f px",
+                 *fl.center, *fr.center, fl.pitch_px)
+
+    def _retrack(self, frame_ids: np.ndarray, left: np.ndarray, right: np.ndarray) -> None:
+        tr = self.track
+        assert tr is not None
+        H, W = left.shape[1:]
+        if not self._blk_l:
+            self._win = (_track_window(tr.left, W, H), _track_window(tr.right, W, H))
+        (ax0, ay0, ax1, ay1), (bx0, by0, bx1, by1) = self._win
+        # keep only the tracking windows (the caller may reuse its frame buffers)
+        self._blk_l.append(np.array(left[:, ay0:ay1, ax0:ax1]))
+        self._blk_r.append(np.array(right[:, by0:by1, bx0:bx1]))
+        self._since_fit += len(frame_ids)
+        if self._since_fit < self.settings.track_every_frames:
+            return
+        L = np.concatenate(self._blk_l)
+        R = np.concatenate(self._blk_r)
+        self._blk_l.clear()
+        self._blk_r.clear()
+        self._since_fit = 0
+        try:
+            nl = track_array(L, tr.left.shifted(-ax0, -ay0)).shifted(ax0, ay0)
+            nr = track_array(R, tr.right.shifted(-bx0, -by0)).shifted(bx0, by0)
+        except ValueError:
+            nl = nr = None  # type: ignore[assignment]
+        score = min(nl.score, nr.score) if nl is not None and nr is not None else 0.0
+        if score < self.settings.lost_score_ratio * tr.first_score:
+            tr.low_blocks += 1
+        else:
+            tr.low_blocks = 0
+            tr.left, tr.right = nl, nr  # type: ignore[assignment]
+        last = tr.last_header_frame if tr.last_header_frame is not None else tr.since_frame
+        if tr.low_blocks >= 3:
+            log.warning("transmitter lost at frame %d; re-acquiring", int(frame_ids[-1]))
+            self.counters["losses"] += 1
+            self.track = None
+        elif frame_ids[-1] - last > self.settings.verify_packets * self.packet_frames:
+            log.warning("candidate at %.0f,%.0f sent no header for %.1f packets: not a transmitter; excluded",
+                        *tr.left.center, self.settings.verify_packets)
+            self.counters["rejected_candidates"] += 1
+            self.excluded.append(tr.left.bbox(4))
+            self.track = None

@@ -1,0 +1,329 @@
+"""Detection of LEDs and LED arrays from spatial and temporal gradients, and grid fitting.
+
+The dissertation finds the LED array with the spatial and temporal gradients of the image
+sequence (Sobel on a frame and between neighbouring frames, its reference [71]) and each
+LED's position by contour detection ([81]). Here:
+
+1. :func:`activity_map`: the temporal gradient, mean |I[n+1] - I[n]| over a block of frames
+   (grey levels per frame). A transmitting LED changes level every symbol, so it is
+   active; a steady light (street lamp, glint) and the static background are not — their
+   frame differences are only sensor noise.
+2. :func:`spatial_gradient`: the Sobel gradient magnitude of the block's mean frame; a
+   light source is a compact bright spot with strong edges.
+3. :func:`find_blobs`: threshold the activity above the noise (robust MAD estimate),
+   contours (``cv2.findContours``), keep blobs whose edges show in the spatial gradient.
+4. :func:`fit_grid`: the configured ``rows x cols`` grid (row-major LED order, axis
+   aligned; a car's roll is small) fitted to the activity map: pitch and origin maximise
+   the activity sampled at the grid points. At 50 m the LEDs of an 8x8 array are 4.2 px
+   apart and their spots touch, so the grid is fitted to the whole array, never to single
+   contours.
+
+All coordinates are in px, x right and y down, pixel centres at integers.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+import cv2
+import numpy as np
+from scipy import ndimage, optimize
+
+
+@dataclass(frozen=True)
+class GridFit:
+    """An LED array (or one LED) located in one camera.
+
+    origin: (x, y) of LED 0 (top-left), px. pitch_px: LED spacing, px (0 for one LED).
+    rows, cols: the configured layout. score: mean activity at the grid points (grey
+    levels per frame). spot_px: estimated spot diameter, px.
+    """
+
+    origin: tuple[float, float]
+    pitch_px: float
+    rows: int
+    cols: int
+    score: float
+    spot_px: float = 3.0
+
+    @property
+    def centers(self) -> np.ndarray:
+        """(N, 2) LED centres (x, y) in px, row-major LED order."""
+        r, c = np.mgrid[0:self.rows, 0:self.cols]
+        x = self.origin[0] + c.ravel() * self.pitch_px
+        y = self.origin[1] + r.ravel() * self.pitch_px
+        return np.stack([x, y], axis=1).astype(np.float64)
+
+    @property
+    def center(self) -> tuple[float, float]:
+        """Centre of the array, px."""
+        return (self.origin[0] + (self.cols - 1) / 2 * self.pitch_px,
+                self.origin[1] + (self.rows - 1) / 2 * self.pitch_px)
+
+    def bbox(self, margin: float = 0.0) -> tuple[int, int, int, int]:
+        """Integer (x0, y0, x1, y1) bounds (x1, y1 exclusive) of the array plus ``margin`` px."""
+        half = self.spot_px / 2 + margin
+        xs = (self.origin[0], self.origin[0] + (self.cols - 1) * self.pitch_px)
+        ys = (self.origin[1], self.origin[1] + (self.rows - 1) * self.pitch_px)
+        return (int(np.floor(xs[0] - half)), int(np.floor(ys[0] - half)),
+                int(np.ceil(xs[1] + half)) + 1, int(np.ceil(ys[1] + half)) + 1)
+
+    def shifted(self, dx: float, dy: float) -> "GridFit":
+        return replace(self, origin=(self.origin[0] + dx, self.origin[1] + dy))
+
+
+@dataclass(frozen=True)
+class Blob:
+    """A connected active region: centroid (x, y) px, area px², peak activity, bbox."""
+
+    x: float
+    y: float
+    area: float
+    peak: float
+    bbox: tuple[int, int, int, int]
+
+
+def activity_map(frames: np.ndarray) -> np.ndarray:
+    """Temporal gradient: mean absolute difference of consecutive frames, (H, W) float32.
+
+    ``frames``: (n, H, W) uint8/uint16, n >= 2. Units: grey levels per frame.
+    """
+    f = np.asarray(frames)
+    if f.ndim != 3 or f.shape[0] < 2:
+        raise ValueError(f"need a (n >= 2, H, W) block of frames, got shape {f.shape}")
+    acc = np.zeros(f.shape[1:], dtype=np.float32)
+    prev = f[0].astype(np.int16)
+    for k in range(1, f.shape[0]):  # per frame, vectorized over pixels; n is small (~64)
+        cur = f[k].astype(np.int16)
+        acc += np.abs(cur - prev)
+        prev = cur
+    return acc / (f.shape[0] - 1)
+
+
+def spatial_gradient(image: np.ndarray) -> np.ndarray:
+    """Sobel gradient magnitude of ``image`` (grey levels per px), float32."""
+    im = np.asarray(image, dtype=np.float32)
+    gx = cv2.Sobel(im, cv2.CV_32F, 1, 0, ksize=3)
+    gy = cv2.Sobel(im, cv2.CV_32F, 0, 1, ksize=3)
+    return cv2.magnitude(gx, gy)
+
+
+def noise_level(act: np.ndarray) -> float:
+    """Robust noise level of an activity map: median + 1.4826 * MAD (grey levels/frame)."""
+    med = float(np.median(act))
+    mad = float(np.median(np.abs(act - med)))
+    return med + 1.4826 * mad
+
+
+def find_blobs(act: np.ndarray, mean_frame: np.ndarray | None = None, *, k_sigma: float = 8.0,
+               min_activity: float = 4.0, min_edge: float = 8.0) -> list[Blob]:
+    """Active compact regions of an activity map, strongest first.
+
+    A pixel is active above ``max(min_activity, median + k_sigma * 1.4826 MAD)``. Each
+    contour's blob must show a spatial edge (Sobel magnitude of ``mean_frame`` >=
+    ``min_edge`` grey levels/px somewhere inside) when ``mean_frame`` is given.
+    """
+    med = float(np.median(act))
+    mad = float(np.median(np.abs(act - med)))
+    thr = max(min_activity, med + k_sigma * 1.4826 * max(mad, 0.05))
+    mask = (act > thr).astype(np.uint8)
+    if not mask.any():
+        return []
+    contours, _ = cv2.findContours(mask, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
+    grad = spatial_gradient(mean_frame) if mean_frame is not None else None
+    blobs: list[Blob] = []
+    for c in contours:
+        x, y, w, h = cv2.boundingRect(c)
+        sub = act[y:y + h, x:x + w]
+        m = mask[y:y + h, x:x + w].astype(bool)
+        wts = np.where(m, sub - thr, 0.0)
+        tot = float(wts.sum())
+        if tot <= 0:
+            continue
+        if grad is not None:
+            g = grad[max(0, y - 1):y + h + 1, max(0, x - 1):x + w + 1]
+            if float(g.max()) < min_edge:
+                continue
+        yy, xx = np.mgrid[y:y + h, x:x + w]
+        blobs.append(Blob(x=float((wts * xx).sum() / tot), y=float((wts * yy).sum() / tot),
+                          area=float(m.sum()), peak=float(sub.max()), bbox=(x, y, x + w, y + h)))
+    blobs.sort(key=lambda b: -b.peak * b.area)
+    return blobs
+
+
+def group_blobs(blobs: list[Blob], max_gap: float) -> list[list[Blob]]:
+    """Cluster blobs whose bounding boxes are closer than ``max_gap`` px (single linkage)."""
+    n = len(blobs)
+    parent = list(range(n))
+
+    def find(i: int) -> int:
+        while parent[i] != i:
+            parent[i] = parent[parent[i]]
+            i = parent[i]
+        return i
+
+    for i in range(n):
+        for j in range(i + 1, n):
+            a, b = blobs[i].bbox, blobs[j].bbox
+            gx = max(a[0] - b[2], b[0] - a[2], 0)
+            gy = max(a[1] - b[3], b[1] - a[3], 0)
+            if max(gx, gy) <= max_gap:
+                parent[find(i)] = find(j)
+    groups: dict[int, list[Blob]] = {}
+    for i in range(n):
+        groups.setdefault(find(i), []).append(blobs[i])
+    return sorted(groups.values(), key=lambda g: -sum(b.peak * b.area for b in g))
+
+
+def _grid_score(smooth: np.ndarray, origin: np.ndarray, pitch: float, rows: int, cols: int) -> float:
+    r, c = np.mgrid[0:rows, 0:cols]
+    xs = origin[0] + c.ravel() * pitch
+    ys = origin[1] + r.ravel() * pitch
+    vals = ndimage.map_coordinates(smooth, [ys, xs], order=1, mode="constant", cval=0.0)
+    return float(vals.mean())
+
+
+def fit_grid(act: np.ndarray, rows: int, cols: int, region: tuple[int, int, int, int] | None = None,
+             pitch_guess: float | None = None, origin_guess: tuple[float, float] | None = None,
+             pitch_range: tuple[float, float] = (1.5, 200.0)) -> GridFit:
+    """Fit a ``rows x cols`` LED grid to an activity map (see module docstring).
+
+    region: (x0, y0, x1, y1) px to look in (default: the whole map). pitch_guess /
+    origin_guess: a previous fit to refine (tracking); otherwise the pitch starts from the
+    second moments of the activity (a uniform grid of n points at pitch p has variance
+    p²(n²-1)/12 along that axis) and the origin from its centroid.
+    """
+    H, W = act.shape
+    x0, y0, x1, y1 = region if region is not None else (0, 0, W, H)
+    x0, y0, x1, y1 = max(0, x0), max(0, y0), min(W, x1), min(H, y1)
+    if x1 - x0 < 2 or y1 - y0 < 2:
+        raise ValueError(f"empty region {region}")
+    sub = act[y0:y1, x0:x1].astype(np.float64)
+    base = np.median(sub) if sub.size > 16 else 0.0
+    wts = np.clip(sub - base, 0, None)
+    smooth = ndimage.gaussian_filter(wts, 0.7)
+    tot = wts.sum()
+    if tot <= 0:
+        raise ValueError("no activity in the region")
+    yy, xx = np.mgrid[0:sub.shape[0], 0:sub.shape[1]]
+    mx, my = (wts * xx).sum() / tot, (wts * yy).sum() / tot
+    # spot size from the activity above half its peak, per LED
+    n_leds = rows * cols
+    spot = max(1.0, 2.0 * np.sqrt((wts > 0.5 * wts.max()).sum() / max(n_leds, 1) / np.pi))
+    if pitch_guess is None:
+        ests = []
+        if cols > 1:
+            vx = (wts * (xx - mx) ** 2).sum() / tot
+            ests.append(np.sqrt(max(vx - (spot / 2.5) ** 2, 1e-6) * 12 / (cols ** 2 - 1)))
+        if rows > 1:
+            vy = (wts * (yy - my) ** 2).sum() / tot
+            ests.append(np.sqrt(max(vy - (spot / 2.5) ** 2, 1e-6) * 12 / (rows ** 2 - 1)))
+        pitch_guess = float(np.mean(ests)) if ests else 0.0
+    if n_leds == 1:
+        return GridFit(origin=(x0 + mx, y0 + my), pitch_px=0.0, rows=1, cols=1,
+                       score=float(smooth.max()), spot_px=float(spot))
+    if origin_guess is None:
+        og = np.array([mx - (cols - 1) / 2 * pitch_guess, my - (rows - 1) / 2 * pitch_guess])
+    else:
+        og = np.array([origin_guess[0] - x0, origin_guess[1] - y0])
+    lo, hi = pitch_range
+    best = (-np.inf, og, pitch_guess)
+    # coarse search over pitch scale and sub-pitch offsets, then a local polish
+    for s in np.linspace(0.9, 1.1, 9):
+        p = float(np.clip(pitch_guess * s, lo, hi))
+        c0 = np.array([mx, my]) - np.array([(cols - 1) / 2, (rows - 1) / 2]) * p if origin_guess is None else og
+        for dx in np.linspace(-0.5, 0.5, 5) * p:
+            for dy in np.linspace(-0.5, 0.5, 5) * p:
+                o = c0 + (dx, dy)
+                sc = _grid_score(smooth, o, p, rows, cols)
+                if sc > best[0]:
+                    best = (sc, o, p)
+
+    def neg(v: np.ndarray) -> float:
+        return -_grid_score(smooth, v[:2], float(np.clip(v[2], lo, hi)), rows, cols)
+
+    res = optimize.minimize(neg, np.array([*best[1], best[2]]), method="Nelder-Mead",
+                            options={"xatol": 1e-3, "fatol": 1e-6, "maxiter": 400})
+    v = res.x if -res.fun >= best[0] else np.array([*best[1], best[2]])
+    p = float(np.clip(v[2], lo, hi))
+    return GridFit(origin=(x0 + float(v[0]), y0 + float(v[1])), pitch_px=p, rows=rows, cols=cols,
+                   score=float(-neg(v)), spot_px=float(spot))
+
+
+def detect_array(frames: np.ndarray, rows: int, cols: int, *, exclude: list[tuple[int, int, int, int]] | None = None,
+                 ) -> GridFit | None:
+    """Find the transmitter (a ``rows x cols`` array, or one LED) in a block of frames.
+
+    ``frames``: (n, H, W), n >= 8 frames that include symbol changes (any 64 frames of a
+    packet do). ``exclude``: bboxes of candidates already rejected (e.g. a flickering lamp
+    that never sent a header). Returns ``None`` if nothing blinks.
+    """
+    act = activity_map(frames)
+    mean = frames.mean(axis=0, dtype=np.float32)
+    blobs = find_blobs(act, mean)
+    if exclude:
+        blobs = [b for b in blobs if not any(e[0] <= b.x < e[2] and e[1] <= b.y < e[3] for e in exclude)]
+    if not blobs:
+        return None
+    n = rows * cols
+    if n == 1:
+        b = blobs[0]
+        pad = 3
+        return fit_grid(act, 1, 1, region=(b.bbox[0] - pad, b.bbox[1] - pad, b.bbox[2] + pad, b.bbox[3] + pad))
+    # group blobs of one array: LEDs of an array are at most ~a pitch apart; a pitch is at
+    # most about the size of the largest blob's spot
+    size = max(max(b.bbox[2] - b.bbox[0], b.bbox[3] - b.bbox[1]) for b in blobs[:n])
+    groups = group_blobs(blobs, max_gap=max(3.0, 2.0 * size))
+    best: GridFit | None = None
+    for g in groups[:3]:
+        bx0 = min(b.bbox[0] for b in g) - 3
+        by0 = min(b.bbox[1] for b in g) - 3
+        bx1 = max(b.bbox[2] for b in g) + 3
+        by1 = max(b.bbox[3] for b in g) + 3
+        try:
+            fit = fit_grid(act, rows, cols, region=(bx0, by0, bx1, by1))
+        except ValueError:
+            continue
+        if best is None or fit.score > best.score:
+            best = fit
+    return best
+
+
+def track_array(frames: np.ndarray, prev: GridFit, *, margin: float | None = None) -> GridFit:
+    """Refine ``prev`` on a new block of frames (the array moved and grew a little).
+
+    Only a window of ``margin`` px (default: 2 pitches + 4 px) around the previous fit is
+    read, so tracking touches only the pixels it needs.
+    """
+    m = margin if margin is not None else 2 * prev.pitch_px + 4
+    x0, y0, x1, y1 = prev.bbox(m)
+    H, W = frames.shape[1:]
+    x0, y0, x1, y1 = max(0, x0), max(0, y0), min(W, x1), min(H, y1)
+    act = np.zeros(frames.shape[1:], np.float32)
+    act[y0:y1, x0:x1] = activity_map(frames[:, y0:y1, x0:x1])
+    if prev.rows * prev.cols == 1:
+        return fit_grid(act, 1, 1, region=(x0, y0, x1, y1))
+    return fit_grid(act, prev.rows, prev.cols, region=(x0, y0, x1, y1), pitch_guess=prev.pitch_px,
+                    origin_guess=prev.origin)
+
+
+def match_stereo(left: GridFit, right_candidates: list[GridFit], max_dy: float = 3.0,
+                 max_disparity: float = 400.0) -> GridFit | None:
+    """The right-camera fit that is the same transmitter as ``left`` (rectified images).
+
+    Same rows (|dy| <= ``max_dy`` px), positive disparity up to ``max_disparity`` px and a
+    pitch within 15 %; the closest in y wins.
+    """
+    best, best_dy = None, np.inf
+    lx, ly = left.center
+    for r in right_candidates:
+        rx, ry = r.center
+        d = lx - rx
+        dy = abs(ly - ry)
+        if dy > max_dy or not (-1.0 <= d <= max_disparity):
+            continue
+        if left.pitch_px > 0 and abs(r.pitch_px - left.pitch_px) > 0.15 * left.pitch_px:
+            continue
+        if dy < best_dy:
+            best, best_dy = r, dy
+    return best
