@@ -1,0 +1,90 @@
+"""Ranging throughput: range estimates per second, as a ratio to the 1000/s camera rate.
+
+Cases (all on rendered, saturating LED spots with realistic noise):
+- ``1 LED``: one 16x16 patch pair per call (what a single traffic light needs per frame);
+- ``8x8 per LED``: 64 patch pairs in one batched call (per-LED ranges of an array);
+- ``8x8 whole``: one 40x40 patch pair per call (the whole array in one estimate).
+
+Each line prints estimates/s, the ratio to 1000/s (>= 1 keeps up with 1000 fps for that
+case on one core), and the time per call as a multiple of a baseline measured in the same
+process: one ``np.fft.fft2`` of the same batch of patches. Run ``python
+benchmarks/bench_ranging.py [--quick] [--methods iscd,dissertation,...]``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from collections.abc import Callable, Sequence
+
+import numpy as np
+
+from iscd.ranging.estimators import METHODS, get_estimator
+from iscd.ranging.synth import disk_spots, sensor
+
+TARGET_PER_S = 1000.0
+
+
+def best_time(fn: Callable[[], object], min_total_s: float, repeats: int) -> float:
+    """Best (minimum) seconds per call over ``repeats`` rounds of at least ``min_total_s``."""
+    fn()                                            # warm-up (caches, imports)
+    best = float("inf")
+    for _ in range(repeats):
+        n, t0 = 0, time.perf_counter()
+        while True:
+            fn()
+            n += 1
+            dt = time.perf_counter() - t0
+            if dt >= min_total_s:
+                break
+        best = min(best, dt / n)
+    return best
+
+
+def make_pairs(n: int, size: int, rng: np.random.Generator, spots: int = 1) -> tuple[np.ndarray, np.ndarray]:
+    if spots == 1:
+        cx = size / 2 - 0.5 + rng.uniform(-0.5, 0.5, n)
+        d = rng.uniform(-1, 1, n)
+        left = disk_spots(n, (size, size), cx + d / 2, size / 2 - 0.3, 1.2, peak=500)
+        right = disk_spots(n, (size, size), cx - d / 2, size / 2 - 0.3, 1.2, peak=500)
+    else:                                            # an 8x8 array, 4.2 px pitch
+        g = (np.arange(8) - 3.5) * 4.2
+        gx, gy = np.meshgrid(g, g)
+        cx = (size / 2 - 0.5 + gx.ravel())[None, :].repeat(n, 0)
+        cy = (size / 2 - 0.5 + gy.ravel())[None, :].repeat(n, 0)
+        left = disk_spots(n, (size, size), cx + 0.3, cy, 0.6, peak=400)
+        right = disk_spots(n, (size, size), cx - 0.3, cy, 0.6, peak=400)
+    return sensor(left, rng, 40, 0.26, 78), sensor(right, rng, 40, 0.26, 78)
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--quick", action="store_true", help="short timing rounds (a smoke run, noisier numbers)")
+    ap.add_argument("--methods", default="iscd,dissertation,poc,cv2,skimage,centroid",
+                    help="comma-separated estimators to time (default: all peers)")
+    args = ap.parse_args(argv)
+    methods = [m.strip() for m in args.methods.split(",") if m.strip()]
+    for m in methods:
+        if m not in METHODS:
+            ap.error(f"unknown method {m!r} (known: {', '.join(METHODS)})")
+    min_total, repeats = (0.05, 2) if args.quick else (0.4, 5)
+    rng = np.random.default_rng(0)
+    cases = [("1 LED", *make_pairs(1, 16, rng), 1),
+             ("8x8 per LED", *make_pairs(64, 16, rng), 64),
+             ("8x8 whole", *make_pairs(1, 40, rng, spots=64), 1)]
+    print(f"ranging throughput (target {TARGET_PER_S:.0f} estimates/s); ratio >= 1 keeps up; "
+          f"x fft2 = time per call / one np.fft.fft2 of the same batch")
+    print(f"{'case':<12} {'method':<14} {'estimates/s':>12} {'ratio':>8} {'us/call':>10} {'x fft2':>8}")
+    for name, left, right, per_call in cases:
+        t_fft = best_time(lambda: np.fft.fft2(left), min_total, repeats)
+        for m in methods:
+            est = get_estimator(m)
+            t = best_time(lambda: est.estimate(left, right), min_total, repeats)
+            rate = per_call / t
+            print(f"{name:<12} {m:<14} {rate:12.0f} {rate / TARGET_PER_S:8.2f} {t * 1e6:10.1f} {t / t_fft:8.1f}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,74 @@
+"""Daylight background and distractor lights.
+
+The background is a procedural texture at one distance Z_bg (a wall of buildings, trees,
+sky): multi-scale smoothed noise plus random rectangular blocks with hard edges, mean
+``background_dn`` (DN at f/4 and 1 ms). The right camera sees it shifted by its own
+disparity d_bg = f_px b / Z_bg (right(u) = left(u + d_bg)). ``flat`` is a constant
+``background_dn``, ``none`` is black.
+
+Distractors are disks like LEDs (same optics) at their own 3-D position; ``flicker_hz`` > 0
+modulates them as (1 - cos(2 pi f t + phi)) (mean = brightness_dn), integrated exactly
+over the exposure (:func:`flicker_gain`). They never carry data.
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+from iscd.config import DistractorConfig
+
+
+def texture(shape: tuple[int, int], mean_dn: float, rng: np.random.Generator,
+            contrast: float = 0.35, n_blocks: int = 40) -> np.ndarray:
+    """Procedural texture (float32, DN) of ``shape`` with mean ``mean_dn``, >= 0."""
+    h, w = shape
+    tex = np.zeros((h, w), np.float32)
+    for sigma, weight in ((1.0, 0.25), (4.0, 0.5), (16.0, 1.0), (48.0, 1.0)):
+        n = rng.standard_normal((h, w), dtype=np.float32)
+        b = cv2.GaussianBlur(n, (0, 0), sigma, borderType=cv2.BORDER_REFLECT)
+        b /= max(float(b.std()), 1e-9)
+        tex += weight * b
+    for _ in range(n_blocks):  # buildings, signs, poles: hard edges
+        bw, bh = rng.integers(8, max(9, w // 3)), rng.integers(8, max(9, h // 3))
+        x0, y0 = rng.integers(-bw // 2, w), rng.integers(-bh // 2, h)
+        tex[max(y0, 0):y0 + bh, max(x0, 0):x0 + bw] += rng.normal(0.0, 1.5)
+    tex -= tex.mean()
+    tex /= max(float(tex.std()), 1e-9)
+    out = mean_dn * (1.0 + contrast * tex)
+    np.maximum(out, 0.0, out=out)
+    if out.mean() > 0:
+        out *= mean_dn / out.mean()
+    return out.astype(np.float32)
+
+
+def background_pair(kind: str, shape: tuple[int, int], mean_dn: float, disparity_px: float,
+                    rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """(left, right) noise-free backgrounds (float32 DN, before aperture scaling) of
+    ``shape``; the right one is the left scene shifted by ``disparity_px`` (cubic)."""
+    h, w = shape
+    if kind == "none":
+        z = np.zeros(shape, np.float32)
+        return z, z.copy()
+    if kind == "flat":
+        f = np.full(shape, mean_dn, np.float32)
+        return f, f.copy()
+    pad = int(np.ceil(abs(disparity_px))) + 4
+    big = texture((h, w + 2 * pad), mean_dn, rng)
+    left = np.ascontiguousarray(big[:, pad:pad + w])
+    m = np.array([[1.0, 0.0, pad + disparity_px], [0.0, 1.0, 0.0]])
+    right = cv2.warpAffine(big, m, (w, h), flags=cv2.INTER_CUBIC | cv2.WARP_INVERSE_MAP,
+                           borderMode=cv2.BORDER_REFLECT)
+    np.maximum(right, 0.0, out=right)
+    return left, right.astype(np.float32)
+
+
+def flicker_gain(d: DistractorConfig, t0_s: np.ndarray, exposure_s: float,
+                 phase_rad: float = 0.0) -> np.ndarray:
+    """Mean of (1 - cos(2 pi f t + phi)) over [t0, t0 + exposure] (1 for a steady light)."""
+    t0 = np.asarray(t0_s, dtype=np.float64)
+    if d.flicker_hz <= 0:
+        return np.ones_like(t0)
+    w = 2 * np.pi * d.flicker_hz
+    return 1.0 - (np.sin(w * (t0 + exposure_s) + phase_rad) - np.sin(w * t0 + phase_rad)) / (
+        w * exposure_s)

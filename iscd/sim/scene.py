@@ -1,0 +1,416 @@
+"""The scene: renders synchronized left/right 8-bit frames of an LED transmitter, with truth.
+
+Camera frame n exposes [t_n, t_n + exposure_s], t_n = n / fps (camera clock). Per frame only
+the windows around the LEDs (and flickering distractors) are rendered with fresh noise and
+pasted into a copy of a pre-rendered noisy background frame (a bank of ``bank_size``
+frames per camera, drawn at random per frame). See docs/simulator.md for the model and its
+approximations. Pure numerics, no threads; random access (frame n renders the same
+whatever was rendered before).
+
+    scene = Scene(cfg)
+    left, right = scene.render_pair(n)            # uint8 (H, W) each
+    scene.render_pair_into(n, out_l, out_r)        # no allocation
+    truth = scene.truth(np.arange(0, 2000))        # per-frame and per-symbol ground truth
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from iscd.airinterface import AirInterface, duty
+from iscd.config import Config, to_dict
+from iscd.sim.background import background_pair, flicker_gain
+from iscd.sim.exposure import LedClock, on_time
+from iscd.sim.geometry import Jitter, StereoGeometry, Vibration, distance, led_offsets
+from iscd.sim.optics import (PIXEL_VAR, Canvas, Footprint, SpotTable, TableCache, footprint,
+                             render, source_box)
+from iscd.sim.sensor import SensorModel
+from iscd.sim.transmitter import LevelSource, PacketSource
+from iscd.sim.truth import Truth
+
+REF_F_NUMBER = 4.0
+"""radiance_dn, background_dn and brightness_dn are grey levels at f/4 ..."""
+REF_EXPOSURE_S = 1e-3
+"""... and 1 ms exposure; the signal scales as (4/N)^2 * exposure_s / 1 ms."""
+
+
+@dataclass
+class _Source:
+    """Sources of one camera and frame that share a spot table."""
+
+    u: np.ndarray
+    v: np.ndarray
+    amp: np.ndarray  # core peak scale, DN
+    tab: SpotTable
+    glare_flux: np.ndarray  # DN px^2
+    glare_sigma: float
+    glare_half: int
+    grid: tuple[int, int] | None = None  # (rows, cols) for an LED array
+    slot: int = 0  # footprint cache slot
+
+
+class _Camera:
+    """Per-camera static state: aperture, blur, background, PRNU, noise bank, RNG."""
+
+    def __init__(self, idx: int, name: str, f_number: float, sigma_core: float) -> None:
+        self.idx = idx
+        self.name = name
+        self.f_number = f_number
+        self.sigma_core = sigma_core
+        self.bg: np.ndarray  # (Hp, Wp) float32 clean photo-signal incl. steady distractors
+        self.prnu: np.ndarray  # (Hp, Wp) float32
+        self.bank: np.ndarray  # (B, Hp, Wp) uint8
+        self.jitter: Jitter
+        self.fp_cache: dict[int, tuple[tuple, Footprint]] = {}
+
+    def footprint(self, s: _Source, box: tuple[int, int, int, int]) -> Footprint:
+        """The (cached) footprint of source ``s`` in the canvas ``box``."""
+        key = (id(s.tab), box, s.u.tobytes(), s.v.tobytes(), s.glare_sigma)
+        hit = self.fp_cache.get(s.slot)
+        if hit is not None and hit[0] == key:
+            return hit[1]
+        x0, y0, x1, y1 = box
+        fp = footprint(x0, y0, (y1 - y0, x1 - x0), s.u, s.v, s.tab,
+                       s.glare_sigma if s.glare_half else 0.0, s.grid)
+        self.fp_cache[s.slot] = (key, fp)
+        return fp
+
+
+class Scene:
+    """A simulated stereo recording of the configured transmitter (see module docstring).
+
+    cfg: the configuration (transmitter, camera, sensor, optics, scene, payload).
+    level_source: what the LEDs send (default: back-to-back packets per [payload]).
+    noise: False renders noise-free frames (PRNU, shot and read noise off), for tests.
+    bank_size: noisy background frames per camera.
+
+    Frames are always 8-bit (``camera.bit_depth`` is ignored). ``truth()`` holds (F, N)
+    float64 arrays: query long runs in chunks.
+    """
+
+    CHUNK = 512
+
+    def __init__(self, cfg: Config, level_source: LevelSource | None = None, *,
+                 noise: bool = True, bank_size: int = 16) -> None:
+        self.cfg = cfg
+        tx, cam, sc, op = cfg.transmitter, cfg.camera, cfg.scene, cfg.optics
+        self.geometry = StereoGeometry.from_config(cam)
+        self.width, self.height = cam.width, cam.height
+        self.fps = cam.fps
+        self.exposure_s = cam.exposure_s
+        self.n_leds = tx.n_leds
+        self.levels_m = tx.levels
+        self.noise = noise
+        self.seed = sc.seed & 0xFFFFFFFF
+        self.source: LevelSource = (level_source if level_source is not None
+                                    else PacketSource.from_config(cfg))
+        if self.source.n_leds != self.n_leds:
+            raise ValueError(f"level source has {self.source.n_leds} LEDs, the transmitter "
+                             f"{self.n_leds}")
+        rng = np.random.default_rng([self.seed, 0x5CE])
+        T = 1.0 / tx.symbol_rate_hz
+        phase = sc.led_phase_s if sc.led_phase_s >= 0 else float(rng.uniform(0.0, T))
+        self.clock = LedClock(T, tx.pwm_hz, phase, sc.led_drift_ppm)
+        self.offsets = led_offsets(tx)
+        self.grid = (tx.rows, tx.cols)
+        self.sensor = SensorModel.from_config(cfg.sensor, 8, noise=noise)
+        self.vibration = Vibration(sc.vibration_px, self.seed)
+        self.margin = min(int(math.ceil(4 * sc.vibration_px)), 64)
+        self.tables = TableCache()
+        self.led_radius_fn = lambda z: self.geometry.focal_px * tx.led_diameter_m / (2.0 * z)
+        scale = self.exposure_s / REF_EXPOSURE_S
+        self.cams = [
+            _Camera(0, "left", cam.f_number_left, math.sqrt(op.psf_sigma_px ** 2 + PIXEL_VAR)),
+            _Camera(1, "right", cam.f_number_right,
+                    math.sqrt(op.psf_sigma_px ** 2 + op.right_defocus_px ** 2 + PIXEL_VAR)),
+        ]
+        for c in self.cams:
+            c.gain = (REF_F_NUMBER / c.f_number) ** 2 * scale  # type: ignore[attr-defined]
+            c.jitter = Jitter(sc.jitter_px, self.seed, c.idx)
+        self._noise_base = _mix64(self.seed ^ 0x401)
+        self.flicker = [d for d in sc.distractors if d.flicker_hz > 0]
+        self.flicker_phase = rng.uniform(0, 2 * np.pi, size=len(self.flicker))
+        self._build_backgrounds(rng, max(1, bank_size if noise else 1))
+        self._chunks: dict[int, dict[str, np.ndarray]] = {}
+
+    # ------------------------------------------------------------------ static parts
+    def _distractor_sources(self, c: _Camera, ds: list, gains: np.ndarray | None = None
+                            ) -> list[_Source]:
+        out = []
+        for i, d in enumerate(ds):
+            ul, ur, v = self.geometry.project(d.x_m, d.y_m, d.z_m)
+            u = ul if c.idx == 0 else ur
+            R = self.geometry.focal_px * d.diameter_m / (2 * d.z_m)
+            amp = d.brightness_dn * c.gain * (1.0 if gains is None else gains[i])  # type: ignore[attr-defined]
+            src = self._make_source(c, np.array([float(u)]), np.array([float(v)]),
+                                    np.array([amp]), R)
+            src.slot = i + 1
+            out.append(src)
+        return out
+
+    def _make_source(self, c: _Camera, u: np.ndarray, v: np.ndarray, amp: np.ndarray,
+                     radius_px: float) -> _Source:
+        op = self.cfg.optics
+        g = op.glare_fraction
+        tab = self.tables.get(radius_px, c.sigma_core)
+        core = amp * ((1.0 - g) * (radius_px / tab.radius_px) ** 2)
+        gs = math.sqrt(op.glare_sigma_px ** 2 + radius_px ** 2 / 4.0 + PIXEL_VAR)
+        flux = amp * (g * math.pi * radius_px ** 2)
+        gh = int(math.ceil(3.5 * gs)) if g > 0 else 0
+        return _Source(u, v, np.asarray(core, np.float64), tab, np.asarray(flux, np.float64), gs, gh)
+
+    def _build_backgrounds(self, rng: np.random.Generator, bank_size: int) -> None:
+        sc = self.cfg.scene
+        H, W, m = self.height, self.width, self.margin
+        Hp, Wp = H + 2 * m, W + 2 * m
+        d_bg = float(self.geometry.disparity(sc.background_distance_m))
+        bl, br = background_pair(sc.background, (Hp, Wp), sc.background_dn, d_bg, rng)
+        steady = [d for d in sc.distractors if d.flicker_hz <= 0]
+        for c, bg in zip(self.cams, (bl, br)):
+            bg *= c.gain  # type: ignore[attr-defined]
+            canvas_all = Canvas(-m, -m, bg)
+            for s in self._distractor_sources(c, steady):
+                _render_into(canvas_all, [s])
+            c.bg = bg
+            prng = np.random.default_rng([self.seed, 0x9A1, c.idx])
+            c.prnu = (self.sensor.prnu_map((Hp, Wp), prng) if self.noise
+                      else np.ones((Hp, Wp), np.float32))
+            c.bank = np.empty((bank_size, Hp, Wp), np.uint8)
+            base = _mix64(self.seed ^ 0xBA4)
+            for b in range(bank_size):
+                self.sensor.expose(bg.copy(), c.prnu, base + 2 * b + c.idx, c.bank[b])
+
+    # ------------------------------------------------------------------ per-frame state
+    def frame_state(self, frames: np.ndarray) -> dict[str, np.ndarray]:
+        """Per-frame geometry and on-times (the per-frame part of :meth:`truth`)."""
+        f = np.asarray(frames, dtype=np.int64).reshape(-1)
+        if f.size and f.min() < 0:
+            raise ValueError("frame indices must be >= 0")
+        t0 = f / self.fps
+        tm = t0 + self.exposure_s / 2
+        z = distance(tm, self.cfg.scene)
+        vib = self.vibration(tm)
+        sl = vib + self.cams[0].jitter(f)
+        sr = vib + self.cams[1].jitter(f)
+        sc = self.cfg.scene
+        X = sc.lateral_m + self.offsets[:, 0]
+        Y = sc.vertical_m + self.offsets[:, 1]
+        ul, ur, v = self.geometry.project(X[None, :], Y[None, :], z[:, None])
+        on = on_time(t0, self.exposure_s, self.clock, self._duty_of) / self.exposure_s
+        return {"frames": f, "t_s": t0, "z_m": z, "vib": vib,
+                "shift_left": sl, "shift_right": sr,
+                "u_left": ul + sl[:, :1], "v_left": v + sl[:, 1:],
+                "u_right": ur + sr[:, :1], "v_right": v + sr[:, 1:],
+                "on_fraction": np.clip(on, 0.0, 1.0)}
+
+    def _duty_of(self, k0: int, k1: int) -> np.ndarray:
+        lv = np.asarray(self.source.levels(k0, k1))
+        if lv.shape != (k1 - k0, self.n_leds):
+            raise ValueError(f"level source returned shape {lv.shape} for symbols {k0}..{k1}, "
+                             f"expected ({k1 - k0}, {self.n_leds})")
+        return duty(np.clip(lv, 1, self.levels_m), self.levels_m)
+
+    def _chunk(self, n: int) -> tuple[dict[str, np.ndarray], int]:
+        c, i = divmod(n, self.CHUNK)
+        st = self._chunks.get(c)
+        if st is None:
+            if len(self._chunks) >= 2:
+                self._chunks.pop(next(iter(self._chunks)))
+            st = self.frame_state(np.arange(c * self.CHUNK, (c + 1) * self.CHUNK))
+            st["radius"] = self.led_radius_fn(st["z_m"])
+            st["bank"] = _bank_sequence(self.seed, c, self.CHUNK, self.cams[0].bank.shape[0])
+            if self.flicker:
+                st["flicker"] = np.stack([flicker_gain(d, st["t_s"], self.exposure_s, ph)
+                                          for d, ph in zip(self.flicker, self.flicker_phase)], 1)
+            self._chunks[c] = st
+        return st, i
+
+    # ------------------------------------------------------------------ rendering
+    def render_pair(self, n: int) -> tuple[np.ndarray, np.ndarray]:
+        """Frame ``n`` of both cameras as new (H, W) uint8 arrays."""
+        out_l = np.empty((self.height, self.width), np.uint8)
+        out_r = np.empty((self.height, self.width), np.uint8)
+        self.render_pair_into(n, out_l, out_r)
+        return out_l, out_r
+
+    def render_pair_into(self, n: int, out_l: np.ndarray, out_r: np.ndarray) -> None:
+        """Render frame ``n`` (>= 0) of both cameras into ``out_l``/``out_r`` ((H, W) uint8)."""
+        n = int(n)
+        if n < 0:
+            raise ValueError(f"frame index must be >= 0, got {n}")
+        st, i = self._chunk(n)
+        self._render_camera(self.cams[0], n, st, i, out_l)
+        self._render_camera(self.cams[1], n, st, i, out_r)
+
+    def render(self, n: int, camera: int, out: np.ndarray) -> None:
+        """Render frame ``n`` of one camera (0 = left, 1 = right) into ``out``."""
+        st, i = self._chunk(int(n))
+        self._render_camera(self.cams[camera], int(n), st, i, out)
+
+    def _render_camera(self, c: _Camera, n: int, st: dict[str, np.ndarray], i: int,
+                       out: np.ndarray) -> None:
+        H, W, m = self.height, self.width, self.margin
+        if m:
+            vx, vy = st["vib"][i]
+            sx = min(max(int(round(vx)), -m), m)
+            sy = min(max(int(round(vy)), -m), m)
+        else:
+            sx = sy = 0
+        oy, ox = m + sy, m + sx  # padded-array origin of image pixel (0, 0)
+        bank = c.bank
+        k = st["bank"][i, c.idx]
+        if m:
+            np.copyto(out, bank[k, oy:oy + H, ox:ox + W])
+        else:
+            np.copyto(out, bank[k])
+        pre = "u_left" if c.idx == 0 else "u_right"
+        u = st[pre][i]
+        v = st["v_left" if c.idx == 0 else "v_right"][i]
+        amp = st["on_fraction"][i] * (self.cfg.transmitter.radiance_dn * c.gain)  # type: ignore[attr-defined]
+        led = self._make_source(c, u, v, amp, float(st["radius"][i]))
+        led.grid = self.grid
+        sources = [led]
+        if self.flicker:
+            sources += self._distractor_sources(c, self.flicker, st["flicker"][i])
+        seed = self._noise_base + (n * 2 + c.idx) * 8
+        for gi, group in enumerate(_merge_groups(sources)):
+            box = _group_box(group)
+            x0, y0, x1, y1 = box
+            X0, Y0, X1, Y1 = max(x0, 0), max(y0, 0), min(x1, W), min(y1, H)
+            if X0 >= X1 or Y0 >= Y1:
+                continue
+            acc = None
+            for s in group:
+                acc = render(c.footprint(s, box), s.amp, s.glare_flux if s.glare_half else None,
+                             out=acc)
+            sig = np.add(acc[Y0 - y0:Y1 - y0, X0 - x0:X1 - x0],
+                         c.bg[oy + Y0:oy + Y1, ox + X0:ox + X1], dtype=np.float32)
+            self.sensor.expose(sig, c.prnu[oy + Y0:oy + Y1, ox + X0:ox + X1],
+                               seed + gi if self.noise else None, out[Y0:Y1, X0:X1])
+
+    # ------------------------------------------------------------------ truth
+    def truth(self, frames: np.ndarray | range) -> Truth:
+        """Ground truth of ``frames`` (ascending frame indices), see :class:`Truth`."""
+        f = np.asarray(frames, dtype=np.int64).reshape(-1)
+        if f.size == 0:
+            raise ValueError("truth of no frames")
+        f = np.unique(f)
+        st = self.frame_state(f)
+        clk = self.clock
+        T = clk.symbol_period_s
+        ua = clk.led_time(st["t_s"])
+        ub = clk.led_time(st["t_s"] + self.exposure_s)
+        ka, kb = np.floor(ua / T).astype(np.int64), np.floor(ub / T).astype(np.int64)
+        # a window ending exactly on a boundary lies inside the earlier symbol
+        kb = np.where(ub == kb * T, kb - 1, kb)
+        kmid = np.floor(clk.led_time(st["t_s"] + self.exposure_s / 2) / T).astype(np.int64)
+        k0, k1 = int(ka.min()), int(kb.max()) + 1
+        sym = np.arange(k0, k1)
+        levels = self.source.levels(k0, k1)
+        p_idx = np.zeros(0, np.int64)
+        payloads: list[bytes] = []
+        src = self.source
+        if isinstance(src, PacketSource):
+            P = src.period
+            lo, hi = max(k0, 0) // P, max(k1 - 1, 0) // P
+            if k1 > 0:
+                p_idx = np.arange(lo, hi + 1, dtype=np.int64)
+                payloads = [src.payload(int(p)) for p in p_idx]
+            p_start = p_idx * P
+        else:
+            p_start = np.zeros(0, np.int64)
+        return Truth(
+            frames=f, t_s=st["t_s"], z_m=st["z_m"], disparity_px=self.geometry.disparity(st["z_m"]),
+            u_left=st["u_left"], v_left=st["v_left"], u_right=st["u_right"], v_right=st["v_right"],
+            shift_left=st["shift_left"], shift_right=st["shift_right"],
+            on_fraction=st["on_fraction"], symbol_mid=kmid, clean=ka == kb,
+            symbol_index=sym, symbol_t_s=clk.symbol_start_cam(sym), levels=levels,
+            packet_index=p_idx, packet_start_symbol=p_start,
+            packet_t_s=clk.symbol_start_cam(p_start) if p_start.size else np.zeros(0),
+            payloads=payloads, meta=self.meta())
+
+    def meta(self) -> dict:
+        """Scalars of the scene (JSON-ready), as stored in truth.json."""
+        tx, cam = self.cfg.transmitter, self.cfg.camera
+        ds = []
+        for d in self.cfg.scene.distractors:
+            ul, ur, v = self.geometry.project(d.x_m, d.y_m, d.z_m)
+            ds.append({"u_left": float(ul), "u_right": float(ur), "v": float(v),
+                       "diameter_px": self.geometry.focal_px * d.diameter_m / d.z_m,
+                       "flicker_hz": d.flicker_hz})
+        air = getattr(self.source, "air", None)
+        return {
+            "focal_px": self.geometry.focal_px, "baseline_m": cam.baseline_m,
+            "cx": self.geometry.cx, "cy": self.geometry.cy, "width": self.width,
+            "height": self.height, "fps": self.fps, "exposure_s": self.exposure_s,
+            "levels": tx.levels, "n_leds": tx.n_leds, "rows": tx.rows, "cols": tx.cols,
+            "symbol_rate_hz": tx.symbol_rate_hz, "pwm_hz": tx.pwm_hz,
+            "led_phase_s": self.clock.phase_s, "led_drift_ppm": self.clock.drift_ppm,
+            "seed": self.cfg.scene.seed, "noise": self.noise,
+            "packet_symbols": air.period_symbols if isinstance(air, AirInterface) else None,
+            "payload_bytes": air.payload_bytes if isinstance(air, AirInterface) else None,
+            "distractors": ds, "config": to_dict(self.cfg),
+        }
+
+
+def _mix64(x: int) -> int:
+    """splitmix64 finalizer: a well-mixed 64-bit value of ``x``."""
+    x = (x + 0x9E3779B97F4A7C15) & 0xFFFFFFFFFFFFFFFF
+    x = ((x ^ (x >> 30)) * 0xBF58476D1CE4E5B9) & 0xFFFFFFFFFFFFFFFF
+    x = ((x ^ (x >> 27)) * 0x94D049BB133111EB) & 0xFFFFFFFFFFFFFFFF
+    return x ^ (x >> 31)
+
+
+def _bank_sequence(seed: int, chunk: int, n: int, bank_size: int) -> np.ndarray:
+    """(n, 2) bank frame per frame and camera: random, never the same twice in a row."""
+    if bank_size == 1:
+        return np.zeros((n, 2), np.int64)
+    rng = np.random.default_rng([seed, 0xBA5, chunk])
+    steps = rng.integers(1, bank_size, size=(n, 2))
+    return np.cumsum(steps, axis=0) % bank_size
+
+
+def _group_box(group: list[_Source]) -> tuple[int, int, int, int]:
+    boxes = [source_box(s.u, s.v, max(s.tab.half, s.glare_half)) for s in group]
+    return (min(b[0] for b in boxes), min(b[1] for b in boxes),
+            max(b[2] for b in boxes), max(b[3] for b in boxes))
+
+
+def _merge_groups(sources: list[_Source]) -> list[list[_Source]]:
+    """Group sources whose boxes overlap, so that each group is rendered in one canvas."""
+    groups = [[s] for s in sources]
+    if len(groups) == 1:
+        return groups
+    merged = True
+    while merged:
+        merged = False
+        for a in range(len(groups)):
+            for b in range(a + 1, len(groups)):
+                A, B = _group_box(groups[a]), _group_box(groups[b])
+                if A[0] < B[2] and B[0] < A[2] and A[1] < B[3] and B[1] < A[3]:
+                    groups[a] += groups.pop(b)
+                    merged = True
+                    break
+            if merged:
+                break
+    return groups
+
+
+def _render_into(canvas: Canvas, group: list[_Source]) -> None:
+    """Add sources into an existing canvas, clipping at its border."""
+    x0, y0, x1, y1 = _group_box(group)
+    acc = None
+    for s in group:
+        fp = footprint(x0, y0, (y1 - y0, x1 - x0), s.u, s.v, s.tab,
+                       s.glare_sigma if s.glare_half else 0.0, s.grid)
+        acc = render(fp, s.amp, s.glare_flux if s.glare_half else None, out=acc)
+    assert acc is not None
+    H, W = canvas.data.shape
+    X0, Y0 = max(x0, canvas.x0), max(y0, canvas.y0)
+    X1, Y1 = min(x1, canvas.x0 + W), min(y1, canvas.y0 + H)
+    if X0 < X1 and Y0 < Y1:
+        canvas.data[Y0 - canvas.y0:Y1 - canvas.y0, X0 - canvas.x0:X1 - canvas.x0] += \
+            acc[Y0 - y0:Y1 - y0, X0 - x0:X1 - x0]
