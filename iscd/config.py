@@ -195,7 +195,7 @@ class Config:
         return dataclasses.replace(self, **sections)
 
 
-_KNOWN_EXTRA_SECTIONS = {"daemon", "receiver", "ranging", "output", "rerun", "board", "eval"}
+_KNOWN_EXTRA_SECTIONS = {"daemon", "receiver", "tracking", "acquisition", "ranging", "output", "rerun", "board", "eval"}
 
 
 def _type_name(tp: Any) -> str:

@@ -31,6 +31,8 @@ from calibration.io import StereoCalibration
 from iscd.airinterface import AirInterface
 from iscd.config import Config, build_section
 from iscd.receiver.detect import GridFit, detect_array, match_stereo, track_array
+from iscd.receiver.packets import Packet, PacketAssembler
+from iscd.receiver.settings import receiver_config
 from iscd.stereo_range import RangingSettings, StereoRanger
 
 log = logging.getLogger(__name__)
@@ -38,14 +40,13 @@ log = logging.getLogger(__name__)
 
 @dataclass(frozen=True)
 class PipelineSettings:
-    """``[receiver]`` section keys used by the pipeline."""
+    """``[tracking]`` section: acquisition, tracking and luminance ROI of the pipeline."""
 
     acquire_frames: int = field(default=64, metadata={"lo": 8, "hi": 1024, "doc": "frames per detection attempt"})
     track_every_frames: int = field(default=32, metadata={"lo": 4, "hi": 4096, "doc": "re-fit the LED grid this often"})
     verify_packets: float = field(default=2.5, metadata={"lo": 1.2, "doc": "packets to wait for a header before rejecting a candidate"})
     lost_score_ratio: float = field(default=0.2, metadata={"lo": 0, "hi": 1, "doc": "grid score below this share of the first fit = lost"})
     roi_radius_px: int = field(default=1, metadata={"lo": 0, "hi": 8, "doc": "luminance ROI half-size, px ((2r+1)^2 pixels)"})
-    rule: str = field(default="iscd", metadata={"choices": ("iscd", "dissertation", "left", "right"), "doc": "decision rule"})
     ranging: bool = field(default=True, metadata={"doc": "measure the range every frame"})
 
 
@@ -63,6 +64,18 @@ def roi_mean(frames: np.ndarray, centers: np.ndarray, radius: int = 1) -> np.nda
     ys = np.clip(cy[:, None, None] + off[None, :, None], 0, H - 1)  # (N, k, 1)
     vals = frames[:, ys, xs]  # (n, N, k, k)
     return vals.reshape(n, centers.shape[0], -1).mean(axis=2, dtype=np.float32)
+
+
+def _jsonable(rec: dict[str, Any]) -> dict[str, Any]:
+    """numpy scalars -> Python numbers, so that json.dumps takes the record."""
+    out: dict[str, Any] = {}
+    for k, v in rec.items():
+        if isinstance(v, np.generic):
+            v = v.item()
+        if isinstance(v, float) and not math.isfinite(v):
+            v = None
+        out[k] = v
+    return out
 
 
 def _clip(b: tuple[int, int, int, int], W: int, H: int) -> tuple[int, int, int, int]:
@@ -95,11 +108,12 @@ class StreamDecoder:
                  settings: PipelineSettings | None = None, ranging: RangingSettings | None = None) -> None:
         self.cfg = cfg
         self.tx_index = tx_index
-        self.settings = settings or build_section(PipelineSettings, dict(cfg.extra.get("receiver", {})), "receiver")
+        self.settings = settings or build_section(PipelineSettings, dict(cfg.extra.get("tracking", {})), "tracking")
         rs = ranging or build_section(RangingSettings, dict(cfg.extra.get("ranging", {})), "ranging")
         self.cal = calibration or StereoCalibration.ideal(cfg.camera)
         self.ranger = StereoRanger(self.cal, rs) if self.settings.ranging else None
         self.air = AirInterface.from_config(cfg.transmitter)
+        self.rx_cfg = receiver_config(cfg)
         self.rows, self.cols = cfg.transmitter.rows, cfg.transmitter.cols
         self.fps = cfg.camera.fps
         self.packet_frames = self.air.period_symbols * self.fps / cfg.transmitter.symbol_rate_hz
@@ -107,6 +121,7 @@ class StreamDecoder:
         self.excluded: list[tuple[int, int, int, int]] = []
         self._acq_l: deque[np.ndarray] = deque(maxlen=self.settings.acquire_frames)
         self._acq_r: deque[np.ndarray] = deque(maxlen=self.settings.acquire_frames)
+        self._acq_ids: deque[tuple[int, float]] = deque(maxlen=self.settings.acquire_frames)
         self._since_fit = 0
         self._blk_l: list[np.ndarray] = []
         self._blk_r: list[np.ndarray] = []
@@ -117,29 +132,21 @@ class StreamDecoder:
                                          "frames_decoded": 0}
 
     # ------------------------------------------------------------------ demodulation hook
-    def _make_assembler(self) -> Any:
-        from iscd.receiver.packets import PacketAssembler
-
+    def _make_assembler(self) -> PacketAssembler:
         return PacketAssembler(self.cfg.transmitter, fps=self.fps, exposure_s=self.cfg.camera.exposure_s,
-                               rule=self.settings.rule)
+                               cfg=self.rx_cfg)
 
-    def _demod(self, frame_ids: np.ndarray, t_s: np.ndarray, lum_l: np.ndarray, lum_r: np.ndarray) -> list[dict]:
+    def _records(self, packets: list[Packet]) -> list[dict]:
         out: list[dict] = []
-        for pkt in self.assembler.push(frame_ids, t_s, lum_l, lum_r):
-            ok = bool(pkt.crc_ok)
-            self.counters["packets_ok" if ok else "packets_bad"] += 1
+        for pkt in packets:
+            self.counters["packets_ok" if pkt.crc_ok else "packets_bad"] += 1
             if self.track is not None:
                 self.track.last_header_frame = int(pkt.frame)
-            rec: dict[str, Any] = {"type": "packet", "tx": self.tx_index, "frame": int(pkt.frame),
-                                   "t_s": float(pkt.t_s), "crc_ok": ok,
-                                   "payload_hex": pkt.payload.hex() if ok else "",
-                                   "levels": np.asarray(pkt.levels).astype(int).ravel().tolist()}
-            for k in ("drift_ppm", "margin", "rule"):
-                v = getattr(pkt, k, None)
-                if v is not None:
-                    rec[k] = float(v) if isinstance(v, (float, np.floating)) else v
-            out.append(rec)
+            out.append(_jsonable(pkt.record(self.tx_index)))
         return out
+
+    def _demod(self, frame_ids: np.ndarray, t_s: np.ndarray, lum_l: np.ndarray, lum_r: np.ndarray) -> list[dict]:
+        return self._records(self.assembler.push(frame_ids, t_s, lum_l, lum_r))
 
     # ------------------------------------------------------------------ main entry
     def push(self, frame_ids: np.ndarray, t_s: np.ndarray, left: np.ndarray, right: np.ndarray) -> list[dict]:
@@ -153,10 +160,14 @@ class StreamDecoder:
             return []
         records: list[dict] = []
         if self.track is None:
-            self._acquire(frame_ids, left, right)
-            if self.track is None:
+            got = self._acquire(frame_ids, t_s, left, right)
+            if got is None:
                 return records
+            # decode the whole acquisition window: a header in it is not lost
+            frame_ids, t_s, left, right = got
+            n = len(frame_ids)
         tr = self.track
+        assert tr is not None
         self.counters["frames_decoded"] += n
         lum_l = roi_mean(left, tr.left.centers, self.settings.roi_radius_px)
         lum_r = roi_mean(right, tr.right.centers, self.settings.roi_radius_px)
@@ -176,16 +187,7 @@ class StreamDecoder:
     def finish(self) -> list[dict]:
         """End of stream: decode what the assembler still holds."""
         flush = getattr(self.assembler, "flush", None)
-        if flush is None:
-            return []
-        out: list[dict] = []
-        for pkt in flush():
-            ok = bool(pkt.crc_ok)
-            self.counters["packets_ok" if ok else "packets_bad"] += 1
-            out.append({"type": "packet", "tx": self.tx_index, "frame": int(pkt.frame), "t_s": float(pkt.t_s),
-                        "crc_ok": ok, "payload_hex": pkt.payload.hex() if ok else "",
-                        "levels": np.asarray(pkt.levels).astype(int).ravel().tolist()})
-        return out
+        return self._records(flush()) if flush is not None else []
 
     def needed_windows(self) -> tuple[tuple[int, int, int, int], tuple[int, int, int, int]] | None:
         """(left, right) pixel windows (x0, y0, x1, y1) that :meth:`push` will read, or
@@ -208,31 +210,38 @@ class StreamDecoder:
         return wl, wr
 
     # ------------------------------------------------------------------ acquisition/tracking
-    def _acquire(self, frame_ids: np.ndarray, left: np.ndarray, right: np.ndarray) -> None:
+    def _acquire(self, frame_ids: np.ndarray, t_s: np.ndarray, left: np.ndarray, right: np.ndarray
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None:
+        """Collect frames; every ``acquire_frames`` try to detect. On success returns the
+        collected (ids, t_s, left, right) so that they are decoded too."""
         for i in range(len(frame_ids)):  # copies: the caller may reuse its buffers
             self._acq_l.append(np.array(left[i]))
             self._acq_r.append(np.array(right[i]))
+            self._acq_ids.append((int(frame_ids[i]), float(t_s[i])))
         if len(self._acq_l) < self._acq_l.maxlen:  # type: ignore[operator]
-            return
+            return None
         L = np.stack(self._acq_l)
         R = np.stack(self._acq_r)
+        meta = np.array(self._acq_ids)
         self._acq_l.clear()
         self._acq_r.clear()
+        self._acq_ids.clear()
         fl = detect_array(L, self.rows, self.cols, exclude=self.excluded)
         if fl is None:
-            return
+            return None
         fr = detect_array(R, self.rows, self.cols)
         cands = [fr] if fr is not None else []
         fr = match_stereo(fl, cands, max_dy=3.0 + 0.5 * fl.spot_px) if cands else None
         if fr is None:
             log.debug("transmitter seen in the left camera at %s but not matched in the right", fl.center)
-            return
+            return None
         self.track = _Track(left=fl, right=fr, first_score=min(fl.score, fr.score),
                             since_frame=int(frame_ids[-1]))
         self.counters["acquisitions"] += 1
         self.assembler = self._make_assembler()
         log.info("transmitter acquired: left %.1f,%.1f right %.1f,%.1f pitch %.2f px",
                  *fl.center, *fr.center, fl.pitch_px)
+        return meta[:, 0].astype(np.int64), meta[:, 1], L, R
 
     def _retrack(self, frame_ids: np.ndarray, left: np.ndarray, right: np.ndarray) -> None:
         tr = self.track

@@ -100,6 +100,17 @@ def activity_map(frames: np.ndarray) -> np.ndarray:
     return acc / (f.shape[0] - 1)
 
 
+def light_map(frames: np.ndarray) -> np.ndarray:
+    """Modulated light: temporal mean minus temporal minimum, (H, W) float32 grey levels.
+
+    Peaks at each LED's centre even when the LED saturates (its core then sits at 255 for
+    all bright levels and shows little temporal gradient, so the activity map is a ring);
+    a steady light or the background gives only a few noise RMS.
+    """
+    f = np.asarray(frames)
+    return f.mean(axis=0, dtype=np.float32) - f.min(axis=0).astype(np.float32)
+
+
 def spatial_gradient(image: np.ndarray) -> np.ndarray:
     """Sobel gradient magnitude of ``image`` (grey levels per px), float32."""
     im = np.asarray(image, dtype=np.float32)
@@ -260,6 +271,7 @@ def detect_array(frames: np.ndarray, rows: int, cols: int, *, exclude: list[tupl
     """
     act = activity_map(frames)
     mean = frames.mean(axis=0, dtype=np.float32)
+    light = mean - frames.min(axis=0).astype(np.float32)
     blobs = find_blobs(act, mean)
     if exclude:
         blobs = [b for b in blobs if not any(e[0] <= b.x < e[2] and e[1] <= b.y < e[3] for e in exclude)]
@@ -269,7 +281,7 @@ def detect_array(frames: np.ndarray, rows: int, cols: int, *, exclude: list[tupl
     if n == 1:
         b = blobs[0]
         pad = 3
-        return fit_grid(act, 1, 1, region=(b.bbox[0] - pad, b.bbox[1] - pad, b.bbox[2] + pad, b.bbox[3] + pad))
+        return fit_grid(light, 1, 1, region=(b.bbox[0] - pad, b.bbox[1] - pad, b.bbox[2] + pad, b.bbox[3] + pad))
     # group blobs of one array: LEDs of an array are at most ~a pitch apart; a pitch is at
     # most about the size of the largest blob's spot
     size = max(max(b.bbox[2] - b.bbox[0], b.bbox[3] - b.bbox[1]) for b in blobs[:n])
@@ -281,7 +293,7 @@ def detect_array(frames: np.ndarray, rows: int, cols: int, *, exclude: list[tupl
         bx1 = max(b.bbox[2] for b in g) + 3
         by1 = max(b.bbox[3] for b in g) + 3
         try:
-            fit = fit_grid(act, rows, cols, region=(bx0, by0, bx1, by1))
+            fit = fit_grid(light, rows, cols, region=(bx0, by0, bx1, by1))
         except ValueError:
             continue
         if best is None or fit.score > best.score:
@@ -293,18 +305,44 @@ def track_array(frames: np.ndarray, prev: GridFit, *, margin: float | None = Non
     """Refine ``prev`` on a new block of frames (the array moved and grew a little).
 
     Only a window of ``margin`` px (default: 2 pitches + 4 px) around the previous fit is
-    read, so tracking touches only the pixels it needs.
+    read, so tracking touches only the pixels it needs. The grid score (mean activity at
+    the grid points) is evaluated for a small set of shifts (+-0.5 px in 0.25 px steps,
+    plus a whole-pitch search when the score is poor) and pitch scales (+-2 %) in one
+    vectorized interpolation; tracking is iterative, so each block moves the fit at most
+    that far. Raises ValueError if the window has no activity.
     """
     m = margin if margin is not None else 2 * prev.pitch_px + 4
     x0, y0, x1, y1 = prev.bbox(m)
     H, W = frames.shape[1:]
     x0, y0, x1, y1 = max(0, x0), max(0, y0), min(W, x1), min(H, y1)
-    act = np.zeros(frames.shape[1:], np.float32)
-    act[y0:y1, x0:x1] = activity_map(frames[:, y0:y1, x0:x1])
+    if x1 - x0 < 2 or y1 - y0 < 2:
+        raise ValueError("the tracked array left the image")
+    act = light_map(frames[:, y0:y1, x0:x1]).astype(np.float64)
+    act = np.clip(act - np.median(act), 0, None)
+    if not act.any():
+        raise ValueError("no modulated light in the tracking window")
+    smooth = ndimage.gaussian_filter(act, 0.7)
     if prev.rows * prev.cols == 1:
-        return fit_grid(act, 1, 1, region=(x0, y0, x1, y1))
-    return fit_grid(act, prev.rows, prev.cols, region=(x0, y0, x1, y1), pitch_guess=prev.pitch_px,
-                    origin_guess=prev.origin)
+        fit = fit_grid(smooth, 1, 1)
+        return replace(fit, origin=(fit.origin[0] + x0, fit.origin[1] + y0))
+    r, c = np.mgrid[0:prev.rows, 0:prev.cols]
+    r, c = r.ravel().astype(np.float64), c.ravel().astype(np.float64)
+    steps = np.arange(-0.5, 0.51, 0.25)
+    scales = np.array([0.98, 1.0, 1.02])
+    dx, dy, sc = (a.ravel() for a in np.meshgrid(steps, steps, scales, indexing="ij"))
+    p = prev.pitch_px * sc
+    # scale about the array centre, then shift
+    cx, cy = prev.center
+    cx, cy = cx - x0 + dx, cy - y0 + dy
+    ox = cx - (prev.cols - 1) / 2 * p
+    oy = cy - (prev.rows - 1) / 2 * p
+    xs = ox[:, None] + c[None, :] * p[:, None]
+    ys = oy[:, None] + r[None, :] * p[:, None]
+    vals = ndimage.map_coordinates(smooth, [ys.ravel(), xs.ravel()], order=1, mode="constant", cval=0.0)
+    score = vals.reshape(len(p), -1).mean(axis=1)
+    k = int(np.argmax(score))
+    return replace(prev, origin=(float(ox[k] + x0), float(oy[k] + y0)), pitch_px=float(p[k]),
+                   score=float(score[k]))
 
 
 def match_stereo(left: GridFit, right_candidates: list[GridFit], max_dy: float = 3.0,
