@@ -45,6 +45,7 @@ class PipelineSettings:
     acquire_frames: int = field(default=64, metadata={"lo": 8, "hi": 1024, "doc": "frames per detection attempt"})
     track_every_frames: int = field(default=32, metadata={"lo": 4, "hi": 4096, "doc": "re-fit the LED grid this often"})
     verify_packets: float = field(default=2.5, metadata={"lo": 1.2, "doc": "packets to wait for a header before rejecting a candidate"})
+    exclude_packets: float = field(default=8.0, metadata={"lo": 0, "doc": "a rejected candidate is ignored this many packets"})
     lost_score_ratio: float = field(default=0.2, metadata={"lo": 0, "hi": 1, "doc": "grid score below this share of the first fit = lost"})
     roi_radius_px: int = field(default=1, metadata={"lo": 0, "hi": 8, "doc": "luminance ROI half-size, px ((2r+1)^2 pixels)"})
     ranging: bool = field(default=True, metadata={"doc": "measure the range every frame"})
@@ -118,7 +119,8 @@ class StreamDecoder:
         self.fps = cfg.camera.fps
         self.packet_frames = self.air.period_symbols * self.fps / cfg.transmitter.symbol_rate_hz
         self.track: _Track | None = None
-        self.excluded: list[tuple[int, int, int, int]] = []
+        self.excluded: list[tuple[tuple[int, int, int, int], int]] = []
+        """(bbox, until frame id) of rejected candidates."""
         self._acq_l: deque[np.ndarray] = deque(maxlen=self.settings.acquire_frames)
         self._acq_r: deque[np.ndarray] = deque(maxlen=self.settings.acquire_frames)
         self._acq_ids: deque[tuple[int, float]] = deque(maxlen=self.settings.acquire_frames)
@@ -226,7 +228,9 @@ class StreamDecoder:
         self._acq_l.clear()
         self._acq_r.clear()
         self._acq_ids.clear()
-        fl = detect_array(L, self.rows, self.cols, exclude=self.excluded)
+        now = int(meta[-1, 0])
+        self.excluded = [(b, until) for b, until in self.excluded if until > now]
+        fl = detect_array(L, self.rows, self.cols, exclude=[b for b, _ in self.excluded])
         if fl is None:
             return None
         fr = detect_array(R, self.rows, self.cols)
@@ -273,13 +277,23 @@ class StreamDecoder:
             tr.low_blocks = 0
             tr.left, tr.right = nl, nr  # type: ignore[assignment]
         last = tr.last_header_frame if tr.last_header_frame is not None else tr.since_frame
+        now = int(frame_ids[-1])
         if tr.low_blocks >= 3:
-            log.warning("transmitter lost at frame %d; re-acquiring", int(frame_ids[-1]))
             self.counters["losses"] += 1
+            if tr.last_header_frame is None:
+                # it blinked, but never sent a header and does not hold still: not ours
+                self._exclude(tr, now, "lost before it sent any header")
+            else:
+                log.warning("transmitter lost at frame %d; re-acquiring", now)
             self.track = None
-        elif frame_ids[-1] - last > self.settings.verify_packets * self.packet_frames:
-            log.warning("candidate at %.0f,%.0f sent no header for %.1f packets: not a transmitter; excluded",
-                        *tr.left.center, self.settings.verify_packets)
-            self.counters["rejected_candidates"] += 1
-            self.excluded.append(tr.left.bbox(4))
+        elif now - last > self.settings.verify_packets * self.packet_frames:
+            self._exclude(tr, now, f"sent no header for {self.settings.verify_packets:g} packets")
             self.track = None
+
+    def _exclude(self, tr: _Track, now: int, why: str) -> None:
+        """Reject a candidate: acquisition ignores its place for ``exclude_packets`` packets."""
+        log.warning("candidate at %.0f,%.0f %s: not a transmitter; ignored for %g packets",
+                    *tr.left.center, why, self.settings.exclude_packets)
+        self.counters["rejected_candidates"] += 1
+        until = now + int(self.settings.exclude_packets * self.packet_frames)
+        self.excluded.append((tr.left.bbox(4), until))
