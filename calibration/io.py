@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import math
 import os
+import re
 import tempfile
 from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
@@ -311,8 +312,9 @@ def _read_storage(text: str, source: str) -> "cv2.FileStorage":
                              | cv2.FILE_STORAGE_FORMAT_YAML)
     except (cv2.error, SystemError) as e:
         cause = e.__cause__ if isinstance(e, SystemError) and e.__cause__ else e
-        detail = str(cause).strip().splitlines()
-        msg = detail[-1] if detail else "parse error"
+        text_err = " ".join(str(cause).split())
+        m = re.search(r"in function '(.*)'", text_err)
+        msg = m.group(1) if m else (text_err or "parse error")
         raise CalibrationError(f"{source}: not an OpenCV FileStorage YAML file ({msg})") from None
     if not fs.isOpened() or not fs.root().isMap():
         raise CalibrationError(f"{source}: not an OpenCV FileStorage YAML file")
