@@ -159,7 +159,10 @@ class Daemon:
             rec = {"type": "stats", "tx": 0, "frame": int(last_frame), "t_s": round(time.monotonic() - t_start, 3),
                    "final": final,
                    "frames_in": int(a.frames_left + a.frames_right),
-                   "frames_dropped": int(a.frames_dropped + rs.dropped_overflow),
+                   # triggers that never reached the decoder as a pair, whatever the cause
+                   # (camera buffer, unpaired, ring overflow); the parts follow
+                   "frames_dropped": counters["pair_gaps"],
+                   "unpaired_or_bad": int(a.frames_dropped),
                    "ring_dropped": int(rs.dropped_overflow), "ring_fill": int(rs.queued),
                    "ring_capacity": int(ring.capacity),
                    "pairs_decoded": counters["pairs_decoded"],

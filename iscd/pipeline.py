@@ -46,6 +46,7 @@ class PipelineSettings:
     track_every_frames: int = field(default=32, metadata={"lo": 4, "hi": 4096, "doc": "re-fit the LED grid this often"})
     verify_packets: float = field(default=2.5, metadata={"lo": 1.2, "doc": "packets to wait for a header before rejecting a candidate"})
     exclude_packets: float = field(default=8.0, metadata={"lo": 0, "doc": "a rejected candidate is ignored this many packets"})
+    reset_gap_frames: int = field(default=32, metadata={"lo": 1, "doc": "a gap of more frames restarts the packet search"})
     lost_score_ratio: float = field(default=0.2, metadata={"lo": 0, "hi": 1, "doc": "grid score below this share of the first fit = lost"})
     roi_radius_px: int = field(default=1, metadata={"lo": 0, "hi": 8, "doc": "luminance ROI half-size, px ((2r+1)^2 pixels)"})
     ranging: bool = field(default=True, metadata={"doc": "measure the range every frame"})
@@ -125,13 +126,14 @@ class StreamDecoder:
         self._acq_r: deque[np.ndarray] = deque(maxlen=self.settings.acquire_frames)
         self._acq_ids: deque[tuple[int, float]] = deque(maxlen=self.settings.acquire_frames)
         self._since_fit = 0
+        self._last_id: int | None = None
         self._blk_l: list[np.ndarray] = []
         self._blk_r: list[np.ndarray] = []
         self._win: tuple[tuple[int, int, int, int], tuple[int, int, int, int]] = ((0, 0, 0, 0), (0, 0, 0, 0))
         self.assembler = self._make_assembler()
         self.counters: dict[str, int] = {"acquisitions": 0, "losses": 0, "rejected_candidates": 0,
                                          "packets_ok": 0, "packets_bad": 0, "ranges": 0,
-                                         "frames_decoded": 0}
+                                         "frames_decoded": 0, "assembler_resets": 0}
 
     # ------------------------------------------------------------------ demodulation hook
     def _make_assembler(self) -> PacketAssembler:
@@ -170,10 +172,24 @@ class StreamDecoder:
             n = len(frame_ids)
         tr = self.track
         assert tr is not None
+        frame_ids = np.asarray(frame_ids, dtype=np.int64)
+        t_s = np.asarray(t_s, dtype=np.float64)
         self.counters["frames_decoded"] += n
         lum_l = roi_mean(left, tr.left.centers, self.settings.roi_radius_px)
         lum_r = roi_mean(right, tr.right.centers, self.settings.roi_radius_px)
-        records += self._demod(np.asarray(frame_ids), np.asarray(t_s, dtype=np.float64), lum_l, lum_r)
+        # a long gap (a stalled camera, a burst of drops) restarts the packet search
+        prev = np.concatenate([[self._last_id if self._last_id is not None else frame_ids[0] - 1], frame_ids[:-1]])
+        cuts = np.flatnonzero(frame_ids - prev > self.settings.reset_gap_frames)
+        bounds = [0, *cuts.tolist(), n]
+        for a, b in zip(bounds[:-1], bounds[1:]):
+            if a in cuts:
+                self.assembler.reset()
+                self.counters["assembler_resets"] += 1
+                tr.since_frame = int(frame_ids[a])  # the header wait starts again
+                tr.last_header_frame = None
+            if b > a:
+                records += self._demod(frame_ids[a:b], t_s[a:b], lum_l[a:b], lum_r[a:b])
+        self._last_id = int(frame_ids[-1])
         if self.ranger is not None:
             res = self.ranger.measure(left, right, tr.left, tr.right)
             for i in range(n):
@@ -276,7 +292,7 @@ class StreamDecoder:
         else:
             tr.low_blocks = 0
             tr.left, tr.right = nl, nr  # type: ignore[assignment]
-        last = tr.last_header_frame if tr.last_header_frame is not None else tr.since_frame
+        last = max(tr.last_header_frame if tr.last_header_frame is not None else tr.since_frame, tr.since_frame)
         now = int(frame_ids[-1])
         if tr.low_blocks >= 3:
             self.counters["losses"] += 1

@@ -90,3 +90,16 @@ def test_single_led_pwm8_at_40m_ranges_and_decodes() -> None:
     err = np.array([r["z_m"] for r in rng]) - tr.z_m
     assert np.mean(np.abs(err)) < 0.5
     assert all(r["sigma_m"] > 0 for r in rng)
+
+
+def test_long_gap_restarts_the_packet_search() -> None:
+    """A 200-frame hole (a stalled camera) mid-packet: the next packets decode."""
+    cfg = override(single_led(default_config(), 30.0), transmitter={"data_symbols": 100})
+    frames = np.concatenate([np.arange(0, 200), np.arange(400, 3000)])
+    recs, dec, scene = _decode(cfg, frames)
+    pk = [r for r in recs if r["type"] == "packet"]
+    assert dec.counters["assembler_resets"] == 1 and dec.counters["rejected_candidates"] == 0
+    # packets every 306 frames; the ones wholly after the hole (from 614 on) all decode
+    assert [r["frame"] for r in pk if r["crc_ok"]] == list(range(614, 2700, 306))
+    payloads = scene.truth(frames).payloads
+    assert all(bytes.fromhex(r["payload_hex"]) in payloads for r in pk)

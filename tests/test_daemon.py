@@ -1,0 +1,203 @@
+"""The daemon on the mock rig: packets decoded live, faults survived and counted, stats,
+graceful stop on SIGTERM, sd_notify READY/WATCHDOG.
+
+These runs use a light transmitter (one LED, short packets of 153 symbols = 306 ms) so
+that they keep up on a loaded 2-core CI machine; the full-rate soak is
+``test_soak_full_rate`` (slow, ISCD_SLOW=1) and the speed claim lives in
+benchmarks/bench_decode_loop.py.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from iscd import config as C
+from iscd.daemon import Daemon
+
+LIGHT = """
+[transmitter]
+rows = 1
+cols = 1
+levels = 8
+training_symbols = 40
+data_symbols = 100
+[camera]
+baseline_m = 0.6
+f_number_left = 4
+f_number_right = 4
+[scene]
+distance_m = 30
+seed = 7
+[rig]
+backend = "mock"
+pace = true
+"""
+
+
+def _records(path: Path) -> list[dict]:
+    return [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
+
+
+def _run(text: str, tmp_path: Path, duration: float) -> tuple[Daemon, list[dict]]:
+    cfg = C.loads(text)
+    out = tmp_path / "out.jsonl"
+    d = Daemon(cfg, out=str(out), duration_s=duration, install_signals=False)
+    d.run()
+    return d, _records(out)
+
+
+def _truth_payloads(cfg: C.Config, n: int) -> list[bytes]:
+    from iscd.sim.scene import Scene
+
+    scene = Scene(cfg)
+    frames = np.arange(0, int(n))
+    return list(scene.truth(frames).payloads)
+
+
+def test_live_decoding_on_the_mock_rig(tmp_path: Path) -> None:
+    d, recs = _run(LIGHT, tmp_path, 7.0)
+    pk = [r for r in recs if r["type"] == "packet"]
+    stats = [r for r in recs if r["type"] == "stats"]
+    rng = [r for r in recs if r["type"] == "range"]
+    final = stats[-1]
+    assert final["final"] is True and sum(s.get("final", False) for s in stats) == 1
+    assert len(stats) >= 5  # one a second, and the last
+    for key in ("frames_in", "frames_dropped", "pairs_decoded", "packets_ok", "packets_bad",
+                "latency_ms_p50", "latency_ms_p99"):
+        assert key in final
+    # a packet every 306 ms; after a 2 s warm-up (process start, first detection) every
+    # packet is decoded and no frame is dropped
+    warm = [s for s in stats if s["t_s"] >= 2.0]
+    late = [r for r in pk if r["frame"] > warm[0]["frame"]]
+    assert len(late) >= 10 and all(r["crc_ok"] for r in late), [(r["frame"], r["crc_ok"]) for r in pk]
+    assert final["frames_dropped"] == warm[0]["frames_dropped"], [s["frames_dropped"] for s in stats]
+    pk = [r for r in pk if r["crc_ok"]]
+    truth = _truth_payloads(C.loads(LIGHT), 1000 * 8)
+    for r in pk:
+        assert bytes.fromhex(r["payload_hex"]) in truth
+    assert final["packets_ok"] == len(pk)
+    assert len(rng) > 0.5 * final["pairs_decoded"]
+    z = np.array([r["z_m"] for r in rng])
+    assert abs(np.median(z) - 30.0) < 0.5
+    assert final["latency_ms_p99"] is not None and final["latency_ms_p99"] < 200
+
+
+FAULTS = LIGHT + """
+[[rig.faults]]
+kind = "stall"
+camera = "left"
+frame = 1500
+duration_ms = 200
+[[rig.faults]]
+kind = "drop"
+camera = "right"
+frame = 2500
+[[rig.faults]]
+kind = "duplicate"
+camera = "left"
+frame = 3000
+[[rig.faults]]
+kind = "id_offset"
+camera = "right"
+frame = 3500
+offset = 3
+"""
+
+
+def test_faults_are_counted_and_decoding_resumes(tmp_path: Path) -> None:
+    d, recs = _run(FAULTS, tmp_path, 8.0)
+    final = [r for r in recs if r["type"] == "stats"][-1]
+    acq = final["acquisition"]
+    # the stall (200 ms = 200 frames), the drop and the duplicate are each counted
+    assert acq["unpaired_right"] >= 200
+    assert acq["duplicates_left"] >= 1
+    assert acq["resyncs"] >= 1  # the right camera's ids jumped by 3
+    assert final["frames_dropped"] >= 201
+    pk = [r for r in recs if r["type"] == "packet" and r["crc_ok"]]
+    assert any(r["frame"] > 4000 for r in pk), "decoding did not resume after the faults"
+    # a range never comes from a mismatched pair: ids after the offset are still paired
+    # with the right frame, so ranges stay on the truth (a 3-frame mismatch would not show
+    # in range on a static scene, but the pair's frame ids are checked by the pairer; here
+    # we check no range is wildly off and none is reported for the stalled frames)
+    rng = {r["frame"]: r for r in recs if r["type"] == "range"}
+    assert not any(1510 < f < 1690 for f in rng)
+    z = np.array([r["z_m"] for r in rng.values()])
+    assert np.all(np.abs(z - 30.0) < 2.0)
+
+
+def _fake_notify_socket(tmp_path: Path) -> tuple[socket.socket, str]:
+    path = str(tmp_path / "notify.sock")
+    s = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+    s.bind(path)
+    s.settimeout(0.2)
+    return s, path
+
+
+def test_sd_notify_ready_and_watchdog_and_sigterm(tmp_path: Path) -> None:
+    cfgf = tmp_path / "light.toml"
+    cfgf.write_text(LIGHT)
+    out = tmp_path / "svc.jsonl"
+    sock, path = _fake_notify_socket(tmp_path)
+    env = {k: v for k, v in os.environ.items()}
+    env.update(NOTIFY_SOCKET=path, WATCHDOG_USEC="1000000")
+    env.pop("WATCHDOG_PID", None)
+    proc = subprocess.Popen([sys.executable, "-m", "iscd", "run", "--config", str(cfgf), "--out", str(out)],
+                            env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    msgs: list[str] = []
+    t0 = time.monotonic()
+    try:
+        while time.monotonic() - t0 < 20:
+            try:
+                msgs += sock.recv(4096).decode().splitlines()
+            except socket.timeout:
+                pass
+            if "READY=1" in msgs and msgs.count("WATCHDOG=1") >= 2:
+                break
+        proc.send_signal(signal.SIGTERM)
+        _, err = proc.communicate(timeout=30)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+        sock.close()
+    assert "READY=1" in msgs and "WATCHDOG=1" in msgs, msgs
+    assert proc.returncode == 0, err.decode()[-2000:]
+    recs = _records(out)
+    assert recs and recs[-1]["type"] == "stats" and recs[-1]["final"] is True
+    assert b"Traceback" not in err
+
+
+def test_bad_config_is_one_line(tmp_path: Path) -> None:
+    bad = tmp_path / "bad.toml"
+    bad.write_text("[rig]\nbackend = 'usb3'\n")
+    p = subprocess.run([sys.executable, "-m", "iscd", "run", "--config", str(bad), "--duration", "1"],
+                       capture_output=True, text=True, timeout=60)
+    assert p.returncode == 2
+    assert "rig.backend" in p.stderr and "Traceback" not in p.stderr
+
+
+@pytest.mark.slow
+def test_soak_full_rate(tmp_path: Path) -> None:
+    """`iscd run --duration 60` on the embedded default at 1000 fps: every packet decoded,
+    no dropped frames, p99 latency <= 20 ms, CPU and RSS flat after warm-up."""
+    cfg = C.default_config()
+    out = tmp_path / "soak.jsonl"
+    d = Daemon(cfg, out=str(out), duration_s=60.0, install_signals=False)
+    d.run()
+    recs = _records(out)
+    stats = [r for r in recs if r["type"] == "stats"]
+    final = stats[-1]
+    assert final["frames_dropped"] == 0
+    assert final["packets_bad"] == 0 and final["packets_ok"] >= 40
+    assert final["latency_ms_p99"] <= 20
+    rss = [s["rss_mb"] for s in stats[10:-1]]
+    assert max(rss) - min(rss) < 50
