@@ -74,23 +74,35 @@ class Daemon:
     # ------------------------------------------------------------------ helpers
     def _outputs(self) -> list[Any]:
         outs: list[Any] = list(self.extra_outputs)
+        from iscd.outputs import output_config
+
+        oc = output_config(self.cfg)
         if self.out_path:
             from iscd.outputs.jsonl import JsonlWriter
 
             Path(self.out_path).parent.mkdir(parents=True, exist_ok=True)
-            outs.append(JsonlWriter(self.out_path, rotate_bytes=int(self.settings.rotate_mb * 2**20)))
+            outs.append(JsonlWriter(self.out_path, rotate_bytes=int(self.settings.rotate_mb * 2**20),
+                                    keep=oc.keep, flush_interval_s=oc.flush_interval_s,
+                                    fsync_interval_s=oc.fsync_interval_s))
         if self.socket_endpoint:
             from iscd.outputs.socket import ZmqPublisher
 
-            outs.append(ZmqPublisher(self.socket_endpoint))
+            outs.append(ZmqPublisher(self.socket_endpoint, hwm=oc.zmq_hwm, allow_remote=oc.zmq_allow_remote))
         return outs
 
     def _rerun(self) -> Any:
-        if not self.rerun_opts:
-            return None
-        from iscd.outputs.rerun_view import RerunView
+        from types import SimpleNamespace
 
-        return RerunView(**self.rerun_opts)
+        from iscd.outputs import rerun_config
+        from iscd.outputs.rerun_view import rerun_view_from
+
+        rc = rerun_config(self.cfg)
+        opts = self.rerun_opts or {}
+        if not opts and not (rc.connect or rc.serve or rc.save):
+            return None
+        t = self.cfg.transmitter
+        return rerun_view_from(SimpleNamespace(**opts), rc, fps=self.cfg.camera.fps,
+                               frames_per_symbol=self.cfg.camera.fps / t.symbol_rate_hz)
 
     # ------------------------------------------------------------------ main loop
     def run(self) -> dict[str, Any]:
@@ -133,7 +145,6 @@ class Daemon:
         next_stats = t_start + st.stats_interval_s
         deadline = t_start + self.duration_s if self.duration_s else None
         last_frame = -1
-        last_image_frame = -10**9
         acq.start()
         notifier.ready(status="acquiring")
         log.info("daemon started: backend %s, %dx%d @ %g fps, ring %d pairs", cfg.rig.backend, W, H, fps,
@@ -149,6 +160,8 @@ class Daemon:
                         log.error("output %s failed: %s", type(o).__name__, e)
                 if view is not None:
                     view.log_record(r)
+                    if r.get("type") == "packet" and r.get("levels"):
+                        view.log_levels(r["frame"], r["t_s"], np.asarray(r["levels"]).reshape(-1, decoder.air.n_leds))
             self.records_written += len(records)
 
         def stats_record(final: bool) -> dict[str, Any]:
@@ -173,6 +186,10 @@ class Daemon:
                    "pair_gaps": counters["pair_gaps"],
                    "acquisition": a.as_dict(), "acquisition_restarts": counters["acquisition_restarts"],
                    "output_errors": counters["output_errors"]}
+            for o in outputs:
+                c = getattr(o, "counters", None)
+                if callable(c):
+                    rec.update({k: v for k, v in c().items() if isinstance(v, (int, float))})
             return rec
 
         try:
@@ -234,8 +251,11 @@ class Daemon:
                 last_frame = int(ids[n - 1])
                 lat.add((done_ns - arrival[:n]) / 1e6)
                 emit(records)
-                if view is not None and last_frame - last_image_frame >= getattr(view, "image_every", 50):
-                    last_image_frame = last_frame
+                if view is not None and decoder.last_luminance is not None:
+                    li, lt, ll, lr = decoder.last_luminance
+                    view.log_luminance(li, lt, ll, lr)
+                    decoder.last_luminance = None
+                if view is not None and view.want_image(last_frame):
                     tr = decoder.track
                     boxes_l = boxes_r = None
                     if tr is not None:

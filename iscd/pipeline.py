@@ -127,6 +127,8 @@ class StreamDecoder:
         self._acq_ids: deque[tuple[int, float]] = deque(maxlen=self.settings.acquire_frames)
         self._since_fit = 0
         self._last_id: int | None = None
+        self.last_luminance: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = None
+        """(ids, t_s, lum_left, lum_right) of the last block decoded (for live views)."""
         self._blk_l: list[np.ndarray] = []
         self._blk_r: list[np.ndarray] = []
         self._win: tuple[tuple[int, int, int, int], tuple[int, int, int, int]] = ((0, 0, 0, 0), (0, 0, 0, 0))
@@ -177,6 +179,7 @@ class StreamDecoder:
         self.counters["frames_decoded"] += n
         lum_l = roi_mean(left, tr.left.centers, self.settings.roi_radius_px)
         lum_r = roi_mean(right, tr.right.centers, self.settings.roi_radius_px)
+        self.last_luminance = (frame_ids, t_s, lum_l, lum_r)
         # a long gap (a stalled camera, a burst of drops) restarts the packet search
         prev = np.concatenate([[self._last_id if self._last_id is not None else frame_ids[0] - 1], frame_ids[:-1]])
         cuts = np.flatnonzero(frame_ids - prev > self.settings.reset_gap_frames)
