@@ -2,6 +2,14 @@
 
 from __future__ import annotations
 
+import os
+
+# One BLAS thread: the daemon runs acquisition and decoding as two processes on two cores,
+# and multi-threaded BLAS on small batches is slower here (docs/ranging.md). Must be set
+# before numpy is first imported; a value set by the user wins.
+for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(_var, "1")
+
 import argparse
 import importlib
 import logging
