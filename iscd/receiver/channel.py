@@ -1,0 +1,312 @@
+"""Channel estimation: what luminance each level produces, per camera and LED.
+
+A frame's luminance is modelled as ``L = h_{c,i}(q) + noise`` where ``q`` is the (mixed)
+level index seen by the exposure window (0 .. M-1; a clean frame of level s has q = s-1, a
+frame straddling levels a and b with fraction alpha in a has q = alpha (a-1) + (1-alpha)
+(b-1), i.e. the integrated PWM duty times M-1). ``h`` is the camera's response: linear
+for an unsaturated camera, bending over where pixels clip (the f/4 camera of HDR). It is
+represented by its values at the M levels (the *centroids* ``mu[c, i, s]``) and linear
+interpolation between them; the noise by per-level variances ``var[c, i, s]``.
+
+Two estimators (both from labelled clean frames: the header and training sequence of a
+packet, and with ``decision_directed`` also the decided data symbols):
+
+* :func:`estimate_dissertation` -- the dissertation's channel factors (3.11 / 4.2):
+  ``w^s = mean(L^s) / s`` per camera, pooled over LEDs, so the centroid ``w^s s`` is the
+  mean luminance of level s; unit variances and the Euclidean decision (3.12 / 4.3).
+* :func:`estimate_iscd` -- the project's: pooled per-level centroids with a per-LED gain
+  and offset (least squares, shrunk towards the pooled curve), per-LED per-level
+  corrections shrunk by their sample count, per-level noise variances from the residuals
+  (shrunk towards the camera's pooled variance, with a floor) and a per-LED noise scale.
+  The decision is then the Gaussian (or Student-t) maximum likelihood summed over both
+  cameras: a camera whose centroids merge (saturation) or that is noisy contributes little,
+  so one rule does diversity (equal apertures) and HDR (different apertures).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from functools import cached_property
+
+import numpy as np
+
+KINDS = ("gauss", "t", "euclid")
+
+
+@dataclass(frozen=True)
+class ChannelModel:
+    """Per camera c, LED i and level s (0-based): centroid ``mu`` (DN), variance ``var`` (DN^2).
+
+    kind: ``"gauss"`` (cost (L-mu)^2/var + log var), ``"t"`` (Student-t with ``nu`` degrees of
+    freedom: heavier tails, robust to model errors), ``"euclid"`` ((L-mu)^2, the
+    dissertation's rule 3.12 / 4.3; ``var`` ignored).
+    """
+
+    mu: np.ndarray  # (C, N, M)
+    var: np.ndarray  # (C, N, M)
+    kind: str = "gauss"
+    nu: float = 6.0
+
+    @property
+    def n_cams(self) -> int:
+        return int(self.mu.shape[0])
+
+    @property
+    def n_leds(self) -> int:
+        return int(self.mu.shape[1])
+
+    @property
+    def levels(self) -> int:
+        return int(self.mu.shape[2])
+
+    def interp(self, table: np.ndarray, q: np.ndarray, led_axis: int = -1
+               ) -> tuple[np.ndarray, np.ndarray]:
+        """Linear interpolation of ``table`` (C, N, M) at fractional level indices ``q``.
+
+        ``q`` has the LED axis (length N) at ``led_axis``; returns the values and slopes
+        (per unit of q), each of shape (C,) + q.shape.
+        """
+        C, N, M = table.shape
+        q = np.asarray(q, dtype=np.float64)
+        q0 = np.clip(np.floor(q), 0, M - 2).astype(np.intp)
+        f = q - q0
+        shape = [1] * q.ndim
+        shape[led_axis] = N
+        idx = q0 + (np.arange(N) * M).reshape(shape)
+        flat = table.reshape(C, N * M)
+        a = flat[:, idx]
+        slope = flat[:, idx + 1] - a
+        return a + f * slope, slope
+
+    FINE = 32
+    """Sub-steps per level of the lookup tables of :meth:`lookup`."""
+
+    @cached_property
+    def _fine(self) -> tuple[np.ndarray, np.ndarray]:
+        C, N, M = self.mu.shape
+        q = np.arange((M - 1) * self.FINE + 1) / self.FINE
+        qq = np.broadcast_to(q, (N, q.size))
+        mu, _ = self.interp(self.mu, qq, led_axis=0)
+        var, _ = self.interp(self.var, qq, led_axis=0)
+        return mu.reshape(C, -1).astype(np.float32), var.reshape(C, -1).astype(np.float32)
+
+    @cached_property
+    def interp_error(self) -> np.ndarray:
+        """(C, N, M-1) RMS error bound of the linear interpolation within each level
+        segment, from the change of slope at its ends (curvature of the response h)."""
+        s = np.diff(self.mu, axis=-1)
+        ds = np.abs(np.diff(s, axis=-1))  # (C, N, M-2) slope change at inner knots
+        pad = np.zeros(ds.shape[:-1] + (1,))
+        left = np.concatenate([pad, ds], -1)
+        right = np.concatenate([ds, pad], -1)
+        return 0.125 * np.maximum(left, right)
+
+    @cached_property
+    def _interp_error32(self) -> np.ndarray:
+        return self.interp_error.reshape(self.n_cams, -1).astype(np.float32)
+
+    @cached_property
+    def _tables(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """float32 centroids, 1 / variances and log variances (C, N, M)."""
+        v = self.var.astype(np.float64)
+        return (self.mu.astype(np.float32), (1.0 / v).astype(np.float32),
+                np.log(v).astype(np.float32))
+
+    def lookup(self, q: np.ndarray, led_axis: int = -1) -> tuple[np.ndarray, np.ndarray]:
+        """Centroid and variance (float32) at fractional level indices q (LED axis
+        ``led_axis``), from tables with 1/32-level steps (nearest entry: one gather each,
+        for speed); returns two arrays of shape (C,) + q.shape."""
+        C, N, M = self.mu.shape
+        G = (M - 1) * self.FINE + 1
+        shape = [1] * np.ndim(q)
+        shape[led_axis] = N
+        x = np.clip(q, 0, M - 1)
+        x *= self.FINE
+        x += 0.5
+        idx = x.astype(np.intp)  # round half up (x >= 0)
+        idx += (np.arange(N) * G).reshape(shape)
+        mu_t, var_t = self._fine
+        return np.take(mu_t, idx, axis=1), np.take(var_t, idx, axis=1)
+
+    def interp_error_at(self, q: np.ndarray, led_axis: int = -1) -> np.ndarray:
+        """:attr:`interp_error` (float32) of the segments holding fractional levels q."""
+        C, N, M = self.mu.shape
+        shape = [1] * np.ndim(q)
+        shape[led_axis] = N
+        seg = np.clip(q, 0, M - 2).astype(np.intp)  # floor for q >= 0
+        seg += (np.arange(N) * (M - 1)).reshape(shape)
+        return np.take(self._interp_error32, seg, axis=1)
+
+    def _combine(self, r2: np.ndarray, ivar: np.ndarray, logvar: np.ndarray | float,
+                 L: np.ndarray) -> np.ndarray:
+        """Per-camera costs from squared residuals (modified in place), summed over cameras;
+        entries of NaN observations (L's non-singleton leading axes) cost nothing."""
+        if self.kind == "t":
+            r2 *= ivar
+            r2 *= np.float32(1.0 / self.nu)
+            np.log1p(r2, out=r2)
+            r2 *= np.float32(self.nu + 1.0)
+            r2 += logvar
+        elif self.kind == "gauss":
+            r2 *= ivar
+            r2 += logvar
+        bad = np.isnan(L)
+        while bad.ndim and bad.shape[-1] == 1:
+            bad = bad[..., 0]
+        if bad.any():
+            r2[bad] = 0.0
+        return r2.sum(axis=0) if r2.shape[0] > 1 else r2[0]
+
+    def cost(self, L: np.ndarray, mu: np.ndarray, var: np.ndarray) -> np.ndarray:
+        """Negative log-likelihood (x2, up to a constant) of L given mu, var, summed over
+        cameras (axis 0); NaN observations cost nothing. L (C, ...) broadcasts against mu
+        over trailing axes; ``var`` may be overwritten."""
+        L = np.asarray(L, dtype=np.float32)
+        r2 = np.subtract(L, mu, dtype=np.float32)
+        np.square(r2, out=r2)
+        if self.kind == "euclid":
+            return self._combine(r2, np.float32(1.0), 0.0, L)
+        var = np.asarray(var, dtype=np.float32)
+        ivar = np.reciprocal(var)
+        return self._combine(r2, ivar, np.log(var, out=var), L)
+
+    def level_cost(self, L: np.ndarray) -> np.ndarray:
+        """Cost (n, N, M) of each level for clean observations L (C, n, N)."""
+        mu, ivar, logvar = self._tables
+        L = np.asarray(L, dtype=np.float32)
+        r2 = np.square(L[..., None] - mu[:, None])
+        return self._combine(r2, ivar[:, None], logvar[:, None], L)
+
+
+def _stats(y: np.ndarray, lev: np.ndarray, N: int, M: int
+           ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Counts, sums and sums of squares per (LED, level) of samples y (n, N), levels (n, N)."""
+    ok = np.isfinite(y) & (lev >= 0) & (lev < M)
+    idx = (np.arange(N)[None, :] * M + lev)[ok]
+    yv = y[ok]
+    n = np.bincount(idx, minlength=N * M).reshape(N, M).astype(np.float64)
+    s = np.bincount(idx, weights=yv, minlength=N * M).reshape(N, M)
+    q = np.bincount(idx, weights=yv * yv, minlength=N * M).reshape(N, M)
+    return n, s, q
+
+
+def _fill_levels(m: np.ndarray, seen: np.ndarray) -> np.ndarray:
+    """Levels never seen get values interpolated (clamped) from the seen ones (M,)."""
+    if seen.all() or not seen.any():
+        return m if seen.any() else np.zeros_like(m)
+    x = np.flatnonzero(seen)
+    return np.interp(np.arange(m.size), x, m[x])
+
+
+def estimate_dissertation(y: np.ndarray, lev: np.ndarray, M: int) -> ChannelModel:
+    """Channel factors (3.11 / 4.2): centroid ``w^s s = mean over LEDs and samples of L^s``.
+
+    y: (C, n, N) clean-frame luminance of labelled symbols (NaN = missing); lev: (n, N)
+    their 0-based levels (-1 = unlabelled). Same centroids for every LED of a camera.
+    """
+    C, _, N = y.shape
+    mu = np.zeros((C, N, M))
+    for c in range(C):
+        n, s, _ = _stats(y[c], lev, N, M)
+        cnt = n.sum(0)
+        m = np.where(cnt > 0, s.sum(0) / np.maximum(cnt, 1), 0.0)
+        mu[c] = _fill_levels(m, cnt > 0)[None, :]
+    return ChannelModel(mu=mu, var=np.ones_like(mu), kind="euclid")
+
+
+@dataclass(frozen=True)
+class IscdChannelSettings:
+    """Shrinkage and floors of :func:`estimate_iscd` (pseudo-sample counts, DN)."""
+
+    led_prior: float = 4.0  # pseudo-samples pulling each LED's gain/offset to the pooled curve
+    level_prior: float = 3.0  # pseudo-samples pulling a per-LED centroid to its affine model
+    var_prior: float = 10.0  # pseudo-samples pulling a level's variance to the camera's
+    led_var_prior: float = 10.0  # pseudo-samples pulling an LED's noise scale to 1
+    var_floor_dn: float = 0.3  # smallest noise RMS, DN
+    outlier_sigma: float = 6.0  # samples further than this from their centroid are dropped
+
+
+def _estimate_camera(y: np.ndarray, lev: np.ndarray, M: int, st: IscdChannelSettings
+                     ) -> tuple[np.ndarray, np.ndarray] | None:
+    N = y.shape[1]
+    n, s, q = _stats(y, lev, N, M)
+    cnt = n.sum(0)
+    if (cnt > 0).sum() < 2:
+        return None
+    m = _fill_levels(np.where(cnt > 0, s.sum(0) / np.maximum(cnt, 1), 0.0), cnt > 0)
+    a = np.ones(N)
+    b = np.zeros(N)
+    lam = st.led_prior / M
+    for _ in range(2):
+        # per-LED affine fit y ~ a_i m_s + b_i, with lam pseudo-samples per level on the pooled curve
+        n1 = n + lam
+        s1 = s + lam * m[None, :]
+        W = n1.sum(1)
+        Sm = n1 @ m
+        Smm = n1 @ (m * m)
+        Sy = s1.sum(1)
+        Smy = s1 @ m
+        den = W * Smm - Sm * Sm
+        a = np.where(den > 1e-12, (W * Smy - Sm * Sy) / np.where(den > 1e-12, den, 1.0), 1.0)
+        b = (Sy - a * Sm) / W
+        # pooled curve given the LEDs' gains/offsets
+        wn = (a * a)[:, None] * n
+        num = (a[:, None] * (s - n * b[:, None])).sum(0)
+        den_m = wn.sum(0)
+        seen = den_m > 0
+        m = _fill_levels(np.where(seen, num / np.where(seen, den_m, 1.0), 0.0), seen)
+        # fix the gauge: mean gain 1, mean offset 0
+        am, bm = a.mean(), b.mean()
+        if am > 1e-9:
+            m = am * m + bm
+            a = a / am
+            b = b - a * bm
+    base = a[:, None] * m[None, :] + b[:, None]
+    mean_is = np.where(n > 0, s / np.maximum(n, 1), base)
+    mu = base + n / (n + st.level_prior) * (mean_is - base)
+    ssr = np.maximum(q - 2 * mu * s + n * mu * mu, 0.0)
+    dof = n - n / (n + st.level_prior)
+    floor = st.var_floor_dn ** 2
+    v_all = max(ssr.sum() / max(dof.sum(), 1.0), floor)
+    dof_s = dof.sum(0)
+    v_s = (ssr.sum(0) + st.var_prior * v_all) / (dof_s + st.var_prior)
+    v_s = np.maximum(v_s, floor)
+    t_i = ((ssr / v_s[None, :]).sum(1) + st.led_var_prior) / (dof.sum(1) + st.led_var_prior)
+    var = np.maximum(t_i[:, None] * v_s[None, :], floor)
+    return mu, var
+
+
+def estimate_iscd(y: np.ndarray, lev: np.ndarray, M: int,
+                  settings: IscdChannelSettings | None = None, kind: str = "gauss",
+                  nu: float = 6.0) -> ChannelModel:
+    """The project's channel model (module docstring) from labelled clean samples.
+
+    y: (C, n, N) luminance, DN (NaN = missing); lev: (n, N) 0-based levels (-1 = unknown).
+    A camera without usable samples gets flat centroids and a huge variance (it then
+    contributes nothing to decisions).
+    """
+    st = settings or IscdChannelSettings()
+    C, _, N = y.shape
+    mu = np.zeros((C, N, M))
+    var = np.full((C, N, M), 1e12)
+    for c in range(C):
+        res = _estimate_camera(y[c], lev, M, st)
+        if res is None:
+            continue
+        mu_c, var_c = res
+        if st.outlier_sigma > 0:  # drop gross outliers (decision errors, glitches) and refit
+            lv = np.clip(lev, 0, M - 1)
+            r = np.abs(y[c] - np.take_along_axis(mu_c, lv.T, axis=1).T)
+            ok = np.isfinite(r) & (lev >= 0)
+            # robust scale per level: 1.4826 x median |residual| over all LEDs
+            med = np.array([np.median(r[ok & (lv == s)]) if (ok & (lv == s)).any() else np.nan
+                            for s in range(M)])
+            med = np.where(np.isfinite(med), med, np.nanmedian(med) if np.isfinite(med).any() else 1.0)
+            sd = np.maximum(1.4826 * med, st.var_floor_dn)
+            bad = ok & (r > st.outlier_sigma * sd[lv])
+            if bad.any():
+                res2 = _estimate_camera(np.where(bad, np.nan, y[c]), lev, M, st)
+                if res2 is not None:
+                    mu_c, var_c = res2
+        mu[c], var[c] = mu_c, var_c
+    return ChannelModel(mu=mu, var=var, kind=kind, nu=nu)

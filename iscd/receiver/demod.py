@@ -1,0 +1,233 @@
+"""One packet, from a luminance buffer and a header candidate to decided levels and CRC.
+
+:func:`demodulate_packet` is pure (no state between packets except what the caller passes
+in: the expected symbol period and its uncertainty). Steps, for packet symbols
+``0 .. 13 + K + F - 1`` (header, training, data):
+
+1. Fine header phase (:func:`iscd.receiver.timing.fine_header`).
+2. Clean frames of header and training -> channel model (:mod:`iscd.receiver.channel`);
+   reject the candidate unless the training sequence is there (rank correlation of the
+   training frames with the known training levels) and the header has contrast -- a false
+   header (data that happens to look like Barker-13, noise) never becomes a packet.
+3. Clock refinement on the known symbols (:func:`iscd.receiver.timing.refine_clock`).
+4. Tracking pass: data decided in chunks; after each chunk the clock (phase and period,
+   i.e. drift) is re-fitted on all symbols so far, decision-directed.
+5. Final pass: channel re-estimated from all decided symbols (decision-directed, iscd
+   rule), clock re-fitted on the whole packet, then ``ic_iterations`` decision passes with
+   straddling frames cancelled against the neighbours' decisions.
+6. Levels -> Gray demapping -> CRC-32 (:meth:`iscd.airinterface.AirInterface.decode_data`).
+
+The dissertation's rule (``rule = "dissertation" | "left" | "right"``) uses the same timing
+(the dissertation does not say how it finds it) but its own channel factors from the
+training only (3.11 / 4.2) and the clean-frame Euclidean decision (3.12 / 4.3).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from iscd.airinterface import HEADER_SYMBOLS, AirInterface
+from iscd.receiver.channel import (ChannelModel, IscdChannelSettings, estimate_dissertation,
+                                   estimate_iscd)
+from iscd.receiver.decide import clean_costs, decide_span
+from iscd.receiver.settings import ReceiverConfig
+from iscd.receiver.timing import SymbolClock, clean_frame, fine_header, frame_map, refine_clock
+
+
+@dataclass
+class PacketResult:
+    """A demodulated packet (frame positions relative to the buffer passed in).
+
+    u0: header start, frames; p: symbol period, frames; first_frame: the clean frame of
+    the first header symbol; levels: (F, N) decided data levels 1..M; raw: the decoded
+    payload bytes -- untrusted unless crc_ok; margins: (F, N) decision margins.
+    """
+
+    u0: float
+    p: float
+    first_frame: int
+    levels: np.ndarray
+    raw: bytes
+    crc_ok: bool
+    drift_ppm: float
+    header_r2: float
+    training_rho: float
+    contrast: float
+    margins: np.ndarray = field(repr=False)
+    erasures: int = 0
+
+    def quality(self) -> dict[str, float]:
+        """Summary metrics (the receiver has no truth): margins and sync quality."""
+        m = self.margins
+        return {"margin_min": float(m.min()) if m.size else 0.0,
+                "margin_p01": float(np.percentile(m, 1)) if m.size else 0.0,
+                "margin_median": float(np.median(m)) if m.size else 0.0,
+                "weak_symbols": int((m < 4.0).sum()),
+                "erasures": int(self.erasures), "drift_ppm": float(self.drift_ppm),
+                "header_r2": float(self.header_r2), "training_rho": float(self.training_rho),
+                "contrast": float(self.contrast)}
+
+
+@dataclass
+class Rejection:
+    """Why a header candidate did not become a packet."""
+
+    u0: float
+    reason: str
+
+    @property
+    def incomplete(self) -> bool:
+        """The packet's frames are not all in the buffer yet (not a verdict)."""
+        return self.reason == "incomplete"
+
+
+def known_levels(air: AirInterface) -> np.ndarray:
+    """0-based levels (13 + K, N) of header and training."""
+    return np.concatenate([air.header(), air.training()]).astype(np.int64) - 1
+
+
+def clean_samples(L: np.ndarray, clock: SymbolClock, e: float, lev: np.ndarray, k_first: int
+                  ) -> tuple[np.ndarray, np.ndarray]:
+    """Clean-frame luminance (C, n_s, N) of packet symbols ``k_first ..`` and their levels."""
+    S = lev.shape[0]
+    lo = int(max(0, np.floor(clock.boundary(k_first))))
+    hi = int(min(L.shape[1], np.ceil(clock.boundary(k_first + S)) + 1))
+    frames = np.arange(lo, hi)
+    k, alpha = frame_map(frames, clock, e)
+    sel = (alpha >= 1.0) & (k >= k_first) & (k < k_first + S)
+    return L[:, frames[sel], :], lev[k[sel] - k_first]
+
+
+def rankdata(a: np.ndarray) -> np.ndarray:
+    """Ranks (1..n, ties averaged) along axis 0 of a 2-D array, like scipy's rankdata."""
+    n, m = a.shape
+    order = np.argsort(a, axis=0, kind="stable")
+    srt = np.take_along_axis(a, order, axis=0)
+    new = np.ones((n, m), bool)
+    new[1:] = srt[1:] != srt[:-1]
+    grp = np.cumsum(new, axis=0) - 1 + (np.arange(m) * n)[None, :]  # global group ids
+    pos = np.broadcast_to(np.arange(1, n + 1, dtype=np.float64)[:, None], (n, m))
+    mean = np.bincount(grp.ravel(), pos.ravel(), minlength=n * m) / np.maximum(
+        np.bincount(grp.ravel(), minlength=n * m), 1)
+    ranks = np.empty((n, m))
+    np.put_along_axis(ranks, order, mean[grp], axis=0)
+    return ranks
+
+
+def training_rank_correlation(y: np.ndarray, lev: np.ndarray) -> float:
+    """Mean over LEDs and cameras of the Spearman correlation of clean training samples
+    y (C, n, N) with their levels (n, N); NaN when not computable."""
+    C, n, N = y.shape
+    if n < 4:
+        return float("nan")
+    vals = []
+    lr = rankdata(lev.astype(np.float64))
+    lr = lr - lr.mean(0)
+    for c in range(C):
+        yc = y[c]
+        ok = np.isfinite(yc).sum(0) >= 4
+        if not ok.any():
+            continue
+        med = np.nanmedian(np.where(np.isfinite(yc[:, ok]), yc[:, ok], np.nan), axis=0)
+        yf = np.where(np.isfinite(yc[:, ok]), yc[:, ok], med)
+        yr = rankdata(yf)
+        yr = yr - yr.mean(0)
+        lo = lr[:, ok]
+        den = np.sqrt((yr * yr).sum(0) * (lo * lo).sum(0))
+        r = np.where(den > 0, (yr * lo).sum(0) / np.where(den > 0, den, 1.0), 0.0)
+        vals.append(r)
+    if not vals:
+        return float("nan")
+    return float(np.mean(np.concatenate(vals)))
+
+
+def header_contrast(model: ChannelModel) -> float:
+    """Median over LEDs of the best camera's (level M - level 1) / noise RMS."""
+    sd = np.sqrt(0.5 * (model.var[:, :, -1] + model.var[:, :, 0]))
+    c = (model.mu[:, :, -1] - model.mu[:, :, 0]) / sd
+    return float(np.median(c.max(0)))
+
+
+def demodulate_packet(L: np.ndarray, u_guess: float, air: AirInterface, e: float,
+                      p_nominal: float, p_prior: float, p_sigma: float, cfg: ReceiverConfig,
+                      ) -> PacketResult | Rejection:
+    """Demodulate the packet whose header starts near frame-unit time ``u_guess``.
+
+    L: (C, n, N) luminance of the selected cameras (NaN = missing), covering the whole
+    packet; e: exposure in frames; p_nominal: fps / symbol rate; p_prior, p_sigma: expected
+    symbol period (frames) and its RMS uncertainty.
+    """
+    C, n, N = L.shape
+    M = air.levels
+    known = known_levels(air)
+    n_known = known.shape[0]
+    P = air.packet_symbols
+    st = IscdChannelSettings(var_floor_dn=cfg.var_floor_dn)
+    kind = cfg.noise_model
+    ts = cfg.timing_sigma_frames
+
+    u0, r2 = fine_header(L, u_guess, p_prior, e)
+    clock = SymbolClock(u0, p_prior)
+    if clean_frame(np.array([P - 1]), clock, e)[0] + 1 > n:  # the last symbol's clean frame
+        return Rejection(u0, "incomplete")
+    y, lv = clean_samples(L, clock, e, known, 0)
+    model = estimate_iscd(y, lv, M, st, kind, cfg.t_nu)
+    rho_t = float("nan")
+    if air.training_symbols >= 4:
+        yt, lt = clean_samples(L, clock, e, known[HEADER_SYMBOLS:], HEADER_SYMBOLS)
+        rho_t = training_rank_correlation(yt, lt)
+        # random data's mean rank correlation has RMS ~ 1/sqrt((n - 1) N): demand 4 of
+        # them (at most 0.9: a short training cannot reject much, the CRC still does)
+        n_eff = max(yt.shape[1] - 1, 1) * N
+        need = max(cfg.training_rho, min(0.9, 4.0 / np.sqrt(n_eff)))
+        if not rho_t >= need:
+            return Rejection(u0, f"training sequence absent (rank correlation {rho_t:.2f})")
+    contrast = header_contrast(model)
+    if not contrast >= cfg.min_contrast:
+        return Rejection(u0, f"header contrast {contrast:.1f} below {cfg.min_contrast}")
+
+    # clock on the known symbols, then the channel again with the refined clock
+    clock, _ = refine_clock(L, clock, e, known, 0, model, p_prior, p_sigma, timing_sigma=ts)
+    y, lv = clean_samples(L, clock, e, known, 0)
+    model = estimate_iscd(y, lv, M, st, kind, cfg.t_nu)
+
+    # tracking pass: chunks of data, clock re-fitted on everything decided so far
+    lev = np.full((P, N), -1, dtype=np.int64)
+    lev[:n_known] = known
+    # (a clock tracked over earlier packets needs no updates within this one)
+    chunk = cfg.chunk_symbols if p_sigma > 30e-6 * p_nominal else P
+    for k_a in range(n_known, P, chunk):
+        k_b = min(P, k_a + chunk)
+        d = decide_span(L, clock, e, k_a, k_b, model, lev, 0, False, ts)
+        lev[k_a:k_b] = d.levels
+        clock, _ = refine_clock(L, clock, e, lev[:k_b], 0, model, p_prior, p_sigma,
+                                iters=2, timing_sigma=ts)
+
+    # final pass
+    if cfg.decision_directed and not cfg.dissertation:
+        y, lv = clean_samples(L, clock, e, lev, 0)
+        model = estimate_iscd(y, lv, M, st, kind, cfg.t_nu)
+        clock, _ = refine_clock(L, clock, e, lev, 0, model, p_prior, p_sigma, timing_sigma=ts)
+    if cfg.dissertation:
+        # channel factors from the training (3.11); without one, from the header's 1 and M
+        k0 = HEADER_SYMBOLS if air.training_symbols else 0
+        yt, lt = clean_samples(L, clock, e, known[k0:], k0)
+        dmodel = estimate_dissertation(yt, lt, M)
+        d = decide_span(L, clock, e, n_known, P, dmodel, None, 0, False, ts)
+        lev[n_known:] = d.levels
+    else:
+        pre = clean_costs(L, clock, e, n_known, P, model)
+        for _ in range(cfg.ic_iterations if cfg.straddle else 1):
+            d = decide_span(L, clock, e, n_known, P, model, lev, 0, cfg.straddle, ts,
+                            cfg.straddle_candidates, pre)
+            lev[n_known:] = d.levels
+    levels = (lev[n_known:] + 1).astype(np.uint8)
+    raw, ok = air.decode_data(levels)
+    first = int(clean_frame(np.array([0]), clock, e)[0])
+    return PacketResult(u0=clock.u0, p=clock.p, first_frame=first, levels=levels, raw=raw,
+                        crc_ok=bool(ok), drift_ppm=clock.drift_ppm(p_nominal),
+                        header_r2=r2, training_rho=rho_t, contrast=contrast,
+                        margins=d.margin, erasures=int((d.n_obs == 0).sum()))
+

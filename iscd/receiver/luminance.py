@@ -1,0 +1,279 @@
+"""LED luminance from frames: ROI mean (3.10), saturation- and crosstalk-aware estimates.
+
+All functions take a block of frames ``(F, H, W)`` (any integer or float dtype) and LED
+centres in px (x right, y down, pixel centres at integers), either fixed ``(N, 2)`` or per
+frame ``(F, N, 2)`` (tracked), and return ``(F, N)`` float64 luminance in DN. LED windows
+are gathered for all LEDs and frames at once with fancy indexing; pixels of a window
+outside the image are left out of its mean (a window entirely outside gives NaN).
+
+* :func:`roi_mean` -- the dissertation's luminance (3.10): the mean of the pixel values in
+  the LED's rectangular ROI.
+* :class:`SpotLuminance` -- per frame, least squares of all windows' pixels against
+  per-LED spot templates (estimated from the data by alternating least squares, each
+  template confined to its LED's window, with a static per-pixel background). Pixels at
+  the saturation level are left out of the fit (censored), so an LED whose core clips is
+  measured from its unsaturated flanks: the estimate stays linear in the LED's light
+  where the ROI mean bends over. Neighbouring LEDs of an array (4 px pitch at 50 m) are
+  separated because every pixel is explained by the sum of the templates that reach it.
+  The output is scaled like an ROI mean (DN): background mean of the window + the LED's
+  own contribution averaged over the window.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+
+def _window(size: int | tuple[int, int]) -> tuple[int, int]:
+    w, h = (size, size) if isinstance(size, (int, np.integer)) else size
+    if w < 1 or h < 1:
+        raise ValueError(f"ROI size must be >= 1 px, got {size}")
+    return int(w), int(h)
+
+
+def window_indices(centres: np.ndarray, size: int | tuple[int, int], shape: tuple[int, int]
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Row and column indices of each LED's window and a validity mask.
+
+    centres: (..., N, 2) px (x, y); size: w or (w, h) px. Returns rows (..., N, h, 1),
+    cols (..., N, 1, w) clipped into the image and valid (..., N, h, w).
+    """
+    w, h = _window(size)
+    c = np.asarray(centres, dtype=np.float64)
+    x0 = np.rint(c[..., 0] - (w - 1) / 2).astype(np.intp)
+    y0 = np.rint(c[..., 1] - (h - 1) / 2).astype(np.intp)
+    rows = y0[..., None] + np.arange(h)
+    cols = x0[..., None] + np.arange(w)
+    H, W = shape
+    vr = (rows >= 0) & (rows < H)
+    vc = (cols >= 0) & (cols < W)
+    valid = vr[..., :, None] & vc[..., None, :]
+    return np.clip(rows, 0, H - 1)[..., :, None], np.clip(cols, 0, W - 1)[..., None, :], valid
+
+
+def gather_windows(frames: np.ndarray, centres: np.ndarray, size: int | tuple[int, int]
+                   ) -> tuple[np.ndarray, np.ndarray]:
+    """Pixels of every LED window in every frame: (F, N, h, w) and validity (.., N, h, w)."""
+    fr = np.asarray(frames)
+    if fr.ndim != 3:
+        raise ValueError(f"expected frames (F, H, W), got shape {fr.shape}")
+    c = np.asarray(centres, dtype=np.float64)
+    if c.ndim == 2:
+        rows, cols, valid = window_indices(c, size, fr.shape[1:])
+        return fr[:, rows, cols], valid
+    if c.ndim == 3 and c.shape[0] == fr.shape[0]:
+        rows, cols, valid = window_indices(c, size, fr.shape[1:])
+        f = np.arange(fr.shape[0]).reshape(-1, 1, 1, 1)
+        return fr[f, rows, cols], valid
+    raise ValueError(f"centres must be (N, 2) or (F, N, 2) with F = {fr.shape[0]}, got {c.shape}")
+
+
+def roi_mean(frames: np.ndarray, centres: np.ndarray, size: int | tuple[int, int] = 3) -> np.ndarray:
+    """Mean pixel value of each LED's ROI (3.10): (F, N) DN.
+
+    size: ROI width (and height) in px, or (w, h); the window is centred on the rounded
+    LED centre (for even sizes, on the pixel corner nearest to it).
+    """
+    pix, valid = gather_windows(frames, centres, size)
+    s = (pix.astype(np.float64) * valid).sum(axis=(-2, -1))
+    cnt = np.broadcast_to(valid, pix.shape).sum(axis=(-2, -1))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        out = s / cnt
+    out[cnt == 0] = np.nan
+    return out
+
+
+@dataclass
+class _Layout:
+    """Pixels of the union of all windows and which LED windows cover each of them."""
+
+    pix_r: np.ndarray  # (P,) rows
+    pix_c: np.ndarray  # (P,) cols
+    led: np.ndarray  # (P, K) LED index covering the pixel, -1 = none
+    win: np.ndarray  # (N, h*w) pixel index of each window cell (-1 outside the image)
+    wh: int
+
+
+def _layout(centres: np.ndarray, size: int | tuple[int, int], shape: tuple[int, int]) -> _Layout:
+    w, h = _window(size)
+    rows, cols, valid = window_indices(centres, size, shape)
+    N = centres.shape[0]
+    rr = np.broadcast_to(rows, (N, h, w)).reshape(N, -1)
+    cc = np.broadcast_to(cols, (N, h, w)).reshape(N, -1)
+    vv = valid.reshape(N, -1)
+    lin = rr * shape[1] + cc
+    uniq, inv = np.unique(lin[vv], return_inverse=True)
+    win = np.full(lin.shape, -1, dtype=np.intp)
+    win[vv] = inv
+    # LEDs covering each pixel (padded to the largest overlap)
+    pi = win[vv]
+    li = np.broadcast_to(np.arange(N)[:, None], lin.shape)[vv]
+    order = np.lexsort((li, pi))
+    pi, li = pi[order], li[order]
+    cnt = np.bincount(pi, minlength=uniq.size)
+    K = int(cnt.max())
+    start = np.concatenate([[0], np.cumsum(cnt)[:-1]])
+    slot = np.arange(pi.size) - start[pi]
+    led = np.full((uniq.size, K), -1, dtype=np.intp)
+    led[pi, slot] = li
+    return _Layout(pix_r=uniq // shape[1], pix_c=uniq % shape[1], led=led, win=win, wh=w * h)
+
+
+class SpotLuminance:
+    """Crosstalk- and saturation-aware LED luminance (module docstring).
+
+    centres: (N, 2) LED centres, px (fixed over the frames it is used on; refit when the
+    LEDs move by a pixel). size: window px. saturation_dn: pixels at or above it are
+    ignored (None: no saturation handling). iterations: alternating least-squares rounds.
+    ridge: relative Tikhonov weight keeping amplitudes finite when an LED's window is
+    entirely saturated (then the amplitude is raised to the least value that saturates
+    the pixels it dominates). init_sigma_px: the Gaussian spot the fit starts from, px.
+    """
+
+    def __init__(self, centres: np.ndarray, size: int | tuple[int, int] = 5,
+                 saturation_dn: float | None = 255.0, iterations: int = 3,
+                 ridge: float = 1e-7, init_sigma_px: float = 1.0) -> None:
+        self.centres = np.asarray(centres, dtype=np.float64).reshape(-1, 2)
+        self.size = size
+        self.saturation_dn = saturation_dn
+        self.iterations = iterations
+        self.ridge = ridge
+        self.init_sigma_px = init_sigma_px
+        self._lay: _Layout | None = None
+        self.templates: np.ndarray | None = None  # (P, K) weight of led[p, k] at pixel p
+        self.background: np.ndarray | None = None  # (P,)
+
+    @property
+    def n_leds(self) -> int:
+        return self.centres.shape[0]
+
+    def _pixels(self, frames: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        lay = self._lay
+        assert lay is not None
+        y = np.asarray(frames)[:, lay.pix_r, lay.pix_c].astype(np.float64)  # (F, P)
+        ok = np.ones(y.shape, bool) if self.saturation_dn is None else y < self.saturation_dn
+        return y, ok
+
+    def fit(self, frames: np.ndarray) -> "SpotLuminance":
+        """Estimate templates and background from a block of frames (F, H, W); the LEDs
+        should change level over the block (e.g. a few hundred frames of data)."""
+        fr = np.asarray(frames)
+        if fr.ndim != 3 or fr.shape[0] < 8:
+            raise ValueError(f"need a block of >= 8 frames (F, H, W), got shape {fr.shape}")
+        self._lay = lay = _layout(self.centres, self.size, fr.shape[1:])
+        y, ok = self._pixels(fr)
+        F, P = y.shape
+        N = self.n_leds
+        # start: Gaussian spots of sigma init_sigma_px at the LED centres over a background of
+        # each pixel's 2nd percentile, amplitudes by the censored least squares below
+        K = lay.led.shape[1]
+        has = lay.led >= 0
+        ci = self.centres[np.maximum(lay.led, 0)]  # (P, K, 2)
+        d2 = (lay.pix_c[:, None] - ci[..., 0]) ** 2 + (lay.pix_r[:, None] - ci[..., 1]) ** 2
+        T0 = np.where(has, np.exp(-d2 / (2 * self.init_sigma_px ** 2)), 0.0)
+        tot = np.bincount(lay.led[has], weights=T0[has], minlength=N)
+        self.templates = np.where(has, T0 / np.maximum(tot, 1e-12)[np.maximum(lay.led, 0)], 0.0)
+        self.background = np.percentile(np.where(ok, y, np.nan), 2, axis=0) if ok.all() else \
+            np.nan_to_num(np.nanpercentile(np.where(ok, y, np.nan), 2, axis=0), nan=0.0)
+        A = self._amplitudes(y, ok)
+        for _ in range(max(1, self.iterations)):
+            # templates: per pixel, y_p = c_p + sum_k T_pk A_{led[p,k]}, unsaturated frames
+            X = np.concatenate([np.ones((F, P, 1)),
+                                np.where(has[None], A[:, np.maximum(lay.led, 0)], 0.0)], axis=2)
+            wgt = ok.astype(np.float64)
+            G = np.einsum("fp,fpi,fpj->pij", wgt, X, X)
+            b = np.einsum("fp,fpi,fp->pi", wgt, X, y)
+            reg = 1e-9 * np.trace(G, axis1=1, axis2=2)[:, None, None] * np.eye(K + 1)
+            # a missing LED slot must not be singular
+            G[:, 1:, 1:] += np.where(has[:, :, None] & has[:, None, :], 0.0,
+                                     np.eye(K)[None]) * 1.0
+            sol = np.linalg.solve(G + reg, b[..., None])[..., 0]
+            self.background = sol[:, 0]
+            self.templates = np.where(has, sol[:, 1:], 0.0)
+            # normalize each LED's template to unit sum over its window
+            tot = np.bincount(lay.led[has], weights=self.templates[has], minlength=N)
+            tot = np.where(np.abs(tot) > 1e-12, tot, 1.0)
+            self.templates = np.where(has, self.templates / tot[np.maximum(lay.led, 0)], 0.0)
+            A = self._amplitudes(y, ok)
+        return self
+
+    def _design(self):  # -> scipy.sparse.csr_matrix
+        from scipy import sparse
+
+        lay = self._lay
+        assert lay is not None and self.templates is not None
+        has = lay.led >= 0
+        p_idx = np.broadcast_to(np.arange(lay.led.shape[0])[:, None], lay.led.shape)[has]
+        return sparse.csr_matrix((self.templates[has], (p_idx, lay.led[has])),
+                                 shape=(lay.led.shape[0], self.n_leds))
+
+    def _amplitudes(self, y: np.ndarray, ok: np.ndarray) -> np.ndarray:
+        """Per frame least squares (F, N) of (y - background) on the templates."""
+        from scipy import sparse
+
+        T = self._design()  # (P, N) sparse
+        N = self.n_leds
+        r = y - self.background[None, :]
+        TtT = (T.T @ T).toarray()
+        lam = self.ridge * float(np.trace(TtT)) / N
+        A = np.empty((y.shape[0], N))
+        full = ok.all(1)
+        if full.any():  # no saturated pixel in the frame: one shared solve
+            A[full] = np.linalg.solve(TtT + lam * np.eye(N), (T.T @ r[full].T)).T
+        part = np.flatnonzero(~full)
+        if part.size:
+            # per-frame normal matrices sum_p w_fp T_p T_p^T via a sparse (P, N*N) map
+            lay = self._lay
+            assert lay is not None
+            has = lay.led >= 0
+            Kp = lay.led.shape[1]
+            pa = np.broadcast_to(np.arange(lay.led.shape[0])[:, None, None], (lay.led.shape[0], Kp, Kp))
+            ia = np.broadcast_to(lay.led[:, :, None], pa.shape)
+            ib = np.broadcast_to(lay.led[:, None, :], pa.shape)
+            va = self.templates[:, :, None] * self.templates[:, None, :]
+            m = has[:, :, None] & has[:, None, :]
+            Q = sparse.csr_matrix((va[m], (pa[m], ia[m] * N + ib[m])),
+                                  shape=(lay.led.shape[0], N * N))
+            w = ok[part].astype(np.float64)
+            G = np.asarray((sparse.csr_matrix(w) @ Q).todense()).reshape(-1, N, N)
+            rhs = np.asarray((sparse.csr_matrix(w * r[part]) @ T).todense())
+            G += lam * np.eye(N)[None]
+            A[part] = np.linalg.solve(G, rhs[..., None])[..., 0]
+            A[part] = np.maximum(A[part], self._saturation_bound(~ok[part]))
+        return A
+
+    def _saturation_bound(self, sat: np.ndarray) -> np.ndarray:
+        """Least amplitude (F, N) of each LED consistent with the saturated pixels it
+        dominates (its template is the largest there): ``(saturation - background) / T``."""
+        lay = self._lay
+        assert lay is not None and self.templates is not None and self.background is not None
+        N = self.n_leds
+        k = self.templates.argmax(1)
+        dom = lay.led[np.arange(k.size), k]
+        t = self.templates[np.arange(k.size), k]
+        usable = (dom >= 0) & (t > 1e-6)
+        level = float(self.saturation_dn if self.saturation_dn is not None else np.inf)
+        b = np.where(usable, (level - self.background) / np.where(usable, t, 1.0), 0.0)  # (P,)
+        B = np.where(sat & usable[None, :], b[None, :], 0.0)  # (F, P)
+        order = np.argsort(dom, kind="stable")
+        order = order[dom[order] >= 0]
+        out = np.zeros((sat.shape[0], N))
+        if order.size:
+            d = dom[order]
+            starts = np.flatnonzero(np.r_[True, d[1:] != d[:-1]])
+            out[:, d[starts]] = np.maximum.reduceat(B[:, order], starts, axis=1)
+        return out
+
+    def __call__(self, frames: np.ndarray) -> np.ndarray:
+        """Luminance (F, N), DN, of each LED in ``frames`` (F, H, W)."""
+        if self.templates is None:
+            raise RuntimeError("SpotLuminance.fit(frames) must be called first")
+        y, ok = self._pixels(frames)
+        A = self._amplitudes(y, ok)
+        lay = self._lay
+        assert lay is not None and self.background is not None
+        winbg = np.where(lay.win >= 0, self.background[np.maximum(lay.win, 0)], 0.0)
+        nvalid = np.maximum((lay.win >= 0).sum(1), 1)
+        return winbg.sum(1)[None, :] / nvalid[None, :] + A / lay.wh

@@ -1,0 +1,302 @@
+"""Symbol timing: header search, symbol phase and clock drift, frame <-> symbol geometry.
+
+Time is measured in *frame units* on the camera's frame index: frame n exposes the window
+``[n, n + e]``, ``e = exposure_s * fps`` (<= 1). The LED's symbols of a packet are
+``[u0 + k p, u0 + (k + 1) p)`` for packet symbol k (k = 0 is the first header symbol):
+``u0`` is the packet's phase against the frames and ``p`` the symbol period in frames
+(``fps / symbol_rate_hz`` = 2 nominally; the LED clock's drift makes it ``p = 2 / (1 +
+drift)``). Since e <= 1 < p, a window touches at most two symbols: it lies in symbol
+``k_n`` for the fraction ``alpha_n`` of its length and in ``k_n + 1`` for the rest
+(:func:`frame_map`). A frame with alpha = 1 is *clean*; with two frames per symbol every
+symbol has at least one clean frame (SPEC section 3).
+
+Header search (:func:`coarse_header_search`): the luminance of each LED is normalized to
+[0, 1] (its 2nd and 98th percentiles), averaged over LEDs and cameras, and correlated
+(normalized, NaN-aware, sliding) with the Barker-13 header rendered at frame resolution
+at several sub-frame phases -- the integrated '+' fraction of each window. Peaks above a
+correlation threshold whose amplitude is plausible are candidates.
+
+Fine phase (:func:`fine_header`): a grid search of u0 (default 0.02 frame = 20 us steps over
++-0.6 frame, refined by a parabola) of the least-squares fit ``L_i = g_i D_n(u0) + c_i``
+per LED and camera over the frames inside the header, D_n the exact '+' fraction.
+
+Tracking (:func:`refine_clock`): Gauss-Newton on (u0, p) of the residuals of the straddling
+frames ``L - h(alpha l_a + (1 - alpha) l_b)`` against the channel model's response h
+(:mod:`iscd.receiver.channel`), for symbols whose levels are known (header, training) or
+decided (data, decision-directed), with a Gaussian prior on p and Huber weights. Only a
+straddling frame carries timing information: its value moves with the boundary position.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.lib.stride_tricks import sliding_window_view
+
+from iscd.airinterface import BARKER13, HEADER_SYMBOLS
+from iscd.receiver.channel import ChannelModel
+
+HEADER_BITS = (BARKER13 > 0).astype(np.float64)
+
+
+@dataclass(frozen=True)
+class SymbolClock:
+    """Packet symbol k covers frame-unit time ``[u0 + k p, u0 + (k+1) p)``."""
+
+    u0: float
+    p: float
+
+    def boundary(self, k: np.ndarray | float) -> np.ndarray:
+        return self.u0 + np.asarray(k, dtype=np.float64) * self.p
+
+    def drift_ppm(self, nominal_p: float) -> float:
+        """LED clock rate error against the camera, ppm (positive = LED fast)."""
+        return (nominal_p / self.p - 1.0) * 1e6
+
+    def shifted(self, k: float) -> "SymbolClock":
+        """The clock of a packet starting k symbols later."""
+        return SymbolClock(self.u0 + k * self.p, self.p)
+
+
+def frame_map(frames: np.ndarray, clock: SymbolClock, e: float) -> tuple[np.ndarray, np.ndarray]:
+    """Symbol k_n containing the start of frame n's window and the fraction alpha_n of the
+    window inside it (1 = clean; the rest lies in k_n + 1)."""
+    n = np.asarray(frames, dtype=np.float64)
+    k = np.floor((n - clock.u0) / clock.p).astype(np.int64)
+    end = clock.u0 + (k + 1) * clock.p
+    alpha = np.clip((end - n) / e, 0.0, 1.0)
+    return k, alpha
+
+
+def clean_frame(k: np.ndarray, clock: SymbolClock, e: float) -> np.ndarray:
+    """Index of the frame closest to the middle of symbol k (the cleanest one)."""
+    mid = clock.u0 + (np.asarray(k, dtype=np.float64) + 0.5) * clock.p
+    return np.rint(mid - e / 2).astype(np.int64)
+
+
+def _header_cum(u: np.ndarray, p: float) -> np.ndarray:
+    """Integral of the header's '+' indicator from its start to u (frame units)."""
+    knots = np.arange(HEADER_SYMBOLS + 1) * p
+    vals = np.concatenate([[0.0], np.cumsum(HEADER_BITS) * p])
+    return np.interp(u, knots, vals, left=0.0, right=vals[-1])
+
+
+def header_fraction(offset: np.ndarray, p: float, e: float) -> np.ndarray:
+    """Fraction of the window ``[o, o + e]`` (o = frame start - header start, frames) in '+'
+    chips, for windows inside the header; the exact straddle integral of Barker-13."""
+    o = np.asarray(offset, dtype=np.float64)
+    return (_header_cum(o + e, p) - _header_cum(o, p)) / e
+
+
+@dataclass(frozen=True)
+class HeaderCandidate:
+    """A header found by correlation: start u0 (frames), correlation rho, amplitude slope
+    (normalized luminance units, ~1 for a real header)."""
+
+    u0: float
+    rho: float
+    slope: float
+
+
+def luminance_range(L: np.ndarray, step: int = 1) -> tuple[np.ndarray, np.ndarray]:
+    """2nd and 98th percentiles (C, N) of each camera's and LED's luminance L (C, n, N),
+    from every ``step``-th frame; NaN for LEDs with fewer than 8 values or no spread."""
+    C, n, N = L.shape
+    sub = L[:, ::max(1, step), :]
+    flat = sub.transpose(1, 0, 2).reshape(sub.shape[1], C * N)
+    lo = np.full(C * N, np.nan)
+    hi = np.full(C * N, np.nan)
+    ok = np.isfinite(flat).sum(0) >= 8
+    if ok.any():
+        cols = flat[:, ok]
+        pct = np.percentile if np.isfinite(cols).all() else np.nanpercentile
+        lo[ok], hi[ok] = pct(cols, [2.0, 98.0], axis=0)
+    flat_led = ~(hi - lo > 1e-6 * np.maximum(np.abs(hi), 1.0))
+    lo[flat_led] = np.nan
+    hi[flat_led] = np.nan
+    return lo.reshape(C, N), hi.reshape(C, N)
+
+
+def normalized_mean(L: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    """Mean over cameras and LEDs of ``(L - lo) / (hi - lo)``: (C, n, N) -> (n,), NaN where
+    nothing is valid (LEDs with NaN range are ignored)."""
+    z = (L - lo[:, None, :]) / (hi - lo)[:, None, :]
+    cnt = np.isfinite(z).sum(axis=(0, 2))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        y = np.nansum(z, axis=(0, 2)) / cnt
+    y[cnt == 0] = np.nan
+    return y
+
+
+def normalize_luminance(L: np.ndarray) -> np.ndarray:
+    """Per camera and LED, map the 2nd..98th percentile range to 0..1; (C, n, N) -> (n,)
+    mean over LEDs and cameras (NaN where nothing is valid). Flat LEDs are ignored."""
+    lo, hi = luminance_range(L)
+    return normalized_mean(L, lo, hi)
+
+
+def coarse_header_search(y: np.ndarray, p: float, e: float, n_phases: int = 8,
+                         min_rho: float = 0.7, min_slope: float = 0.3,
+                         min_valid: float = 0.7) -> list[HeaderCandidate]:
+    """Barker-13 candidates in the normalized luminance y (n,), best first.
+
+    For each start frame n0 and phase phi in [0, 1) (steps 1/n_phases), the Pearson
+    correlation of y over the frames inside the header with the header's '+' fraction
+    (NaN frames skipped; at least ``min_valid`` of them present). Non-maximum
+    suppression keeps the best candidate within 1.5 symbols.
+    """
+    y = np.asarray(y, dtype=np.float64)
+    J = int(np.floor(HEADER_SYMBOLS * p - e))  # window frames 1..J after n0
+    if J < 8 or y.size < J + 2:
+        return []
+    mask = np.isfinite(y)
+    yf = np.where(mask, y, 0.0)
+    mf = mask.astype(np.float64)
+    phases = np.arange(n_phases) / n_phases
+    j = np.arange(1, J + 1)
+    T = header_fraction(j[:, None] - phases[None, :], p, e)  # (J, P)
+    Y = sliding_window_view(yf[1:], J)  # row n0 covers frames n0+1 .. n0+J
+    Mw = sliding_window_view(mf[1:], J)
+    n_eff = Mw.sum(1)
+    Sy = Y.sum(1)
+    Syy = (Y * Y).sum(1)
+    St = Mw @ T
+    Stt = Mw @ (T * T)
+    Syt = Y @ T
+    ne = np.maximum(n_eff, 1.0)[:, None]
+    cov = Syt - Sy[:, None] * St / ne
+    vy = np.maximum(Syy - Sy * Sy / ne[:, 0], 0.0)[:, None]
+    vt = np.maximum(Stt - St * St / ne, 1e-12)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        rho = cov / np.sqrt(vy * vt)
+    rho[~np.isfinite(rho)] = -1.0
+    rho[n_eff < min_valid * J] = -1.0
+    best = rho.argmax(1)
+    r = rho[np.arange(rho.shape[0]), best]
+    slope = (cov / vt)[np.arange(rho.shape[0]), best]
+    u = np.arange(rho.shape[0]) + phases[best]
+    order = np.argsort(-r)
+    order = order[(r[order] >= min_rho) & (slope[order] >= min_slope)]
+    out: list[HeaderCandidate] = []
+    taken = np.zeros(r.size, bool)
+    rad = int(np.ceil(1.5 * p))
+    for i in order:
+        if taken[i]:
+            continue
+        taken[max(0, i - rad): i + rad + 1] = True
+        out.append(HeaderCandidate(float(u[i]), float(r[i]), float(slope[i])))
+    return out
+
+
+def fine_header(L: np.ndarray, u_guess: float, p: float, e: float, half_width: float = 0.6,
+                step: float = 0.02) -> tuple[float, float]:
+    """Header start u0 (frames) by grid search around ``u_guess``; returns (u0, mean R^2).
+
+    L: (C, n, N) luminance of the buffer. Each LED/camera column is fitted ``L = g D + c``
+    over the frames inside the header for every grid u0; the sum of the columns' R^2 is
+    maximized (equivalent to least squares per column, scale-free across columns).
+    """
+    C, n, N = L.shape
+    grid = u_guess + np.arange(-half_width, half_width + step / 2, step)
+    n_lo = int(np.ceil(grid[-1]))
+    n_hi = int(np.floor(grid[0] + HEADER_SYMBOLS * p - e))  # inclusive
+    n_lo, n_hi = max(n_lo, 0), min(n_hi, n - 1)
+    if n_hi - n_lo < 6:
+        return float(u_guess), 0.0
+    frames = np.arange(n_lo, n_hi + 1)
+    V = L[:, frames, :].transpose(1, 0, 2).reshape(frames.size, C * N)
+    ok = np.isfinite(V)
+    cols = ok.sum(0) >= max(6, frames.size // 2)
+    if not cols.any():
+        return float(u_guess), 0.0
+    V = V[:, cols]
+    ok = ok[:, cols]
+    mean = np.nanmean(V, axis=0)
+    Vc = np.where(ok, V - mean, 0.0)
+    vv = (Vc * Vc).sum(0)
+    vv = np.where(vv > 1e-12, vv, np.inf)
+    X = header_fraction(frames[None, :] - grid[:, None], p, e)  # (G, J)
+    Xc = X - X.mean(1, keepdims=True)
+    vx = np.maximum((Xc * Xc).sum(1), 1e-12)
+    cov = Xc @ Vc  # (G, cols)
+    score = ((cov * cov) / (vx[:, None] * vv[None, :])).sum(1) / cols.sum()
+    g = int(score.argmax())
+    u = float(grid[g])
+    if 0 < g < grid.size - 1:
+        a, b, c = score[g - 1], score[g], score[g + 1]
+        den = a - 2 * b + c
+        if den < 0:
+            u += float(np.clip(0.5 * (a - c) / den, -0.5, 0.5)) * step
+    return u, float(score[g])
+
+
+def refine_clock(L: np.ndarray, clock: SymbolClock, e: float, lev: np.ndarray, k_first: int,
+                 model: ChannelModel, p_prior: float, p_sigma: float, iters: int = 3,
+                 huber: float = 3.0, timing_sigma: float = 0.02,
+                 fit_p: bool = True) -> tuple[SymbolClock, int]:
+    """Gauss-Newton refinement of the symbol clock on labelled symbols.
+
+    L: (C, n, N) buffer luminance; lev: (S, N) 0-based levels of packet symbols
+    ``k_first .. k_first + S - 1`` (-1 = unknown); p_prior, p_sigma: prior on the period
+    (frames). Returns the refined clock and the number of informative straddling
+    observations used (0: clock unchanged).
+    """
+    C, n, N = L.shape
+    S = lev.shape[0]
+    kc = k_first + S / 2.0  # parametrize around the span's centre
+    uc, p = clock.u0 + kc * clock.p, clock.p
+    n_lo = int(max(0, np.floor(clock.boundary(k_first)) - 1))
+    n_hi = int(min(n, np.ceil(clock.boundary(k_first + S)) + 1))
+    frames = np.arange(n_lo, n_hi)
+    used = 0
+    for _ in range(iters):
+        ck = SymbolClock(uc - kc * p, p)
+        k, alpha = frame_map(frames, ck, e)
+        sel = (alpha > 0) & (alpha < 1) & (k >= k_first) & (k + 1 < k_first + S)
+        if not sel.any():
+            break
+        fr, k, alpha = frames[sel], k[sel], alpha[sel]
+        la = lev[k - k_first]
+        lb = lev[k + 1 - k_first]
+        obs = L[:, fr, :]
+        valid = (la >= 0) & (lb >= 0) & (la != lb)
+        q = alpha[:, None] * la + (1 - alpha[:, None]) * lb
+        mu, slope = model.interp(model.mu, q)
+        _, var = model.lookup(q)
+        gain = (model.mu[:, :, -1] - model.mu[:, :, 0]) / max(model.levels - 1, 1)  # (C, N)
+        var = var + (timing_sigma / e * gain[:, None, :] * (la - lb)[None]) ** 2
+        # where the response bends between levels (saturation) the interpolation is poor
+        var = var + np.square(model.interp_error_at(q))
+        r = obs - mu
+        g = -slope * ((la - lb) / e)[None]  # d r / d boundary
+        w = np.where(valid[None] & np.isfinite(obs), 1.0 / var, 0.0)
+        z = np.abs(np.nan_to_num(r)) * np.sqrt(w)
+        w = w * np.minimum(1.0, huber / np.maximum(z, 1e-12))
+        r = np.nan_to_num(r)
+        dk = (k + 1 - kc).astype(np.float64)[None, :, None]
+        wg = w * g
+        h00 = float((wg * g).sum())
+        h01 = float((wg * g * dk).sum())
+        h11 = float((wg * g * dk * dk).sum())
+        b0 = float((wg * r).sum())
+        b1 = float((wg * r * dk).sum())
+        used = int((w > 0).sum())
+        if h00 <= 0:
+            break
+        if fit_p:
+            H = np.array([[h00 + 1e-9, h01], [h01, h11 + 1.0 / p_sigma ** 2]])
+            rhs = -np.array([b0, b1 + (p - p_prior) / p_sigma ** 2])
+            try:
+                d_u, d_p = np.linalg.solve(H, rhs)
+            except np.linalg.LinAlgError:
+                break
+        else:
+            d_u, d_p = -b0 / h00, 0.0
+        d_u = float(np.clip(d_u, -0.25, 0.25))
+        d_p = float(np.clip(d_p, -3 * p_sigma, 3 * p_sigma))
+        uc += d_u
+        p += d_p
+        if abs(d_u) < 1e-3 and abs(d_p) * S < 1e-3:  # 1 us
+            break
+    return SymbolClock(uc - kc * p, p), used

@@ -1,0 +1,102 @@
+"""Symbol timing: window/symbol geometry, header search at every phase, clock and drift."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from iscd.airinterface import BARKER13, AirInterface
+from iscd.receiver.channel import estimate_iscd
+from iscd.receiver.demod import clean_samples, known_levels
+from iscd.receiver.synth import SynthCamera, integrated_duty, synth_recording
+from iscd.receiver.timing import (SymbolClock, clean_frame, coarse_header_search, fine_header,
+                                  frame_map, header_fraction, normalize_luminance, refine_clock)
+
+
+def test_frame_map_matches_numeric_overlap() -> None:
+    rng = np.random.default_rng(0)
+    for _ in range(20):
+        clock = SymbolClock(rng.uniform(-3, 3), rng.uniform(1.9, 2.6))
+        e = rng.uniform(0.3, 1.0)
+        frames = np.arange(0, 40)
+        k, alpha = frame_map(frames, clock, e)
+        u = frames[:, None] + (np.arange(4000) + 0.5) / 4000 * e  # fine samples of each window
+        ks = np.floor((u - clock.u0) / clock.p)
+        assert (ks.min(1) == k).all()
+        np.testing.assert_allclose((ks == k[:, None]).mean(1), alpha, atol=1e-3)
+        assert (ks.max(1) <= k + 1).all()  # a window touches at most two symbols
+        kc = np.arange(1, 15)
+        n = clean_frame(kc, clock, e)
+        kk, aa = frame_map(n, clock, e)
+        assert ((kk == kc) & (aa == 1.0)).all()  # the middle frame of a symbol is clean
+
+
+def test_header_fraction_is_the_exact_integral_of_barker13() -> None:
+    p, e = 2.0, 1.0
+    off = np.linspace(0.0, 13 * p - e, 97)
+    u = off[:, None] + (np.arange(20000) + 0.5) / 20000 * e
+    chip = np.clip(np.floor(u / p).astype(int), 0, 12)
+    want = (BARKER13[chip] > 0).mean(1)
+    np.testing.assert_allclose(header_fraction(off, p, e), want, atol=1e-4)
+
+
+def test_integrated_duty_is_exact_with_carrier_and_drift() -> None:
+    levels = np.array([[1], [8], [3], [6], [1]])
+    t = np.linspace(0.0005, 0.0075, 9)
+    got = integrated_duty(levels, 8, t, 1e-3, 500.0, phase_s=0.0003, drift_ppm=150.0, pwm_hz=50_000)
+    # brute force: sample the PWM waveform on the LED clock
+    rate = 1 + 150e-6
+    s = t[:, None] + (np.arange(200_000) + 0.5) / 200_000 * 1e-3
+    tl = (s - 0.0003) * rate
+    k = np.floor(tl / 2e-3).astype(int)
+    d = np.where((k >= 0) & (k < 5), (levels[np.clip(k, 0, 4), 0] - 1) / 7, 0.0)
+    on = ((tl % 2e-5) < d * 2e-5) & (k >= 0) & (k < 5)
+    np.testing.assert_allclose(got[:, 0], on.mean(1), atol=2e-4)
+
+
+def _rec(phase_s: float, drift_ppm: float, n_leds: int = 1, levels: int = 8, seed: int = 0,
+         peak: float = 100.0):
+    air = AirInterface(levels=levels, n_leds=n_leds, data_symbols=60)
+    cams = [SynthCamera(peak_dn=peak), SynthCamera(peak_dn=peak / 4)]
+    return air, synth_recording(air, cams, n_packets=1, phase_s=phase_s, drift_ppm=drift_ppm,
+                                seed=seed, lead_symbols=20)
+
+
+@pytest.mark.parametrize("i", range(20))
+def test_header_found_at_every_phase(i: int) -> None:
+    phase = 0.002 * i / 20  # one symbol period in 20 steps
+    air, rec = _rec(phase, 100.0 * (-1) ** i, seed=i)
+    true_u0 = rec.packet_starts_s[0] * 1000.0  # frames (frame n starts at n ms)
+    cands = coarse_header_search(normalize_luminance(rec.L), 2.0, 1.0)
+    assert cands, "no header candidate"
+    best = min(cands, key=lambda c: abs(c.u0 - true_u0))
+    assert abs(best.u0 - true_u0) < 0.3
+    assert best.rho > 0.95
+    u0, r2 = fine_header(rec.L, best.u0, 2.0, 1.0)
+    assert abs(u0 - true_u0) < 0.02  # 20 us
+    assert r2 > 0.9
+
+
+def test_no_header_in_noise() -> None:
+    rng = np.random.default_rng(5)
+    L = 20 + rng.normal(0, 1, size=(2, 3000, 4))
+    assert coarse_header_search(normalize_luminance(L), 2.0, 1.0) == []
+
+
+@pytest.mark.parametrize("drift", [-200.0, 200.0])
+def test_refine_clock_tracks_drift(drift: float) -> None:
+    air = AirInterface(levels=8, n_leds=4, data_symbols=600)
+    cams = [SynthCamera(peak_dn=100), SynthCamera(peak_dn=25)]
+    rec = synth_recording(air, cams, n_packets=1, phase_s=0.00137, drift_ppm=drift, seed=2)
+    true = SymbolClock(rec.packet_starts_s[0] * 1000.0, 2.0 / (1 + drift * 1e-6))
+    lev = rec.levels[7:7 + air.packet_symbols].astype(np.int64) - 1  # the truth, all symbols
+    start = SymbolClock(true.u0 + 0.05, 2.0)  # header-grade phase, nominal period
+    y, lv = clean_samples(rec.L, start, 1.0, known_levels(air), 0)
+    model = estimate_iscd(y, lv, 8)
+    clock, used = refine_clock(rec.L, start, 1.0, lev, 0, model, 2.0, 2.0 * 300e-6)
+    assert used > 500
+    assert abs(clock.drift_ppm(2.0) - drift) < 3.0
+    assert abs(clock.u0 - true.u0) < 0.005
+    # without the period free, the phase error grows along the packet
+    fixed, _ = refine_clock(rec.L, start, 1.0, lev, 0, model, 2.0, 2.0 * 300e-6, fit_p=False)
+    assert abs(fixed.boundary(650) - true.boundary(650)) > 0.1
