@@ -48,7 +48,7 @@ class PipelineSettings:
     exclude_packets: float = field(default=8.0, metadata={"lo": 0, "doc": "a rejected candidate is ignored this many packets"})
     reset_gap_frames: int = field(default=32, metadata={"lo": 1, "doc": "a gap of more frames restarts the packet search"})
     lost_score_ratio: float = field(default=0.2, metadata={"lo": 0, "hi": 1, "doc": "grid score below this share of the first fit = lost"})
-    roi_radius_px: int = field(default=1, metadata={"lo": 0, "hi": 8, "doc": "luminance ROI half-size, px ((2r+1)^2 pixels)"})
+    roi_radius_px: int = field(default=-1, metadata={"lo": -1, "hi": 8, "doc": "luminance ROI half-size, px ((2r+1)^2 pixels); -1 = from the spot size and LED pitch"})
     ranging: bool = field(default=True, metadata={"doc": "measure the range every frame"})
 
 
@@ -177,8 +177,8 @@ class StreamDecoder:
         frame_ids = np.asarray(frame_ids, dtype=np.int64)
         t_s = np.asarray(t_s, dtype=np.float64)
         self.counters["frames_decoded"] += n
-        lum_l = roi_mean(left, tr.left.centers, self.settings.roi_radius_px)
-        lum_r = roi_mean(right, tr.right.centers, self.settings.roi_radius_px)
+        lum_l = roi_mean(left, tr.left.centers, self._roi_radius(tr.left))
+        lum_r = roi_mean(right, tr.right.centers, self._roi_radius(tr.right))
         self.last_luminance = (frame_ids, t_s, lum_l, lum_r)
         # a long gap (a stalled camera, a burst of drops) restarts the packet search
         prev = np.concatenate([[self._last_id if self._last_id is not None else frame_ids[0] - 1], frame_ids[:-1]])
@@ -209,6 +209,17 @@ class StreamDecoder:
         """End of stream: decode what the assembler still holds."""
         flush = getattr(self.assembler, "flush", None)
         return self._records(flush()) if flush is not None else []
+
+    def _roi_radius(self, fit: GridFit) -> int:
+        """ROI half-size: the configured one, or (auto) half the spot so that a saturated
+        spot's unsaturated rim is included, but never reaching a neighbouring LED."""
+        r = self.settings.roi_radius_px
+        if r >= 0:
+            return r
+        r = int(np.ceil(fit.spot_px / 2))
+        if fit.rows * fit.cols > 1:
+            r = min(r, int((fit.pitch_px - 1) // 2))
+        return int(np.clip(r, 1, 4))
 
     def needed_windows(self) -> tuple[tuple[int, int, int, int], tuple[int, int, int, int]] | None:
         """(left, right) pixel windows (x0, y0, x1, y1) that :meth:`push` will read, or

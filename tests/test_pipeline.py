@@ -103,3 +103,14 @@ def test_long_gap_restarts_the_packet_search() -> None:
     assert [r["frame"] for r in pk if r["crc_ok"]] == list(range(614, 2700, 306))
     payloads = scene.truth(frames).payloads
     assert all(bytes.fromhex(r["payload_hex"]) in payloads for r in pk)
+
+
+@pytest.mark.parametrize("distance_m", [20.0, 60.0])
+def test_single_led_near_and_far(distance_m: float) -> None:
+    """One LED PWM-8 (b = 0.6 m): at 20 m its spot saturates widely, at 60 m it is ~3 px."""
+    cfg = override(single_led(default_config(), distance_m), transmitter={"data_symbols": 200})
+    frames = np.arange(0, 3 * 506 + 80)
+    recs, dec, scene = _decode(cfg, frames)
+    pk = [r for r in recs if r["type"] == "packet"]
+    assert len(pk) == 3 and all(r["crc_ok"] for r in pk), [(r["frame"], r["crc_ok"]) for r in pk]
+    assert [bytes.fromhex(r["payload_hex"]) for r in pk] == scene.truth(frames).payloads[:3]

@@ -121,14 +121,17 @@ def clean_costs(L: np.ndarray, clock: SymbolClock, e: float, k_a: int, k_b: int,
 def decide_span(L: np.ndarray, clock: SymbolClock, e: float, k_a: int, k_b: int,
                 model: ChannelModel, ctx: np.ndarray | None = None, k_first: int = 0,
                 straddle: bool = True, timing_sigma: float = 0.02,
-                candidates: int = 4, pre: CleanCosts | None = None) -> SpanDecision:
+                candidates: int = 4, pre: CleanCosts | None = None,
+                edge_levels: tuple[int, ...] = ()) -> SpanDecision:
     """Decide packet symbols ``k_a <= k < k_b`` from the buffer L (C, n, N).
 
     ctx: (S, N) 0-based levels of packet symbols ``k_first ..`` used as the neighbours of
     straddling frames (-1 unknown); straddle=False uses clean frames only. With
     straddling frames, only the ``candidates`` best levels of the clean frames compete
     (0 = all M; symbols without a clean frame always get all M). ``pre``: the span's
-    :func:`clean_costs` when already computed (same clock and model).
+    :func:`clean_costs` when already computed (same clock and model). edge_levels: the
+    plausible 0-based levels of the symbol right after the context (its straddling frame
+    with the last context symbol then counts with the best of them).
     """
     cc = pre if pre is not None else clean_costs(L, clock, e, k_a, k_b, model)
     if not (straddle and ctx is not None):
@@ -170,6 +173,19 @@ def decide_span(L: np.ndarray, clock: SymbolClock, e: float, k_a: int, k_b: int,
                                 timing_sigma)
             cf[~no_clean[j]] = 0.0
             _scatter_add(full_costs, j, cf)
+    if edge_levels:
+        # the frame straddling the last context symbol and the one after it (idle, the next
+        # header or darkness): the best of the plausible levels of that unknown symbol
+        k_end = k_first + ctx.shape[0]
+        sel = st & (k + 1 == k_end) & (k >= k_a) & (k < k_b)
+        if sel.any():
+            idx = np.flatnonzero(sel)
+            j = k[idx] - k_a
+            c = np.minimum.reduce([
+                _straddle_cost(model, Lf[:, idx, :], alpha[idx], np.full((idx.size, N), lv),
+                               cand[j], False, e, timing_sigma) for lv in edge_levels])
+            _scatter_add(extra, j, c)
+            _scatter_add(n_obs, j, valid_obs[idx])
     dc = _finish(k_a, c_cand + extra, n_obs)
     dc.levels = np.take_along_axis(cand, dc.levels[..., None], axis=-1)[..., 0]
     if full_costs is not None:

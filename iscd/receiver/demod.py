@@ -219,9 +219,12 @@ def demodulate_packet(L: np.ndarray, u_guess: float, air: AirInterface, e: float
         lev[n_known:] = d.levels
     else:
         pre = clean_costs(L, clock, e, n_known, P, model)
+        # after the packet: idle (level 1) if the packets have gaps, else the next header
+        # (level M) or, when the transmission stops, darkness (level 1)
+        edge = (0,) if air.idle_symbols else (0, M - 1)
         for _ in range(cfg.ic_iterations if cfg.straddle else 1):
             d = decide_span(L, clock, e, n_known, P, model, lev, 0, cfg.straddle, ts,
-                            cfg.straddle_candidates, pre)
+                            cfg.straddle_candidates, pre, edge)
             lev[n_known:] = d.levels
     levels = (lev[n_known:] + 1).astype(np.uint8)
     raw, ok = air.decode_data(levels)

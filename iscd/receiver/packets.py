@@ -244,11 +244,14 @@ class PacketAssembler:
     def _accept(self, res: PacketResult) -> None:
         """Lock on a demodulated packet: the next header is one period later."""
         real = res.crc_ok or res.training_rho >= 0.9
+        # a clock fit on bad data must not stall the search: the period stays within
+        # +-2000 ppm of nominal and the next header is always ahead of this one
+        p = float(np.clip(res.p, self.p_nom * (1 - 2e-3), self.p_nom * (1 + 2e-3))) if np.isfinite(res.p) else self.p_nom
         if real:
-            self._p = res.p
+            self._p = p
             self._p_sigma = max(20e-6 * self.p_nom, 0.0)
-            self._expect = res.u0 + self.air.period_symbols * res.p
-            self._search = res.u0 + self.air.packet_symbols * res.p - 2 * res.p
+            self._expect = res.u0 + self.air.period_symbols * p
+            self._search = res.u0 + self.air.packet_symbols * p - 2 * p
         else:  # possibly a false header: search again right after it (a real header
             # may start within its span)
             self._expect = None
@@ -274,9 +277,13 @@ class PacketAssembler:
         return demodulate_packet(self._L[:, :self._n], u, self.air, self.e, self.p_nom,
                                  self._p, self._p_sigma, self.cfg)
 
+    MAX_STEPS = 64
+    """Most search/demodulation steps in one push: a safety net so that one push can never
+    spin (the state still advances, so the next push continues)."""
+
     def _process(self) -> list[Packet]:
         out: list[Packet] = []
-        while True:
+        for _ in range(self.MAX_STEPS):
             if self._expect is not None:
                 if self._need(self._expect) > self._n:
                     return out
@@ -334,3 +341,6 @@ class PacketAssembler:
                 self._search = max(self._search, self._n - hdr - 2)
                 self._wait_until = self._n + max(16.0, hdr / 2)
                 return out
+        self.stats["step_limit"] = self.stats.get("step_limit", 0) + 1
+        log.warning("packet search hit its step limit in one push; continuing with the next")
+        return out
