@@ -3,12 +3,23 @@
 Backends (``[rig] backend``): ``mock`` (simulated rig, :mod:`drivers.mock`), ``genicam``
 (:mod:`drivers.genicam`, harvesters + a GenTL producer) and ``v4l2``
 (:mod:`drivers.v4l2`, linuxpy). Each is imported only when used.
+
+With ``[board] emulate = true`` the mock rig's transmitter is an emulated LED board
+(:class:`drivers.board.emulator.PtyEmulator`, served on a pty linked at ``[board] port``
+for as long as the cameras exist): ``iscd tx`` loads it, and the simulated LEDs show what
+it sends (:class:`BoardOnSceneClock`). The cameras are built inside the daemon's
+acquisition process, so the board lives there too.
 """
 
 from __future__ import annotations
 
 import logging
+import math
+import threading
+import weakref
 from typing import Any
+
+import numpy as np
 
 from drivers.base import Camera, CameraError, CameraSettings, Roi
 
@@ -61,24 +72,40 @@ def settings_from_config(cfg: Any, side: str) -> CameraSettings:
                           pixel_format=_PIXEL_FORMATS.get(c.bit_depth, "Mono8"))
 
 
-def make_stereo(cfg: Any) -> tuple[Camera, Camera]:
-    """The (left, right) cameras of ``cfg.rig``, constructed but not opened."""
+def check_stereo_config(cfg: Any) -> str | None:
+    """Check what :func:`make_stereo` needs from ``cfg`` without building anything (so a
+    parent process can refuse a bad config before spawning the acquisition): raises
+    :class:`iscd.config.ConfigError` (one line, naming the key). Returns the emulated
+    board's link path (``[board] emulate``), else None."""
+    from drivers.board.settings import emulated_board_link
     from iscd.config import ConfigError
 
     rig = cfg.rig
+    link = emulated_board_link(cfg)  # ConfigError for a board that cannot be emulated
     if rig.backend == "mock":
-        from drivers.mock import MockRig  # written alongside; imported only when used
-
-        made = MockRig.from_config(cfg)
-        if isinstance(made, tuple):
-            return made  # type: ignore[return-value]
-        return made.left, made.right
+        return link
     for side in ("left", "right"):
         if not getattr(rig, side):
             what = "serial number or user id" if rig.backend == "genicam" else "device path (/dev/videoN)"
             raise ConfigError(f"rig.{side}: set the {side} camera's {what} for backend {rig.backend!r}")
     if rig.left == rig.right:
         raise ConfigError(f"rig.right: the same camera as rig.left ({rig.left!r})")
+    return link
+
+
+def make_stereo(cfg: Any) -> tuple[Camera, Camera]:
+    """The (left, right) cameras of ``cfg.rig``, constructed but not opened (with
+    ``[board] emulate``, the mock rig's emulated board is served from now on)."""
+    from iscd.config import ConfigError
+
+    rig = cfg.rig
+    link = check_stereo_config(cfg)
+    if rig.backend == "mock":
+        from drivers.mock import MockRig  # imported only when used
+
+        if link is not None:
+            return _mock_rig_with_board(cfg, link)
+        return MockRig.from_config(cfg)
     if rig.backend == "genicam":
         from drivers.genicam import GenICamCamera
 
@@ -121,4 +148,106 @@ def open_stereo(cfg: Any) -> tuple[Camera, Camera]:
             except Exception as e:  # noqa: BLE001
                 log.debug("close after failed open: %s", e)
         raise
+    return left, right
+
+
+# ---------------------------------------------------------------------- emulated LED board
+class BoardOnSceneClock:
+    """An emulated board's LEDs as the mock rig's level source (``iscd.sim.LevelSource``).
+
+    The board counts symbols from its START on wall-clock time (``time.monotonic``, the
+    clock of the mock rig's triggers); the scene counts symbols on its LED clock (phase
+    and drift of ``[scene]``). Board symbol 0 is put on the first scene symbol that
+    starts at or after START, so scene symbol k shows board symbol ``k - k_start``:
+
+        t_cam(START) = START - t0,   k_start = ceil(t_led(t_cam(START)) / T)     [s]
+
+    with t0 the rig's trigger 0 and t_led the scene's LED clock (exposure.LedClock).
+    Before START, while stopped and while the board holds nothing, every LED is level 1.
+
+    The board must drive the scene's transmitter: rows, cols, M and the symbol rate of
+    its SET_CONFIG must equal ``[transmitter]``; otherwise the LEDs stay dark and a
+    warning is logged (load it with ``iscd tx --config`` of the daemon's config).
+    The scene asks for the levels of half a second of frames at a time (``Scene.CHUNK``
+    frames), so a START or STOP shows in the frames up to that much later.
+    """
+
+    def __init__(self, board: Any, tx: Any) -> None:
+        from drivers.board.protocol import BoardConfig
+
+        self.board = board
+        self.n_leds = int(tx.rows * tx.cols)
+        self.expected = BoardConfig.from_transmitter(tx)
+        self.rig: Any = None  # set by attach(): the MockRig whose scene shows the LEDs
+        self.emulator: Any = None  # the PtyEmulator serving the board, if any
+        self._lock = threading.Lock()
+        self._warned: object = None
+
+    def attach(self, rig: Any) -> None:
+        self.rig = rig
+
+    def start_symbol(self, start_s: float) -> int:
+        """Scene symbol index of board symbol 0 for a START at ``start_s`` (monotonic s)."""
+        clock = self.rig.scene.clock
+        t_cam = start_s - self.rig.trigger_time_ns(0) * 1e-9
+        return math.ceil(float(clock.led_time(t_cam)) / clock.symbol_period_s - 1e-9)
+
+    def _mismatch(self, cfg: Any) -> str | None:
+        e = self.expected
+        got = (cfg.rows, cfg.cols, cfg.levels, cfg.symbol_rate_mhz)
+        want = (e.rows, e.cols, e.levels, e.symbol_rate_mhz)
+        if got == want:
+            return None
+        return (f"the emulated board is configured for {cfg.rows}x{cfg.cols} LEDs, M = {cfg.levels}, "
+                f"{cfg.symbol_rate_hz:g} symbols/s but the simulated transmitter is "
+                f"{e.rows}x{e.cols}, M = {e.levels}, {e.symbol_rate_hz:g} symbols/s: LEDs dark "
+                f"(load the board with 'iscd tx --config' of the daemon's config)")
+
+    def levels(self, k0: int, k1: int) -> np.ndarray:
+        """(k1 - k0, N) uint8 levels of scene symbols k0 .. k1-1."""
+        n = max(0, int(k1) - int(k0))
+        dark = np.ones((n, self.n_leds), dtype=np.uint8)
+        if self.rig is None:
+            return dark
+        for _ in range(3):  # a STOP/START between the reads: read again
+            start = self.board.start_time
+            cfg = self.board.config
+            if start is None or cfg is None:
+                return dark
+            why = self._mismatch(cfg)
+            if why is not None:
+                with self._lock:
+                    if self._warned is not cfg:
+                        self._warned = cfg
+                        log.warning("%s", why)
+                return dark
+            try:
+                lv = self.board.levels(int(k0) - self.start_symbol(start), n, self.n_leds)
+            except ValueError:  # reconfigured between the reads
+                continue
+            if self.board.start_time == start:
+                return lv
+        return dark
+
+
+def _mock_rig_with_board(cfg: Any, link: str) -> tuple[Camera, Camera]:
+    """The mock rig's (left, right) cameras whose transmitter is an emulated board served
+    on a pty at ``link``; the board is closed (link removed) when the rig is collected or
+    at interpreter exit."""
+    from drivers.board.emulator import PtyEmulator
+    from drivers.mock import MockRig
+
+    emu = PtyEmulator(link=link)
+    source = BoardOnSceneClock(emu.board, cfg.transmitter)
+    source.emulator = emu
+    left, right = MockRig.from_config(cfg, level_source=source)
+    rig = left.rig  # type: ignore[attr-defined]
+    source.attach(rig)
+    try:
+        emu.start()
+    except OSError as e:
+        emu.close()
+        raise CameraError(f"cannot serve the emulated LED board at {link}: {e.strerror or e}") from None
+    weakref.finalize(rig, emu.close)
+    log.info("emulated LED board on %s (%s): load it with 'iscd tx --port %s'", link, emu.path, link)
     return left, right
