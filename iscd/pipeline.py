@@ -47,6 +47,7 @@ class PipelineSettings:
     verify_packets: float = field(default=2.5, metadata={"lo": 1.2, "doc": "packets to wait for a header before rejecting a candidate"})
     exclude_packets: float = field(default=8.0, metadata={"lo": 0, "doc": "a rejected candidate is ignored this many packets"})
     reset_gap_frames: int = field(default=32, metadata={"lo": 1, "doc": "a gap of more frames restarts the packet search"})
+    lost_packets: float = field(default=1.2, metadata={"lo": 0.1, "doc": "dark this many packet durations = lost"})
     lost_score_ratio: float = field(default=0.2, metadata={"lo": 0, "hi": 1, "doc": "grid score below this share of the first fit = lost"})
     roi_radius_px: int = field(default=-1, metadata={"lo": -1, "hi": 8, "doc": "luminance ROI half-size, px ((2r+1)^2 pixels); -1 = from the spot size and LED pitch"})
     ranging: bool = field(default=True, metadata={"doc": "measure the range every frame"})
@@ -100,7 +101,13 @@ class _Track:
     first_score: float
     since_frame: int
     last_header_frame: int | None = None
-    low_blocks: int = 0
+    frames_since_header: int = 0
+    """decoded frames since acquisition, the last packet or a search restart"""
+    roi_radius: tuple[int, int] = (1, 1)
+    """luminance ROI half-size per camera, fixed while the track lasts (a changing ROI
+    would change the channel within a packet)"""
+    low_frames: int = 0
+    """decoded frames since the grid last fitted well (dark stretches hold the fit)"""
 
 
 class StreamDecoder:
@@ -127,6 +134,7 @@ class StreamDecoder:
         self._acq_ids: deque[tuple[int, float]] = deque(maxlen=self.settings.acquire_frames)
         self._since_fit = 0
         self._last_id: int | None = None
+        self._rois: list[np.ndarray | None] = [None, None]
         self.last_luminance: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = None
         """(ids, t_s, lum_left, lum_right) of the last block decoded (for live views)."""
         self._blk_l: list[np.ndarray] = []
@@ -148,6 +156,7 @@ class StreamDecoder:
             self.counters["packets_ok" if pkt.crc_ok else "packets_bad"] += 1
             if self.track is not None:
                 self.track.last_header_frame = int(pkt.frame)
+                self.track.frames_since_header = 0
             out.append(_jsonable(pkt.record(self.tx_index)))
         return out
 
@@ -177,8 +186,9 @@ class StreamDecoder:
         frame_ids = np.asarray(frame_ids, dtype=np.int64)
         t_s = np.asarray(t_s, dtype=np.float64)
         self.counters["frames_decoded"] += n
-        lum_l = roi_mean(left, tr.left.centers, self._roi_radius(tr.left))
-        lum_r = roi_mean(right, tr.right.centers, self._roi_radius(tr.right))
+        tr.frames_since_header += n
+        lum_l = roi_mean(left, self._roi_centers(0, tr.left.centers), tr.roi_radius[0])
+        lum_r = roi_mean(right, self._roi_centers(1, tr.right.centers), tr.roi_radius[1])
         self.last_luminance = (frame_ids, t_s, lum_l, lum_r)
         # a long gap (a stalled camera, a burst of drops) restarts the packet search
         prev = np.concatenate([[self._last_id if self._last_id is not None else frame_ids[0] - 1], frame_ids[:-1]])
@@ -189,7 +199,7 @@ class StreamDecoder:
                 self.assembler.reset()
                 self.counters["assembler_resets"] += 1
                 tr.since_frame = int(frame_ids[a])  # the header wait starts again
-                tr.last_header_frame = None
+                tr.frames_since_header = b - a
             if b > a:
                 records += self._demod(frame_ids[a:b], t_s[a:b], lum_l[a:b], lum_r[a:b])
         self._last_id = int(frame_ids[-1])
@@ -210,13 +220,30 @@ class StreamDecoder:
         flush = getattr(self.assembler, "flush", None)
         return self._records(flush()) if flush is not None else []
 
+    def _roi_centers(self, side: int, centers: np.ndarray) -> np.ndarray:
+        """Whole-pixel ROI centres with hysteresis: an ROI moves only when its LED has moved
+        more than 0.75 px from it. A spot centred near a pixel boundary (x.5) would
+        otherwise make its ROI hop between neighbouring pixels as tracking refines the fit,
+        changing the channel within a packet."""
+        want = np.rint(centers)
+        cur = self._rois[side]
+        if cur is None or cur.shape != want.shape:
+            self._rois[side] = want
+            return want
+        move = np.any(np.abs(centers - cur) > 0.75, axis=1)
+        if move.any():
+            cur = cur.copy()
+            cur[move] = want[move]
+            self._rois[side] = cur
+        return cur
+
     def _roi_radius(self, fit: GridFit) -> int:
         """ROI half-size: the configured one, or (auto) half the spot so that a saturated
         spot's unsaturated rim is included, but never reaching a neighbouring LED."""
         r = self.settings.roi_radius_px
         if r >= 0:
             return r
-        r = int(np.ceil(fit.spot_px / 2))
+        r = int(np.floor(fit.spot_px / 2 - 0.25))
         if fit.rows * fit.cols > 1:
             r = min(r, int((fit.pitch_px - 1) // 2))
         return int(np.clip(r, 1, 4))
@@ -269,7 +296,9 @@ class StreamDecoder:
         if fr is None:
             log.debug("transmitter seen in the left camera at %s but not matched in the right", fl.center)
             return None
+        self._rois = [None, None]
         self.track = _Track(left=fl, right=fr, first_score=min(fl.score, fr.score),
+                            roi_radius=(self._roi_radius(fl), self._roi_radius(fr)),
                             since_frame=int(frame_ids[-1]))
         self.counters["acquisitions"] += 1
         self.assembler = self._make_assembler()
@@ -301,22 +330,26 @@ class StreamDecoder:
         except ValueError:
             nl = nr = None  # type: ignore[assignment]
         score = min(nl.score, nr.score) if nl is not None and nr is not None else 0.0
+        n_fit = L.shape[0]
         if score < self.settings.lost_score_ratio * tr.first_score:
-            tr.low_blocks += 1
+            # too little modulated light to fit (a dark stretch: zero padding, idle
+            # symbols, an occlusion): hold the last fit
+            tr.low_frames += n_fit
         else:
-            tr.low_blocks = 0
+            tr.low_frames = 0
             tr.left, tr.right = nl, nr  # type: ignore[assignment]
-        last = max(tr.last_header_frame if tr.last_header_frame is not None else tr.since_frame, tr.since_frame)
         now = int(frame_ids[-1])
-        if tr.low_blocks >= 3:
+        if tr.low_frames > self.settings.lost_packets * self.packet_frames:
+            # every packet lights every LED in its header: a whole packet's time dark is gone
             self.counters["losses"] += 1
             if tr.last_header_frame is None:
-                # it blinked, but never sent a header and does not hold still: not ours
+                # it blinked for a while but never sent a header: not ours
                 self._exclude(tr, now, "lost before it sent any header")
             else:
                 log.warning("transmitter lost at frame %d; re-acquiring", now)
             self.track = None
-        elif now - last > self.settings.verify_packets * self.packet_frames:
+        elif tr.frames_since_header > self.settings.verify_packets * self.packet_frames:
+            # counted in decoded frames, so dropped frames never condemn a transmitter
             self._exclude(tr, now, f"sent no header for {self.settings.verify_packets:g} packets")
             self.track = None
 

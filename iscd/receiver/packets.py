@@ -101,6 +101,7 @@ class PacketAssembler:
         self._p_sigma = self.cfg.drift_max_ppm * 1e-6 * self.p_nom
         self._expect: float | None = None  # expected next header start (buffer frames)
         self._wait_until = 0.0  # no new search before the buffer has this many rows
+        self._last_u: float | None = None  # absolute start (frames) of the last emitted packet
         self._range: tuple[np.ndarray, np.ndarray] | None = None  # luminance 2..98 % per LED
         self._range_at = -1  # buffer rows when _range was computed
         self._flushing = False
@@ -137,6 +138,7 @@ class PacketAssembler:
 
     def reset(self) -> None:
         """Forget buffered frames and the lock (e.g. after a long gap)."""
+        self._last_u = None
         self._n = 0
         self._base = None
         self._search = 0.0
@@ -231,6 +233,16 @@ class PacketAssembler:
         idx = np.arange(self._n)
         return float(np.interp(u, idx, self._t[:self._n]))
 
+    def _emit_once(self, res: PacketResult, out: list[Packet]) -> None:
+        """Emit ``res`` unless a packet starting at (nearly) the same frame was emitted
+        already: a header found twice is one packet, never two records."""
+        u_abs = (self._base or 0) + res.u0
+        if self._last_u is not None and abs(u_abs - self._last_u) < HEADER_SYMBOLS * self.p_nom:
+            self.stats["duplicates_suppressed"] = self.stats.get("duplicates_suppressed", 0) + 1
+            return
+        self._last_u = u_abs
+        out.append(self._emit(res))
+
     def _emit(self, res: PacketResult) -> Packet:
         base = self._base or 0
         q = res.quality()
@@ -255,7 +267,7 @@ class PacketAssembler:
         else:  # possibly a false header: search again right after it (a real header
             # may start within its span)
             self._expect = None
-            self._search = res.u0 + 1.0
+            self._search = res.u0 + 2.0
 
     def _need(self, u: float) -> float:
         """Buffer rows needed to demodulate a packet starting at u."""
@@ -277,7 +289,7 @@ class PacketAssembler:
         return demodulate_packet(self._L[:, :self._n], u, self.air, self.e, self.p_nom,
                                  self._p, self._p_sigma, self.cfg)
 
-    MAX_STEPS = 64
+    MAX_STEPS = 8
     """Most search/demodulation steps in one push: a safety net so that one push can never
     spin (the state still advances, so the next push continues)."""
 
@@ -291,7 +303,7 @@ class PacketAssembler:
                 if isinstance(res, Rejection) and res.incomplete:
                     return out
                 if isinstance(res, PacketResult):
-                    out.append(self._emit(res))
+                    self._emit_once(res, out)
                     self._accept(res)
                     continue
                 log.info("expected header at frame %.1f not found (%s): searching",
@@ -330,7 +342,7 @@ class PacketAssembler:
                     self._wait_until = self._n + 2
                     return out
                 if isinstance(res, PacketResult):
-                    out.append(self._emit(res))
+                    self._emit_once(res, out)
                     self._accept(res)
                     progressed = True
                     break
