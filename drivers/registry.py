@@ -105,7 +105,7 @@ def make_stereo(cfg: Any) -> tuple[Camera, Camera]:
 
         if link is not None:
             return _mock_rig_with_board(cfg, link)
-        return MockRig.from_config(cfg)
+        return MockRig.from_config(cfg, buffer_frames=cfg.rig.buffer_frames)
     if rig.backend == "genicam":
         from drivers.genicam import GenICamCamera
 
@@ -240,7 +240,7 @@ def _mock_rig_with_board(cfg: Any, link: str) -> tuple[Camera, Camera]:
     emu = PtyEmulator(link=link)
     source = BoardOnSceneClock(emu.board, cfg.transmitter)
     source.emulator = emu
-    left, right = MockRig.from_config(cfg, level_source=source)
+    left, right = MockRig.from_config(cfg, level_source=source, buffer_frames=cfg.rig.buffer_frames)
     rig = left.rig  # type: ignore[attr-defined]
     source.attach(rig)
     try:

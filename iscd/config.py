@@ -173,6 +173,7 @@ class RigConfig:
     right: str = _f("", doc="right camera, as left")
     producer: str = _f("", doc="GenTL producer .cti path (default: GENICAM_GENTL64_PATH)")
     pace: bool = _f(True, doc="mock: deliver frames at fps in real time (False: as fast as possible)")
+    buffer_frames: int = _f(32, lo=1, hi=4096, doc="frames a camera buffers for a late reader (mock: queue; genicam: buffers)")
     faults: list[FaultConfig] = _f([], doc="mock: injected faults")
 
 
@@ -196,6 +197,40 @@ class Config:
 
 
 _KNOWN_EXTRA_SECTIONS = {"daemon", "receiver", "tracking", "acquisition", "ranging", "output", "rerun", "board", "eval"}
+
+
+EXTRA_SECTION_CLASSES: dict[str, str] = {
+    "daemon": "iscd.daemon:DaemonSettings",
+    "tracking": "iscd.pipeline:PipelineSettings",
+    "receiver": "iscd.receiver.settings:ReceiverConfig",
+    "output": "iscd.outputs:OutputConfig",
+    "rerun": "iscd.outputs:RerunConfig",
+    "board": "drivers.board.settings:BoardSettings",
+    "acquisition": "iscd.acquisition:AcquisitionOptions",
+}
+"""Sections owned by other modules: ``name -> "module:Class"`` (validated by
+:func:`check_extra_sections`, listed by :func:`describe`)."""
+
+
+def _extra_class(name: str) -> type | None:
+    import importlib
+
+    spec = EXTRA_SECTION_CLASSES.get(name)
+    if spec is None:
+        return None
+    mod, _, cls = spec.partition(":")
+    try:
+        return getattr(importlib.import_module(mod), cls)
+    except (ImportError, AttributeError):  # pragma: no cover - a section's module is optional
+        return None
+
+
+def check_extra_sections(cfg: "Config") -> None:
+    """Validate every extra section that has a known owner (ConfigError naming the key)."""
+    for name, table in cfg.extra.items():
+        cls = _extra_class(name)
+        if cls is not None:
+            build_section(cls, dict(table), name)
 
 
 def _type_name(tp: Any) -> str:
@@ -364,12 +399,13 @@ def describe() -> str:
     """Every section and key with default and documentation (for ``--help`` and docs)."""
     lines: list[str] = []
     hints = typing.get_type_hints(Config)
-    for f in dataclasses.fields(Config):
-        if f.name == "extra":
-            continue
-        cls = hints[f.name]
-        lines.append(f"[{f.name}]  {(cls.__doc__ or '').strip().splitlines()[0]}")
+    classes = [(f.name, hints[f.name]) for f in dataclasses.fields(Config) if f.name != "extra"]
+    classes += [(n, c) for n in EXTRA_SECTION_CLASSES if (c := _extra_class(n)) is not None]
+    for name, cls in classes:
+        lines.append(f"[{name}]  {(cls.__doc__ or '').strip().splitlines()[0]}")
         for sf in dataclasses.fields(cls):
+            if not sf.init:
+                continue
             default = sf.default if sf.default is not dataclasses.MISSING else sf.default_factory()  # type: ignore[misc]
             lines.append(f"  {sf.name} = {default!r}  # {sf.metadata.get('doc', '')}")
     return "\n".join(lines)

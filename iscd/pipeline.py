@@ -243,7 +243,7 @@ class StreamDecoder:
         r = self.settings.roi_radius_px
         if r >= 0:
             return r
-        r = int(np.floor(fit.spot_px / 2 - 0.25))
+        r = int(np.floor(fit.spot_px / 2 + 0.25))
         if fit.rows * fit.cols > 1:
             r = min(r, int((fit.pitch_px - 1) // 2))
         return int(np.clip(r, 1, 4))

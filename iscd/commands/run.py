@@ -53,7 +53,11 @@ def run(args: argparse.Namespace) -> int:
     from iscd.cli import UserError
     from iscd.daemon import Daemon
 
+    from drivers.registry import check_stereo_config
+
     cfg = C.load(args.config)
+    C.check_extra_sections(cfg)
+    check_stereo_config(cfg)  # refuse a bad camera/board config before spawning anything
     if args.duration is not None and args.duration <= 0:
         raise UserError("--duration must be > 0 seconds")
     rerun = None
