@@ -38,7 +38,7 @@ log = logging.getLogger(__name__)
 class DaemonSettings:
     """``[daemon]`` section."""
 
-    ring_ms: float = field(default=250.0, metadata={"lo": 10, "hi": 60_000, "doc": "ring buffer length, ms of frames"})
+    ring_ms: float = field(default=500.0, metadata={"lo": 10, "hi": 60_000, "doc": "ring buffer length, ms of frames"})
     block_max: int = field(default=16, metadata={"lo": 1, "hi": 1024, "doc": "most pairs decoded in one step"})
     block_wait_ms: float = field(default=4.0, metadata={"lo": 0, "hi": 1000, "doc": "wait this long to fill a block"})
     stats_interval_s: float = field(default=1.0, metadata={"lo": 0.05, "doc": "stats record period, s"})
@@ -46,6 +46,7 @@ class DaemonSettings:
     rotate_mb: float = field(default=256.0, metadata={"lo": 0.001, "doc": "rotate the output file at this size, MiB"})
     socket: str = field(default="", metadata={"doc": "ZeroMQ PUB endpoint, e.g. tcp://127.0.0.1:5556 ('' = off)"})
     calibration: str = field(default="", metadata={"doc": "stereo calibration YAML ('' = ideal rig of [camera])"})
+    shed_ranging_fill: float = field(default=0.25, metadata={"lo": 0, "hi": 1, "doc": "skip ranging while the ring is fuller than this share (decoding first)"})
     restart_backoff_s: float = field(default=1.0, metadata={"lo": 0, "doc": "wait before restarting a dead acquisition"})
 
 
@@ -145,6 +146,7 @@ class Daemon:
         next_stats = t_start + st.stats_interval_s
         deadline = t_start + self.duration_s if self.duration_s else None
         last_frame = -1
+        last_t_s: float | None = None
         acq.start()
         notifier.ready(status="acquiring")
         log.info("daemon started: backend %s, %dx%d @ %g fps, ring %d pairs", cfg.rig.backend, W, H, fps,
@@ -169,8 +171,9 @@ class Daemon:
             rs = ring.stats()
             p50, p99 = lat.take()
             share, rss = cpu.sample([os.getpid()] + ([acq.pid] if acq.pid else []))
-            rec = {"type": "stats", "tx": 0, "frame": int(last_frame), "t_s": round(time.monotonic() - t_start, 3),
-                   "final": final,
+            rec = {"type": "stats", "tx": 0, "frame": int(last_frame),
+                   "t_s": last_t_s,  # camera time of the last decoded frame, as in the other records
+                   "uptime_s": round(time.monotonic() - t_start, 3), "final": final,
                    "frames_in": int(a.frames_left + a.frames_right),
                    # triggers that never reached the decoder as a pair, whatever the cause
                    # (camera buffer, unpaired, ring overflow); the parts follow
@@ -180,7 +183,8 @@ class Daemon:
                    "ring_capacity": int(ring.capacity),
                    "pairs_decoded": counters["pairs_decoded"],
                    "packets_ok": decoder.counters["packets_ok"], "packets_bad": decoder.counters["packets_bad"],
-                   "ranges": decoder.counters["ranges"], "tracking": decoder.track is not None,
+                   "ranges": decoder.counters["ranges"], "ranging_skipped": decoder.counters["ranging_skipped"],
+                   "tracking": decoder.track is not None,
                    "latency_ms_p50": p50, "latency_ms_p99": p99,
                    "cpu_cores": share, "rss_mb": round(rss / 2**20, 1),
                    "pair_gaps": counters["pair_gaps"],
@@ -245,10 +249,13 @@ class Daemon:
                 prev = last_frame if last_frame >= 0 else int(ids[0]) - 1
                 steps = np.diff(np.concatenate([[prev], ids[:n]]))
                 counters["pair_gaps"] += int(np.clip(steps - 1, 0, None).sum())
-                records = decoder.push(ids[:n].copy(), t_s[:n].copy(), blk_l[:n], blk_r[:n])
+                # falling behind: shed ranging for this block so that no packet is lost
+                behind = ring.stats().queued > st.shed_ranging_fill * ring.capacity
+                records = decoder.push(ids[:n].copy(), t_s[:n].copy(), blk_l[:n], blk_r[:n], ranging=not behind)
                 done_ns = time.monotonic_ns()
                 counters["pairs_decoded"] += n
                 last_frame = int(ids[n - 1])
+                last_t_s = float(t_s[n - 1])
                 lat.add((done_ns - arrival[:n]) / 1e6)
                 emit(records)
                 if view is not None and decoder.last_luminance is not None:

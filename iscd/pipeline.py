@@ -143,7 +143,8 @@ class StreamDecoder:
         self.assembler = self._make_assembler()
         self.counters: dict[str, int] = {"acquisitions": 0, "losses": 0, "rejected_candidates": 0,
                                          "packets_ok": 0, "packets_bad": 0, "ranges": 0,
-                                         "frames_decoded": 0, "assembler_resets": 0}
+                                         "frames_decoded": 0, "assembler_resets": 0,
+                                         "ranging_skipped": 0}
 
     # ------------------------------------------------------------------ demodulation hook
     def _make_assembler(self) -> PacketAssembler:
@@ -164,11 +165,14 @@ class StreamDecoder:
         return self._records(self.assembler.push(frame_ids, t_s, lum_l, lum_r))
 
     # ------------------------------------------------------------------ main entry
-    def push(self, frame_ids: np.ndarray, t_s: np.ndarray, left: np.ndarray, right: np.ndarray) -> list[dict]:
+    def push(self, frame_ids: np.ndarray, t_s: np.ndarray, left: np.ndarray, right: np.ndarray,
+             *, ranging: bool = True) -> list[dict]:
         """Process a block of stereo frames; returns the records it produced.
 
         frame_ids: (n,) int (left-camera frame ids of the pairs); t_s: (n,) exposure start,
-        s; left/right: (n, H, W) images of the same pairs.
+        s; left/right: (n, H, W) images of the same pairs. ``ranging=False`` skips the
+        range measurement for this block (the daemon sheds it when it falls behind, so that
+        no packet is lost; counted in ``counters["ranging_skipped"]``).
         """
         n = len(frame_ids)
         if n == 0:
@@ -203,7 +207,9 @@ class StreamDecoder:
             if b > a:
                 records += self._demod(frame_ids[a:b], t_s[a:b], lum_l[a:b], lum_r[a:b])
         self._last_id = int(frame_ids[-1])
-        if self.ranger is not None:
+        if self.ranger is not None and not ranging:
+            self.counters["ranging_skipped"] += n
+        elif self.ranger is not None:
             res = self.ranger.measure(left, right, tr.left, tr.right)
             for i in range(n):
                 if math.isfinite(res.z_m[i]):

@@ -40,7 +40,7 @@ class _Console:
     def write(self, r: dict[str, Any]) -> None:
         if r.get("type") != "stats":
             return
-        keys = ("t_s", "pairs_decoded", "frames_dropped", "packets_ok", "packets_bad", "ranges",
+        keys = ("uptime_s", "pairs_decoded", "frames_dropped", "packets_ok", "packets_bad", "ranges",
                 "latency_ms_p50", "latency_ms_p99", "cpu_cores", "rss_mb")
         print("stats " + " ".join(f"{k}={r.get(k)}" for k in keys), file=sys.stderr, flush=True)
 
