@@ -12,10 +12,14 @@ with f_px = f / rho (dissertation eq. 2.2: Z = f b / (rho d), d = u_L - u_R).
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from iscd.config import CameraConfig, SceneConfig, TransmitterConfig
+
+if TYPE_CHECKING:  # pragma: no cover
+    from calibration.io import StereoCalibration
 
 
 @dataclass(frozen=True)
@@ -50,6 +54,25 @@ class StereoGeometry:
         ul = self.cx + self.focal_px * np.asarray(x_m) / z
         v = self.cy + self.focal_px * np.asarray(y_m) / z
         return ul, ul - self.focal_px * self.baseline_m / z, v
+
+
+def project_rig(rig: "StereoCalibration", x_m: np.ndarray, y_m: np.ndarray, z_m: np.ndarray
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """(u_left, v_left, u_right, v_right) in px of points (X, Y, Z) in m (left-camera
+    coordinates, broadcasting) as imaged by a non-ideal rig: each camera's intrinsics and lens
+    distortion and the right camera's pose (R, T), via
+    :func:`calibration.io.project_points` (cv2.projectPoints). A rig equal to the ideal one
+    gives :meth:`StereoGeometry.project` up to rounding."""
+    from calibration.io import project_points
+
+    x, y, z = np.broadcast_arrays(np.asarray(x_m, np.float64), np.asarray(y_m, np.float64),
+                                  np.asarray(z_m, np.float64))
+    pts = np.stack([x.ravel(), y.ravel(), z.ravel()], axis=1)
+    left = project_points(rig, pts, "left")
+    right = project_points(rig, pts, "right")
+    shp = x.shape
+    return (left[:, 0].reshape(shp), left[:, 1].reshape(shp),
+            right[:, 0].reshape(shp), right[:, 1].reshape(shp))
 
 
 def led_offsets(tx: TransmitterConfig) -> np.ndarray:

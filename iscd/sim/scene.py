@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -24,12 +25,16 @@ from iscd.airinterface import AirInterface, duty
 from iscd.config import Config, to_dict
 from iscd.sim.background import background_pair, flicker_gain
 from iscd.sim.exposure import LedClock, on_time
-from iscd.sim.geometry import Jitter, StereoGeometry, Vibration, distance, led_offsets
+from iscd.sim.geometry import (Jitter, StereoGeometry, Vibration, distance, led_offsets,
+                                project_rig)
 from iscd.sim.optics import (PIXEL_VAR, Canvas, Footprint, SpotTable, TableCache, footprint,
                              render, source_box)
 from iscd.sim.sensor import SensorModel
 from iscd.sim.transmitter import LevelSource, PacketSource
 from iscd.sim.truth import Truth
+
+if TYPE_CHECKING:  # pragma: no cover
+    from calibration.io import StereoCalibration
 
 REF_F_NUMBER = 4.0
 """radiance_dn, background_dn and brightness_dn are grey levels at f/4 ..."""
@@ -86,6 +91,11 @@ class Scene:
     level_source: what the LEDs send (default: back-to-back packets per [payload]).
     noise: False renders noise-free frames (PRNU, shot and read noise off), for tests.
     bank_size: noisy background frames per camera.
+    rig: a non-ideal stereo rig (e.g. :func:`calibration.synthetic.nonideal_rig`): the LED
+    spots are placed where its cameras image them (:func:`iscd.sim.geometry.project_rig`:
+    lens distortion, principal points, focal lengths, rotation R and translation T); spot
+    shapes, distractors and the background stay those of the ideal rig (docs/calibration.md).
+    None (default): the ideal pinhole rig of ``cfg.camera``.
 
     Frames are always 8-bit (``camera.bit_depth`` is ignored). ``truth()`` holds (F, N)
     float64 arrays: query long runs in chunks.
@@ -94,10 +104,15 @@ class Scene:
     CHUNK = 512
 
     def __init__(self, cfg: Config, level_source: LevelSource | None = None, *,
-                 noise: bool = True, bank_size: int = 16) -> None:
+                 noise: bool = True, bank_size: int = 16,
+                 rig: StereoCalibration | None = None) -> None:
         self.cfg = cfg
         tx, cam, sc, op = cfg.transmitter, cfg.camera, cfg.scene, cfg.optics
         self.geometry = StereoGeometry.from_config(cam)
+        if rig is not None and (rig.image_width, rig.image_height) != (cam.width, cam.height):
+            raise ValueError(f"rig is {rig.image_width}x{rig.image_height} px, the camera "
+                             f"{cam.width}x{cam.height} px")
+        self.rig = rig
         self.width, self.height = cam.width, cam.height
         self.fps = cam.fps
         self.exposure_s = cam.exposure_s
@@ -198,12 +213,16 @@ class Scene:
         sc = self.cfg.scene
         X = sc.lateral_m + self.offsets[:, 0]
         Y = sc.vertical_m + self.offsets[:, 1]
-        ul, ur, v = self.geometry.project(X[None, :], Y[None, :], z[:, None])
+        if self.rig is None:
+            ul, ur, v = self.geometry.project(X[None, :], Y[None, :], z[:, None])
+            vl = vr = v
+        else:
+            ul, vl, ur, vr = project_rig(self.rig, X[None, :], Y[None, :], z[:, None])
         on = on_time(t0, self.exposure_s, self.clock, self._duty_of) / self.exposure_s
         return {"frames": f, "t_s": t0, "z_m": z, "vib": vib,
                 "shift_left": sl, "shift_right": sr,
-                "u_left": ul + sl[:, :1], "v_left": v + sl[:, 1:],
-                "u_right": ur + sr[:, :1], "v_right": v + sr[:, 1:],
+                "u_left": ul + sl[:, :1], "v_left": vl + sl[:, 1:],
+                "u_right": ur + sr[:, :1], "v_right": vr + sr[:, 1:],
                 "on_fraction": np.clip(on, 0.0, 1.0)}
 
     def _duty_of(self, k0: int, k1: int) -> np.ndarray:
