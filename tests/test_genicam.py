@@ -464,9 +464,9 @@ def test_stream_1000_pairs_through_acquisition_and_ring_without_a_gap():
     from iscd.acquisition import Acquisition, AcquisitionOptions
     from iscd.ringbuffer import StereoRing
 
-    # 32 GenTL buffers (160 ms at 200 fps) and a 1.3 s ring: slack for a loaded 2-core
+    # 64 GenTL buffers (320 ms at 200 fps; ~10 MB each in Viky) and a 1.3 s ring: slack for a loaded 2-core
     # machine, where this process may wait for a core for tens of ms
-    left = _TwinLeft(gc.GenICamCamera(serial="0", producer=VIKY, num_buffers=32, name="left"))
+    left = _TwinLeft(gc.GenICamCamera(serial="0", producer=VIKY, num_buffers=64, name="left"))
     right = _TwinRight(left)
     ring = StereoRing.create(height=ROI.height, width=ROI.width, capacity=256)
     s = CameraSettings(fps=200, exposure_s=1e-3, roi=ROI)
