@@ -203,6 +203,7 @@ EXTRA_SECTION_CLASSES: dict[str, str] = {
     "daemon": "iscd.daemon:DaemonSettings",
     "tracking": "iscd.pipeline:PipelineSettings",
     "receiver": "iscd.receiver.settings:ReceiverConfig",
+    "ranging": "iscd.ranging.config:RangingSettings",
     "output": "iscd.outputs:OutputConfig",
     "rerun": "iscd.outputs:RerunConfig",
     "board": "drivers.board.settings:BoardSettings",

@@ -10,7 +10,7 @@ import pytest
 
 from iscd.config import ConfigError, loads
 from iscd.ranging.config import ranging_config
-from iscd.ranging.range import (StereoRanger, cut_patches, disparity_from_range, range_from_disparity,
+from iscd.ranging.range import (LedRanger, cut_patches, disparity_from_range, range_from_disparity,
                                 range_sigma)
 from iscd.ranging.synth import disk_spots, sensor
 
@@ -55,7 +55,7 @@ def test_single_led_range_on_rendered_frames(z_m: float, tol_m: float) -> None:
     """Chapter 3 geometry (b = 0.6 m): 20 frames per distance, LED detected to +-1 px only."""
     rng = np.random.default_rng(int(z_m))
     cal = SimpleNamespace(focal_px=F_PX, baseline_m=0.6)
-    ranger = StereoRanger(cal)
+    ranger = LedRanger(cal)
     d = disparity_from_range(z_m, F_PX, 0.6)
     errs, sig = [], []
     for _ in range(20):
@@ -87,7 +87,7 @@ def test_led_array_whole_and_per_led() -> None:
     pts_r = pts_l - [d, 0.0]
     left = render_frame(pts_l, rng, radius=0.6, peak=400)
     right = render_frame(pts_r, rng, radius=0.6, peak=400)
-    ranger = StereoRanger(cal)
+    ranger = LedRanger(cal)
     whole = ranger.measure_group(left, right, pts_l + rng.uniform(-1, 1, pts_l.shape),
                                  pts_r + rng.uniform(-1, 1, pts_r.shape))
     assert whole.z_m.shape == (1,) and whole.valid.all()
@@ -122,8 +122,8 @@ def test_rectification_from_the_calibration_removes_rig_errors() -> None:
         left = render_frame(pl[None], rng, radius=1.0)
         right = render_frame(pr[None], rng, radius=1.0)
         z_rect = (cal.R1 @ pt[0])[2]                      # depth in the rectified left camera
-        auto = StereoRanger(cal).measure(left, right, [pl], [pr])
-        raw = StereoRanger(cal, rectify=None).measure(left, right, [pl], [pr])
+        auto = LedRanger(cal).measure(left, right, [pl], [pr])
+        raw = LedRanger(cal, rectify=None).measure(left, right, [pl], [pr])
         errs_auto.append(auto.z_m[0] - z_rect)
         errs_raw.append(raw.z_m[0] - z_rect)
         assert abs(auto.dy_px[0]) < 0.05                 # rows agree after rectification
@@ -133,10 +133,10 @@ def test_rectification_from_the_calibration_removes_rig_errors() -> None:
 
 def test_ranger_input_errors() -> None:
     with pytest.raises(ValueError, match="focal_px"):
-        StereoRanger(object())
+        LedRanger(object())
     with pytest.raises(ValueError, match="> 0"):
-        StereoRanger(SimpleNamespace(focal_px=3500.0, baseline_m=0.0))
-    ranger = StereoRanger(SimpleNamespace(focal_px=3500.0, baseline_m=0.6))
+        LedRanger(SimpleNamespace(focal_px=3500.0, baseline_m=0.0))
+    ranger = LedRanger(SimpleNamespace(focal_px=3500.0, baseline_m=0.6))
     with pytest.raises(ValueError, match="differ in shape"):
         ranger.measure(np.zeros((64, 64)), np.zeros((64, 64)), [[10, 10]], [[10, 10], [20, 20]])
     # a dark frame (LED off): no crash, not valid; a flat one: NaN, not valid (also rectified)
@@ -144,14 +144,14 @@ def test_ranger_input_errors() -> None:
     r = ranger.measure(dark, dark.copy() + 1, [[30, 30]], [[20, 30]])
     assert not r.valid.any()
     flat = np.full((512, 512), 40.0)
-    r = StereoRanger(rig_calibration()).measure(flat, flat, [[200, 200]], [[190, 200]])
+    r = LedRanger(rig_calibration()).measure(flat, flat, [[200, 200]], [[190, 200]])
     assert not r.valid.any() and np.isnan(r.z_m).all()
 
 
 def test_ranging_config_section() -> None:
     cfg = ranging_config(loads("[ranging]\nmethod = 'dissertation'\nkalman = true\n"))
     assert cfg.method == "dissertation" and cfg.kalman
-    assert ranging_config(loads("")).method == "iscd"
+    assert ranging_config(loads("")).method == "iscd-fast"
     with pytest.raises(ConfigError, match="ranging.method"):
         ranging_config(loads("[ranging]\nmethod = 'magic'\n"))
     with pytest.raises(ConfigError, match="ranging.bogus"):

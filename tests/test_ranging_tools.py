@@ -24,9 +24,9 @@ bench_ranging = _load_bench()
 
 
 def test_benchmark_quick_runs(capsys: pytest.CaptureFixture[str]) -> None:
-    assert bench_ranging.main(["--quick", "--methods", "iscd,dissertation"]) == 0
+    assert bench_ranging.main(["--quick", "--methods", "iscd-fast,iscd,dissertation"]) == 0
     out = capsys.readouterr().out
-    for case in ("1 LED", "8x8 per LED", "8x8 whole"):
+    for case in ("1 LED", "8x8 per LED", "8x8 whole", "live ranger", "8x8 array 30 m", "1 LED 40 m"):
         assert case in out
     assert "ratio" in out and "x fft2" in out
 

@@ -189,7 +189,7 @@ def suite_table(cases: list[Case], methods: Iterable[str] = PEERS) -> str:
         cells = []
         for m in methods:
             kw = dict(c.estimate_kw or {})
-            if "background" in kw and m != "iscd":
+            if "background" in kw and m not in ("iscd", "iscd-fast"):
                 kw = {}
             if "background" in kw:
                 s = score(m, c.left, c.right, c.truth_dx, background=kw["background"])

@@ -5,7 +5,9 @@ detected position in each camera), the sub-pixel rest from a shift estimator
 (:mod:`iscd.ranging.estimators`). With a rectified calibration, the two matched points are
 mapped into rectified coordinates (``cv2.undistortPoints`` with R1/P1 and R2/P2) before
 their x difference is taken, so lens distortion and a small rotation between the cameras
-are accounted for; the patches themselves are not resampled.
+are accounted for; the patches themselves are not resampled. :class:`LedRanger` does it for
+LED positions in one stereo pair (per LED, or per group); the live pipeline's block ranger
+is :class:`iscd.stereo_range.StereoRanger`, which uses the same formulas.
 
 The calibration is any object with ``focal_px`` (f/rho, px) and ``baseline_m`` (b, m) --
 e.g. ``calibration.io.StereoCalibration`` -- and optionally ``M1 D1 R1 P1 M2 D2 R2 P2``
@@ -127,8 +129,11 @@ class RangeEstimate:
     """finite, positive disparity and quality >= the ranger's ``min_quality``."""
 
 
-class StereoRanger:
-    """Ranges of LEDs in a stereo pair with one shift estimator (default: the project's).
+class LedRanger:
+    """Ranges of LEDs in one stereo pair with one shift estimator (default: the project's 2-D
+    ``"iscd"``), stateless: LED positions in, one range per LED (or one per group) out. For
+    per-LED ranges and offline work; the live pipeline ranges whole blocks of frames of a
+    tracked transmitter with :class:`iscd.stereo_range.StereoRanger` instead.
 
     ``calibration``: object with ``focal_px`` and ``baseline_m`` (+ optional M/D/R/P
     matrices, see the module doc). ``rectify``: ``"auto"`` (use the calibration's matrices
