@@ -1,0 +1,9 @@
+"""``iscd eval``: simulated sweeps of communication and ranging, scored against ground truth,
+and the report beside the dissertation's numbers (docs/eval.md).
+
+- :mod:`.metrics`   pure scoring: symbol/bit errors, (4.4) throughput, goodput, range errors
+- :mod:`.sweeps`    one simulated point: render, decode with the real receiver, score
+- :mod:`.suites`    the comms / hdr / ranging suites and running them
+- :mod:`.reference` the dissertation's results (SPEC section 5)
+- :mod:`.report`    Markdown + PNG plots + results.json
+"""

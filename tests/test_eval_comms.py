@@ -1,0 +1,156 @@
+"""Issue 3's "must show" communication claims, on simulated frames decoded by the real
+receiver (detection, tracking, timing, channel estimation: no truth given to it).
+
+Fixed seeds (the same per-point seeds as ``iscd eval --seed 1``), random LED clock phase
+per point, >= 2 whole packets a point. A target that is not met is kept as the target and
+marked ``xfail(strict=True)`` with the measured value, so fixing the receiver turns it into
+a failure that asks for the mark to be removed.
+"""
+
+from __future__ import annotations
+
+from functools import lru_cache
+
+import pytest
+
+from iscd.config import default_config
+from iscd.eval.suites import (APPROACH_SPEED_MPS, APPROACH_VIBRATION_PX, CH3_MODES, COMMS_DISTANCES_M,
+                              chapter3_cfg, chapter4_cfg, ch4_modes, point_seed)
+from iscd.eval.sweeps import CommsResult, ReceiverMode, run_comms
+
+DIVERSITY = ReceiverMode("diversity", "both")  # the project's default receiver
+
+@lru_cache(maxsize=None)
+def _one_led(distance_m: float, levels: int, packets: int) -> CommsResult:
+    cfg = chapter3_cfg(default_config(), distance_m, levels, point_seed(1, "comms", distance_m, levels))
+    (res,) = run_comms(cfg, [DIVERSITY], packets)
+    print(f"one LED {levels}-level {distance_m:g} m: found {res.found}/{res.packets_sent}, "
+          f"SER {res.ser:.3g} over {res.symbols} symbols, BER {res.ber:.3g}, goodput {res.goodput_kbps:.3f} kbps")
+    return res
+
+
+def _check_delivery(res: CommsResult) -> None:
+    assert res.found == res.packets_sent, f"found {res.found} of {res.packets_sent} packets"
+    assert res.undetected == 0 and res.spurious_crc_ok == 0  # every CRC-valid payload is the sent one
+
+
+def _xfail(values: list[float], fails: dict[float, str]) -> list:
+    return [pytest.param(v, marks=pytest.mark.xfail(strict=True, reason=fails[v])) if v in fails else v
+            for v in values]
+
+
+# ----------------------------------------------------------------------------- one LED, fig. 3.8
+
+@pytest.mark.parametrize("distance_m", [20.0, 40.0, 55.0, 60.0])
+def test_one_led_pwm8_matches_fig_3_8(distance_m: float) -> None:
+    """PWM-8, b = 0.6 m, 100 ppm drift: SER = 0 from 20 to 55 m, <= 6e-3 at 60 m (2 packets)."""
+    res = _one_led(distance_m, 8, 2)
+    _check_delivery(res)
+    assert res.symbols == 2 * 600
+    if distance_m <= 55.0:
+        assert res.ser == 0.0
+    else:
+        assert res.ser <= 6e-3
+
+
+@pytest.mark.parametrize("distance_m", [20.0, 60.0])
+def test_one_led_ook_error_free(distance_m: float) -> None:
+    res = _one_led(distance_m, 2, 2)
+    _check_delivery(res)
+    assert res.ser == 0.0 and res.exact == res.packets_sent
+
+
+SLOW_FAILS: dict[float, str] = {}
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("distance_m", _xfail(list(COMMS_DISTANCES_M), SLOW_FAILS))
+@pytest.mark.parametrize("levels", [8, 2])
+def test_one_led_full_sweep(distance_m: float, levels: int) -> None:
+    """The whole fig. 3.8 sweep, 20-60 m every 5 m, 10 packets a point (6000 symbols)."""
+    res = _one_led(distance_m, levels, 10)
+    _check_delivery(res)
+    if distance_m <= 55.0 or levels == 2:
+        assert res.ser == 0.0
+    else:
+        assert res.ser <= 6e-3
+
+
+# ----------------------------------------------------------------------------- 8x8 HDR at 50 m
+
+@lru_cache(maxsize=None)
+def _hdr_50m(levels: int) -> dict[str, CommsResult]:
+    """8x8 at 50 m, b = 0.25 m, left f/4, right f/8: left alone, right alone and HDR on the
+    same frames (2 packets)."""
+    cfg = chapter4_cfg(default_config(), 50.0, levels, 8.0, point_seed(1, "hdr", 50.0, levels, 8.0))
+    modes = ch4_modes(8.0, quick=True)
+    res = run_comms(cfg, modes, 2)
+    out = {m.cameras: r for m, r in zip(modes, res)}
+    for k, r in out.items():
+        print(f"PWM-{levels} {r.mode.name}: SER {r.ser:.3g} ({r.symbol_errors}/{r.symbols}), found "
+              f"{r.found}/{r.packets_sent}, CRC ok {r.crc_ok}, margin p01 {r.margin_p01}")
+    return out
+
+
+@pytest.mark.parametrize("levels, limit", [(8, 1e-3), (16, 1e-2)])
+def test_hdr_8x8_at_50m_ser(levels: int, limit: float) -> None:
+    """PWM-8 SER <= 1e-3 and PWM-16 SER <= 1e-2 with HDR f/4 + f/8 (the dissertation reached
+    about 1e-1 for PWM-16)."""
+    hdr = _hdr_50m(levels)["both"]
+    assert hdr.symbols == 2 * 600 * 64
+    assert hdr.ser <= limit
+
+
+@pytest.mark.parametrize("levels", [8, 16])
+def test_hdr_better_than_either_camera_alone(levels: int) -> None:
+    """HDR's SER is no worse than each camera's alone, and it is strictly better: a lower SER
+    or, where both are error-free, a larger worst-1 % decision margin (the receiver's own
+    reliability measure)."""
+    r = _hdr_50m(levels)
+    hdr = r["both"]
+    for cam in ("left", "right"):
+        single = r[cam]
+        assert hdr.ser <= single.ser, f"HDR SER {hdr.ser} > {cam} alone {single.ser}"
+        if hdr.ser == single.ser:
+            assert min(hdr.margin_p01) > max(single.margin_p01), (cam, hdr.margin_p01, single.margin_p01)
+    if levels == 16:  # at PWM-16 the f/4 camera alone makes errors that HDR does not
+        assert hdr.ser < r["left"].ser
+
+
+@pytest.mark.parametrize("levels", [8, 16])
+def test_hdr_every_packet_found_and_every_valid_payload_exact(levels: int) -> None:
+    r = _hdr_50m(levels)
+    _check_delivery(r["both"])
+    assert r["both"].exact == r["both"].packets_sent
+    for res in r.values():
+        assert res.undetected == 0 and res.spurious_crc_ok == 0
+        assert res.crc_ok == res.exact
+
+
+# ----------------------------------------------------------------------------- a car approaching
+
+@pytest.mark.xfail(strict=True, reason=(
+    "measured SER 0.58, 0 of 2 packets CRC-valid (seed 1): the symbol errors grow along each packet "
+    "(0.11 -> 0.71 per 100 symbols of the first) while the LEDs' flux grows as 1/Z^2 (50 -> 35 m "
+    "during it); the tracked grid follows the LEDs to 0.3 px. Closing speed alone: SER 0.53 at "
+    "40 km/h, 0.10 at 10 km/h; 0.3 px vibration alone (standing): SER 0.064"))
+def test_car_approaching_at_40kmh_with_vibration_still_decodes() -> None:
+    """8x8, PWM-8, HDR f/4 + f/8, closing at 40 km/h from 50 m, 0.3 px RMS rig vibration:
+    every packet found, CRC-valid and bit-exact."""
+    cfg = chapter4_cfg(default_config(), 50.0, 8, 8.0, point_seed(1, "approach"),
+                       speed_mps=APPROACH_SPEED_MPS, vibration_px=APPROACH_VIBRATION_PX)
+    (res,) = run_comms(cfg, [ReceiverMode("HDR f/4+f/8", "both")], 2)
+    print(f"approach: found {res.found}/{res.packets_sent}, exact {res.exact}, SER {res.ser:.3g}")
+    _check_delivery(res)
+    assert res.exact == res.packets_sent
+
+
+def test_modes_decode_on_the_same_frames() -> None:
+    """The sweep's decoders are independent: a mode's result does not depend on the other
+    modes run beside it (same frames, same seed)."""
+    cfg = chapter3_cfg(default_config(), 40.0, 8, point_seed(1, "comms", 40.0, 8))
+    both = run_comms(cfg, list(CH3_MODES), 2)
+    assert [r.mode for r in both] == list(CH3_MODES)
+    alone = _one_led(40.0, 8, 2)
+    div = both[1]
+    assert (div.found, div.symbol_errors, div.exact) == (alone.found, alone.symbol_errors, alone.exact)
