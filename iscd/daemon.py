@@ -118,7 +118,7 @@ class Daemon:
 
         cfg, st = self.cfg, self.settings
         cal = load_calibration(self.calibration_path) if self.calibration_path else None
-        decoder = StreamDecoder(cfg, cal)
+        decoder = StreamDecoder(cfg, cal, async_demod=True)
         H, W = cfg.camera.height, cfg.camera.width
         dtype = np.uint8 if cfg.camera.bit_depth == 8 else np.uint16
         ring = StereoRing.create(height=H, width=W, capacity=capacity_for(st.ring_ms, cfg.camera.fps), dtype=dtype)

@@ -22,6 +22,7 @@ import logging
 import math
 import time
 from collections import deque
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -114,8 +115,16 @@ class StreamDecoder:
     """Decodes one transmitter from a stream of stereo frame blocks (see module docstring)."""
 
     def __init__(self, cfg: Config, calibration: StereoCalibration | None = None, *, tx_index: int = 0,
-                 settings: PipelineSettings | None = None, ranging: RangingSettings | None = None) -> None:
+                 settings: PipelineSettings | None = None, ranging: RangingSettings | None = None,
+                 async_demod: bool = False) -> None:
+        """``async_demod``: run the packet assembler in one worker thread, so that
+        demodulating a whole packet (tens of ms for an 8x8 array) does not delay the
+        per-frame range records; packets then come out of a later :meth:`push` (in order)
+        or of :meth:`finish`. The daemon uses it; replay and tests run synchronously."""
         self.cfg = cfg
+        self._pool: ThreadPoolExecutor | None = (
+            ThreadPoolExecutor(max_workers=1, thread_name_prefix="iscd-demod") if async_demod else None)
+        self._pending: deque[Future] = deque()
         self.tx_index = tx_index
         self.settings = settings or build_section(PipelineSettings, dict(cfg.extra.get("tracking", {})), "tracking")
         rs = ranging or build_section(RangingSettings, dict(cfg.extra.get("ranging", {})), "ranging")
@@ -162,7 +171,23 @@ class StreamDecoder:
         return out
 
     def _demod(self, frame_ids: np.ndarray, t_s: np.ndarray, lum_l: np.ndarray, lum_r: np.ndarray) -> list[dict]:
-        return self._records(self.assembler.push(frame_ids, t_s, lum_l, lum_r))
+        if self._pool is None:
+            return self._records(self.assembler.push(frame_ids, t_s, lum_l, lum_r))
+        self._pending.append(self._pool.submit(self.assembler.push, frame_ids, t_s, lum_l, lum_r))
+        return []
+
+    def _reset_assembler(self) -> None:
+        if self._pool is None:
+            self.assembler.reset()
+        else:  # in order with the pushes already queued
+            self._pending.append(self._pool.submit(lambda a=self.assembler: a.reset() or []))
+
+    def _collect(self, wait: bool = False) -> list[dict]:
+        """Records of the finished asynchronous demodulation steps, in order."""
+        out: list[dict] = []
+        while self._pending and (wait or self._pending[0].done()):
+            out += self._records(self._pending.popleft().result())
+        return out
 
     # ------------------------------------------------------------------ main entry
     def push(self, frame_ids: np.ndarray, t_s: np.ndarray, left: np.ndarray, right: np.ndarray,
@@ -200,7 +225,7 @@ class StreamDecoder:
         bounds = [0, *cuts.tolist(), n]
         for a, b in zip(bounds[:-1], bounds[1:]):
             if a in cuts:
-                self.assembler.reset()
+                self._reset_assembler()
                 self.counters["assembler_resets"] += 1
                 tr.since_frame = int(frame_ids[a])  # the header wait starts again
                 tr.frames_since_header = b - a
@@ -219,12 +244,15 @@ class StreamDecoder:
                                     "sigma_m": float(res.sigma_m[i])})
             self.counters["ranges"] += int(np.isfinite(res.z_m).sum())
         self._retrack(frame_ids, left, right)
-        return records
+        return self._collect() + records
 
     def finish(self) -> list[dict]:
         """End of stream: decode what the assembler still holds."""
+        out = self._collect(wait=True)
+        if self._pool is not None:
+            self._pool.shutdown(wait=True)
         flush = getattr(self.assembler, "flush", None)
-        return self._records(flush()) if flush is not None else []
+        return out + (self._records(flush()) if flush is not None else [])
 
     def _roi_centers(self, side: int, centers: np.ndarray) -> np.ndarray:
         """Whole-pixel ROI centres with hysteresis: an ROI moves only when its LED has moved
@@ -307,7 +335,7 @@ class StreamDecoder:
                             roi_radius=(self._roi_radius(fl), self._roi_radius(fr)),
                             since_frame=int(frame_ids[-1]))
         self.counters["acquisitions"] += 1
-        self.assembler = self._make_assembler()
+        self.assembler = self._make_assembler()  # queued steps finish on the old one
         log.info("transmitter acquired: left %.1f,%.1f right %.1f,%.1f pitch %.2f px",
                  *fl.center, *fr.center, fl.pitch_px)
         return meta[:, 0].astype(np.int64), meta[:, 1], L, R
