@@ -34,6 +34,7 @@ from iscd.config import Config, build_section
 from iscd.receiver.detect import GridFit, detect_array, match_stereo, track_array
 from iscd.receiver.packets import Packet, PacketAssembler
 from iscd.receiver.settings import receiver_config
+from iscd.ranging.kalman import RangeKalman
 from iscd.stereo_range import RangingSettings, StereoRanger
 
 log = logging.getLogger(__name__)
@@ -130,6 +131,8 @@ class StreamDecoder:
         rs = ranging or build_section(RangingSettings, dict(cfg.extra.get("ranging", {})), "ranging")
         self.cal = calibration or StereoCalibration.ideal(cfg.camera)
         self.ranger = StereoRanger(self.cal, rs) if self.settings.ranging else None
+        self.kalman = (RangeKalman(accel_psd=rs.accel_psd, gate=rs.kalman_gate)
+                       if self.ranger is not None and rs.kalman else None)
         self.air = AirInterface.from_config(cfg.transmitter)
         self.rx_cfg = receiver_config(cfg)
         self.rows, self.cols = cfg.transmitter.rows, cfg.transmitter.cols
@@ -243,8 +246,26 @@ class StreamDecoder:
                                     "disparity_px": float(res.disparity_px[i]),
                                     "sigma_m": float(res.sigma_m[i])})
             self.counters["ranges"] += int(np.isfinite(res.z_m).sum())
+            if self.kalman is not None:
+                records += self._filtered(frame_ids, t_s, res.z_m, res.sigma_m)
         self._retrack(frame_ids, left, right)
         return self._collect() + records
+
+    def _filtered(self, frame_ids: np.ndarray, t_s: np.ndarray, z: np.ndarray, sig: np.ndarray) -> list[dict]:
+        """Kalman-filtered range and closing speed ([ranging] kalman): a separate record
+        type, ``range_filtered``, never mixed with the per-frame ``range`` records."""
+        kf = self.kalman
+        assert kf is not None
+        out: list[dict] = []
+        for i in range(len(frame_ids)):
+            if not math.isfinite(z[i]):
+                continue
+            st = kf.update(float(t_s[i]), float(z[i]), float(sig[i]))
+            if math.isfinite(st.z_m):
+                out.append({"type": "range_filtered", "tx": self.tx_index, "frame": int(frame_ids[i]),
+                            "t_s": float(t_s[i]), "z_m": st.z_m, "sigma_m": st.sigma_z_m,
+                            "closing_speed_mps": st.closing_speed_mps, "accepted": st.accepted})
+        return out
 
     def finish(self) -> list[dict]:
         """End of stream: decode what the assembler still holds."""
@@ -336,6 +357,8 @@ class StreamDecoder:
                             since_frame=int(frame_ids[-1]))
         self.counters["acquisitions"] += 1
         self.assembler = self._make_assembler()  # queued steps finish on the old one
+        if self.kalman is not None:
+            self.kalman.reset()
         log.info("transmitter acquired: left %.1f,%.1f right %.1f,%.1f pitch %.2f px",
                  *fl.center, *fr.center, fl.pitch_px)
         return meta[:, 0].astype(np.int64), meta[:, 1], L, R

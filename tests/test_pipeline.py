@@ -115,3 +115,24 @@ def test_single_led_near_and_far(distance_m: float) -> None:
     pk = [r for r in recs if r["type"] == "packet"]
     assert len(pk) == 3 and all(r["crc_ok"] for r in pk), [(r["frame"], r["crc_ok"]) for r in pk]
     assert [bytes.fromhex(r["payload_hex"]) for r in pk] == scene.truth(frames).payloads[:3]
+
+
+def test_kalman_filtered_ranges_are_separate_records_and_follow_the_approach() -> None:
+    """[ranging] kalman: range_filtered records beside (never instead of) the per-frame ones;
+    on a car closing at 40 km/h the filter's closing speed converges to 11.1 m/s."""
+    cfg = override(single_led(default_config(), 40.0), scene={"speed_mps": 11.1})
+    cfg = cfg.replace(extra={"ranging": {"kalman": True}})
+    frames = np.arange(0, 800)
+    recs, dec, scene = _decode(cfg.replace(extra={**cfg.extra, "tracking": {"ranging": True}}), frames,
+                               ranging=True)
+    raw = [r for r in recs if r["type"] == "range"]
+    filt = [r for r in recs if r["type"] == "range_filtered"]
+    assert raw and len(filt) == len(raw)
+    late = [r for r in filt if r["frame"] > 500]
+    speed = np.median([r["closing_speed_mps"] for r in late])
+    assert abs(speed - 11.1) < 1.5, speed
+    tr = scene.truth(np.array([r["frame"] for r in late]))
+    err_f = np.abs(np.array([r["z_m"] for r in late]) - tr.z_m)
+    raw_late = [r for r in raw if r["frame"] > 500]
+    err_r = np.abs(np.array([r["z_m"] for r in raw_late]) - scene.truth(np.array([r["frame"] for r in raw_late])).z_m)
+    assert err_f.mean() < err_r.mean()

@@ -52,7 +52,7 @@ class RangingSettings:
                                                     "type maximum: 255 for 8-bit; set 4095 for 12-bit data in 16 bits)")
     patch_px: int = _f(16, lo=4, hi=256, doc="per-LED ranging (LedRanger): side of a single-LED patch, px")
     per_led: bool = _f(False, doc="per-LED ranges (LedRanger); the live pipeline does not emit them yet")
-    kalman: bool = _f(False, doc="also report Kalman-filtered range and closing speed")
+    kalman: bool = _f(False, doc="also emit range_filtered records: Kalman-filtered range and closing speed")
     accel_psd: float = _f(1.0, lo=0, lo_open=True, doc="Kalman process noise, (m/s^2)^2/Hz")
     kalman_gate: float = _f(5.0, lo=0, lo_open=True, doc="Kalman outlier gate, standard deviations")
 
