@@ -141,7 +141,7 @@ class Daemon:
         t_s = np.zeros(B, np.float64)
         arrival = np.zeros(B, np.int64)
         fps = cfg.camera.fps
-        counters = {"pairs_decoded": 0, "pair_gaps": 0, "acquisition_restarts": 0, "output_errors": 0}
+        counters = {"pairs_decoded": 0, "pair_gaps": 0, "decode_errors": 0, "acquisition_restarts": 0, "output_errors": 0}
         t_start = time.monotonic()
         next_stats = t_start + st.stats_interval_s
         deadline = t_start + self.duration_s if self.duration_s else None
@@ -189,7 +189,7 @@ class Daemon:
                    "cpu_cores": share, "rss_mb": round(rss / 2**20, 1),
                    "pair_gaps": counters["pair_gaps"],
                    "acquisition": a.as_dict(), "acquisition_restarts": counters["acquisition_restarts"],
-                   "output_errors": counters["output_errors"]}
+                   "output_errors": counters["output_errors"], "decode_errors": counters["decode_errors"]}
             for o in outputs:
                 c = getattr(o, "counters", None)
                 if callable(c):
@@ -251,7 +251,15 @@ class Daemon:
                 counters["pair_gaps"] += int(np.clip(steps - 1, 0, None).sum())
                 # falling behind: shed ranging for this block so that no packet is lost
                 behind = ring.stats().queued > st.shed_ranging_fill * ring.capacity
-                records = decoder.push(ids[:n].copy(), t_s[:n].copy(), blk_l[:n], blk_r[:n], ranging=not behind)
+                try:
+                    records = decoder.push(ids[:n].copy(), t_s[:n].copy(), blk_l[:n], blk_r[:n],
+                                           ranging=not behind)
+                except Exception:  # a decoder bug on odd frames must not stop the service
+                    counters["decode_errors"] += 1
+                    log.exception("decoding frames %d..%d failed; the decoder restarts acquisition",
+                                  int(ids[0]), int(ids[n - 1]))
+                    decoder.restart()
+                    records = []
                 done_ns = time.monotonic_ns()
                 counters["pairs_decoded"] += n
                 last_frame = int(ids[n - 1])

@@ -275,6 +275,18 @@ class StreamDecoder:
         flush = getattr(self.assembler, "flush", None)
         return out + (self._records(flush()) if flush is not None else [])
 
+    def restart(self) -> None:
+        """Drop the track and every per-track buffer: acquisition starts again (the daemon
+        calls it after a decoding error so that one bad block cannot wedge the decoder)."""
+        self.track = None
+        self._blk_l.clear()
+        self._blk_r.clear()
+        self._since_fit = 0
+        self._acq_l.clear()
+        self._acq_r.clear()
+        self._acq_ids.clear()
+        self._rois = [None, None]
+
     def _roi_centers(self, side: int, centers: np.ndarray) -> np.ndarray:
         """Whole-pixel ROI centres with hysteresis: an ROI moves only when its LED has moved
         more than 0.75 px from it. A spot centred near a pixel boundary (x.5) would

@@ -24,7 +24,6 @@ class LatencyWindow:
     cap: int = 20_000
     _buf: np.ndarray = field(default_factory=lambda: np.empty(0))
     _n: int = 0
-    _all: list[float] = field(default_factory=list)
 
     def __post_init__(self) -> None:
         self._buf = np.empty(self.cap, dtype=np.float64)
@@ -44,7 +43,6 @@ class LatencyWindow:
             return None, None
         v = self._buf[:self._n]
         p50, p99 = np.percentile(v, [50, 99])
-        self._all.extend(np.percentile(v, [50, 99]).tolist())
         self._n = 0
         return round(float(p50), 3), round(float(p99), 3)
 

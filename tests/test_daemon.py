@@ -220,3 +220,5 @@ def test_soak_full_rate(tmp_path: Path) -> None:
     assert final["latency_ms_p99"] <= 20
     rss = [s["rss_mb"] for s in stats[10:-1]]
     assert max(rss) - min(rss) < 50
+    cpu = [s["cpu_cores"] for s in stats[10:-1]]
+    assert max(cpu) - min(cpu) < 0.5 and max(cpu) < 1.9  # flat, and not both cores

@@ -136,3 +136,42 @@ def test_kalman_filtered_ranges_are_separate_records_and_follow_the_approach() -
     raw_late = [r for r in raw if r["frame"] > 500]
     err_r = np.abs(np.array([r["z_m"] for r in raw_late]) - scene.truth(np.array([r["frame"] for r in raw_late])).z_m)
     assert err_f.mean() < err_r.mean()
+
+
+def test_restart_after_an_error_reacquires_and_decodes() -> None:
+    """The daemon's recovery path: after restart() the decoder acquires again and decodes."""
+    cfg = override(single_led(default_config(), 30.0), transmitter={"data_symbols": 100})
+    cfg = cfg.replace(extra={"tracking": {"ranging": False}})
+    scene = Scene(cfg)
+    dec = StreamDecoder(cfg)
+    L = np.empty((16, 512, 512), np.uint8)
+    R = np.empty_like(L)
+    out: list[dict] = []
+    for s in range(0, 2400, 16):
+        ids = np.arange(s, s + 16)
+        for i, n in enumerate(ids):
+            scene.render_pair_into(int(n), L[i], R[i])
+        if s == 800:
+            dec.restart()
+            assert dec.track is None
+        out += dec.push(ids, ids / 1000.0, L, R)
+    ok = [r["frame"] for r in out if r["type"] == "packet" and r["crc_ok"]]
+    assert dec.counters["acquisitions"] == 2
+    assert any(f > 900 for f in ok)
+
+
+def test_16_bit_frames_are_detected() -> None:
+    """16-bit frames (Photron 16-bit): the temporal gradient must not overflow, and
+    detection finds the LED."""
+    from iscd.receiver.detect import activity_map, detect_array
+
+    two = np.zeros((2, 4, 4), np.uint16)
+    two[1, 1, 1] = 40_000
+    assert activity_map(two)[1, 1] == 40_000
+    cfg = single_led(default_config(), 40.0)
+    scene = Scene(cfg)
+    L = np.stack([scene.render_pair(n)[0] for n in range(64)]).astype(np.uint16) * 256
+    fit = detect_array(L, 1, 1)
+    tr = scene.truth(np.arange(64))
+    assert fit is not None
+    assert abs(fit.center[0] - tr.u_left[0, 0]) < 0.5 and abs(fit.center[1] - tr.v_left[0, 0]) < 0.5

@@ -92,9 +92,10 @@ def activity_map(frames: np.ndarray) -> np.ndarray:
     if f.ndim != 3 or f.shape[0] < 2:
         raise ValueError(f"need a (n >= 2, H, W) block of frames, got shape {f.shape}")
     acc = np.zeros(f.shape[1:], dtype=np.float32)
-    prev = f[0].astype(np.int16)
+    wide = np.int16 if f.dtype.itemsize == 1 else np.int32  # 16-bit data overflows int16
+    prev = f[0].astype(wide)
     for k in range(1, f.shape[0]):  # per frame, vectorized over pixels; n is small (~64)
-        cur = f[k].astype(np.int16)
+        cur = f[k].astype(wide)
         acc += np.abs(cur - prev)
         prev = cur
     return acc / (f.shape[0] - 1)
