@@ -31,6 +31,7 @@ import numpy as np
 from calibration.io import StereoCalibration
 from iscd.airinterface import AirInterface
 from iscd.config import Config, build_section
+from iscd.receiver.luminance import gauss_mean, refine_centres
 from iscd.receiver.detect import GridFit, detect_array, match_stereo, track_array
 from iscd.receiver.packets import Packet, PacketAssembler
 from iscd.receiver.settings import receiver_config
@@ -51,24 +52,9 @@ class PipelineSettings:
     reset_gap_frames: int = field(default=32, metadata={"lo": 1, "doc": "a gap of more frames restarts the packet search"})
     lost_packets: float = field(default=1.2, metadata={"lo": 0.1, "doc": "dark this many packet durations = lost"})
     lost_score_ratio: float = field(default=0.2, metadata={"lo": 0, "hi": 1, "doc": "grid score below this share of the first fit = lost"})
-    roi_radius_px: int = field(default=-1, metadata={"lo": -1, "hi": 8, "doc": "luminance ROI half-size, px ((2r+1)^2 pixels); -1 = from the spot size and LED pitch"})
+    roi_radius_px: int = field(default=-1, metadata={"lo": -1, "hi": 8, "doc": "half-size of the box that follows each spot frame by frame, px ((2r+1)^2 pixels); -1 = from the spot size and LED pitch"})
+    roi_sigma_px: float = field(default=-1.0, metadata={"lo": -1.0, "hi": 8.0, "doc": "luminance window: Gaussian weights of this RMS radius, px; -1 = matched to the spot (its FWHM / 2.355, at most pitch / 4 in an array)"})
     ranging: bool = field(default=True, metadata={"doc": "measure the range every frame"})
-
-
-def roi_mean(frames: np.ndarray, centers: np.ndarray, radius: int = 1) -> np.ndarray:
-    """Mean grey level of a (2r+1)² ROI around each LED centre in each frame (eq. 3.10).
-
-    frames: (n, H, W); centers: (N, 2) x, y px. Returns (n, N) float32. ROIs are clipped to
-    the image. Only the ROI pixels are read (one fancy-indexing gather for all LEDs).
-    """
-    n, H, W = frames.shape
-    off = np.arange(-radius, radius + 1)
-    cx = np.clip(np.rint(centers[:, 0]).astype(np.int64), 0, W - 1)
-    cy = np.clip(np.rint(centers[:, 1]).astype(np.int64), 0, H - 1)
-    xs = np.clip(cx[:, None, None] + off[None, None, :], 0, W - 1)  # (N, 1, k)
-    ys = np.clip(cy[:, None, None] + off[None, :, None], 0, H - 1)  # (N, k, 1)
-    vals = frames[:, ys, xs]  # (n, N, k, k)
-    return vals.reshape(n, centers.shape[0], -1).mean(axis=2, dtype=np.float32)
 
 
 def _jsonable(rec: dict[str, Any]) -> dict[str, Any]:
@@ -106,10 +92,17 @@ class _Track:
     frames_since_header: int = 0
     """decoded frames since acquisition, the last packet or a search restart"""
     roi_radius: tuple[int, int] = (1, 1)
-    """luminance ROI half-size per camera, fixed while the track lasts (a changing ROI
-    would change the channel within a packet)"""
+    """half-size of the box that follows each spot, per camera"""
+    roi_sigma: tuple[float, float] = (1.0, 1.0)
+    """Gaussian luminance window per camera, px, fixed while the track lasts (a changing
+    window would change the channel within a packet)"""
     low_frames: int = 0
     """decoded frames since the grid last fitted well (dark stretches hold the fit)"""
+    fit_frame: float = math.nan
+    """mean frame id of the frames the current fits came from"""
+    prev: tuple[GridFit, GridFit] | None = None
+    """the fits before the current ones (for the grid's motion), fitted at ``prev_frame``"""
+    prev_frame: float = math.nan
 
 
 class StreamDecoder:
@@ -146,11 +139,13 @@ class StreamDecoder:
         self._acq_ids: deque[tuple[int, float]] = deque(maxlen=self.settings.acquire_frames)
         self._since_fit = 0
         self._last_id: int | None = None
-        self._rois: list[np.ndarray | None] = [None, None]
         self.last_luminance: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = None
         """(ids, t_s, lum_left, lum_right) of the last block decoded (for live views)."""
         self._blk_l: list[np.ndarray] = []
         self._blk_r: list[np.ndarray] = []
+        self._blk_ids: list[np.ndarray] = []
+        self._followed: list[np.ndarray | None] = [None, None]
+        """per camera, the LED centres (N, 2) px refined in the last decoded frame"""
         self._win: tuple[tuple[int, int, int, int], tuple[int, int, int, int]] = ((0, 0, 0, 0), (0, 0, 0, 0))
         self.assembler = self._make_assembler()
         self.counters: dict[str, int] = {"acquisitions": 0, "losses": 0, "rejected_candidates": 0,
@@ -219,8 +214,8 @@ class StreamDecoder:
         t_s = np.asarray(t_s, dtype=np.float64)
         self.counters["frames_decoded"] += n
         tr.frames_since_header += n
-        lum_l = roi_mean(left, self._roi_centers(0, tr.left.centers), tr.roi_radius[0])
-        lum_r = roi_mean(right, self._roi_centers(1, tr.right.centers), tr.roi_radius[1])
+        lum_l = self._luminance(0, frame_ids, left)
+        lum_r = self._luminance(1, frame_ids, right)
         self.last_luminance = (frame_ids, t_s, lum_l, lum_r)
         # a long gap (a stalled camera, a burst of drops) restarts the packet search
         prev = np.concatenate([[self._last_id if self._last_id is not None else frame_ids[0] - 1], frame_ids[:-1]])
@@ -281,28 +276,73 @@ class StreamDecoder:
         self.track = None
         self._blk_l.clear()
         self._blk_r.clear()
+        self._blk_ids.clear()
+        self._followed = [None, None]
         self._since_fit = 0
         self._acq_l.clear()
         self._acq_r.clear()
         self._acq_ids.clear()
-        self._rois = [None, None]
 
-    def _roi_centers(self, side: int, centers: np.ndarray) -> np.ndarray:
-        """Whole-pixel ROI centres with hysteresis: an ROI moves only when its LED has moved
-        more than 0.75 px from it. A spot centred near a pixel boundary (x.5) would
-        otherwise make its ROI hop between neighbouring pixels as tracking refines the fit,
-        changing the channel within a packet."""
-        want = np.rint(centers)
-        cur = self._rois[side]
-        if cur is None or cur.shape != want.shape:
-            self._rois[side] = want
-            return want
-        move = np.any(np.abs(centers - cur) > 0.75, axis=1)
-        if move.any():
-            cur = cur.copy()
-            cur[move] = want[move]
-            self._rois[side] = cur
-        return cur
+    FOLLOW_MAX_PX = 2.0
+    """The LEDs are followed from the last frame's refined centres unless these have moved
+    further than this from the grid fit (then the fit restarts them)."""
+
+    MOTION_HORIZON = 4.0
+    """The grid's motion is extrapolated at most this many tracking intervals ahead."""
+
+    def led_centres(self, side: int, frame_ids: np.ndarray) -> np.ndarray:
+        """(F, N, 2) LED centres px in each frame from the grid fits alone: the last fit
+        moved on at the rate (origin and pitch) between the last two fits. The fits are
+        averages over tens of frames made after the fact; an approaching array grows
+        (4.2 -> 6 px pitch within a packet at 40 km/h), so the last fit lags by a
+        fraction of a pixel at the edges, which is what this removes."""
+        tr = self.track
+        assert tr is not None
+        fit = tr.left if side == 0 else tr.right
+        base = fit.centers
+        ids = np.asarray(frame_ids, dtype=np.float64)
+        if tr.prev is None or not tr.fit_frame > tr.prev_frame:
+            return np.broadcast_to(base, (ids.size,) + base.shape)
+        prev = tr.prev[side]
+        dt = tr.fit_frame - tr.prev_frame
+        horizon = self.MOTION_HORIZON * self.settings.track_every_frames
+        ahead = np.clip(ids - tr.fit_frame, -horizon, horizon)[:, None]  # (F, 1)
+        v_o = (np.asarray(fit.origin) - np.asarray(prev.origin)) / dt  # px / frame
+        v_p = (fit.pitch_px - prev.pitch_px) / dt
+        grid = (base - np.asarray(fit.origin)) / fit.pitch_px if fit.pitch_px > 0 else np.zeros_like(base)
+        origin = np.asarray(fit.origin)[None, :] + ahead * v_o[None, :]  # (F, 2)
+        pitch = fit.pitch_px + ahead * v_p  # (F, 1)
+        return origin[:, None, :] + grid[None] * pitch[:, :, None]
+
+    def _luminance(self, side: int, frame_ids: np.ndarray, frames: np.ndarray) -> np.ndarray:
+        """(F, N) luminance DN of every LED: a Gaussian-weighted ROI mean
+        (:func:`iscd.receiver.luminance.gauss_mean`, eq. 3.10 with smooth weights, the same
+        at every sub-pixel phase) at the LED's position in each frame -- the grid's
+        motion (:meth:`led_centres`) refined by the frame's own shift and scale
+        (:func:`iscd.receiver.luminance.refine_centres`: rig vibration moves every spot
+        together, faster than the grid fits follow)."""
+        tr = self.track
+        assert tr is not None
+        start = self.led_centres(side, frame_ids)
+        prev = self._followed[side]
+        if prev is not None and prev.shape == start.shape[1:] and \
+                float(np.abs(prev - start[0]).max()) <= self.FOLLOW_MAX_PX:
+            start = prev  # where the LEDs were in the last frame: closer than the grid fit
+        c = refine_centres(frames, start, 2 * tr.roi_radius[side] + 1)
+        self._followed[side] = c[-1].copy()
+        return gauss_mean(frames, c, tr.roi_sigma[side])
+
+    def _roi_sigma(self, fit: GridFit) -> float:
+        """Gaussian luminance window, px: the configured one, or (auto) matched to the
+        spot (FWHM / 2.355), at most a quarter of the pitch in an array (a neighbour's
+        light then weighs ~1 %)."""
+        s = self.settings.roi_sigma_px
+        if s > 0:
+            return float(s)
+        s = fit.spot_px / 2.355
+        if fit.rows * fit.cols > 1 and fit.pitch_px > 0:
+            s = min(s, fit.pitch_px / 4.0)
+        return float(np.clip(s, 0.6, 2.0))
 
     def _roi_radius(self, fit: GridFit) -> int:
         """ROI half-size: the configured one, or (auto) half the spot so that a saturated
@@ -363,10 +403,11 @@ class StreamDecoder:
         if fr is None:
             log.debug("transmitter seen in the left camera at %s but not matched in the right", fl.center)
             return None
-        self._rois = [None, None]
+        self._followed = [None, None]
         self.track = _Track(left=fl, right=fr, first_score=min(fl.score, fr.score),
                             roi_radius=(self._roi_radius(fl), self._roi_radius(fr)),
-                            since_frame=int(frame_ids[-1]))
+                            roi_sigma=(self._roi_sigma(fl), self._roi_sigma(fr)),
+                            since_frame=int(frame_ids[-1]), fit_frame=float(meta[:, 0].mean()))
         self.counters["acquisitions"] += 1
         self.assembler = self._make_assembler()  # queued steps finish on the old one
         if self.kalman is not None:
@@ -385,13 +426,16 @@ class StreamDecoder:
         # keep only the tracking windows (the caller may reuse its frame buffers)
         self._blk_l.append(np.array(left[:, ay0:ay1, ax0:ax1]))
         self._blk_r.append(np.array(right[:, by0:by1, bx0:bx1]))
+        self._blk_ids.append(np.asarray(frame_ids, dtype=np.float64))
         self._since_fit += len(frame_ids)
         if self._since_fit < self.settings.track_every_frames:
             return
         L = np.concatenate(self._blk_l)
         R = np.concatenate(self._blk_r)
+        fit_frame = float(np.concatenate(self._blk_ids).mean())
         self._blk_l.clear()
         self._blk_r.clear()
+        self._blk_ids.clear()
         self._since_fit = 0
         try:
             nl = track_array(L, tr.left.shifted(-ax0, -ay0)).shifted(ax0, ay0)
@@ -405,8 +449,12 @@ class StreamDecoder:
             # symbols, an occlusion): hold the last fit
             tr.low_frames += n_fit
         else:
+            # the grid's motion only between fits of consecutive good intervals
+            good_before = tr.low_frames == 0 and math.isfinite(tr.fit_frame)
+            tr.prev, tr.prev_frame = ((tr.left, tr.right), tr.fit_frame) if good_before else (None, math.nan)
             tr.low_frames = 0
             tr.left, tr.right = nl, nr  # type: ignore[assignment]
+            tr.fit_frame = fit_frame
         now = int(frame_ids[-1])
         if tr.low_frames > self.settings.lost_packets * self.packet_frames:
             # every packet lights every LED in its header: a whole packet's time dark is gone

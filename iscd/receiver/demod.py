@@ -24,14 +24,14 @@ training only (3.11 / 4.2) and the clean-frame Euclidean decision (3.12 / 4.3).
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
 from iscd.airinterface import HEADER_SYMBOLS, AirInterface
-from iscd.receiver.channel import (ChannelModel, IscdChannelSettings, estimate_dissertation,
-                                   estimate_iscd)
-from iscd.receiver.decide import clean_costs, decide_span
+from iscd.receiver.channel import (ChannelModel, ChannelTrack, IscdChannelSettings,
+                                   estimate_dissertation, estimate_iscd)
+from iscd.receiver.decide import CleanCosts, clean_costs, decide_span
 from iscd.receiver.settings import ReceiverConfig
 from iscd.receiver.timing import SymbolClock, clean_frame, fine_header, frame_map, refine_clock
 
@@ -57,6 +57,8 @@ class PacketResult:
     contrast: float
     margins: np.ndarray = field(repr=False)
     erasures: int = 0
+    channel: str = "static"
+    """``tracked`` (re-estimated along the packet) or ``static`` (one channel per packet)"""
 
     def quality(self) -> dict[str, float]:
         """Summary metrics (the receiver has no truth): margins and sync quality."""
@@ -66,6 +68,7 @@ class PacketResult:
                 "margin_median": float(np.median(m)) if m.size else 0.0,
                 "weak_symbols": int((m < 4.0).sum()),
                 "erasures": int(self.erasures), "drift_ppm": float(self.drift_ppm),
+                "channel_tracked": self.channel == "tracked",
                 "header_r2": float(self.header_r2), "training_rho": float(self.training_rho),
                 "contrast": float(self.contrast)}
 
@@ -150,6 +153,81 @@ def header_contrast(model: ChannelModel) -> float:
     return float(np.median(c.max(0)))
 
 
+
+def _segment_symbols(window: int) -> int:
+    """Length of the stretches that share one channel model: a third of the window."""
+    return max(8, window // 3)
+
+
+def _segments(k0: int, P: int, size: int) -> list[tuple[int, int]]:
+    """Consecutive stretches [a, b) of at most ``size`` symbols covering k0 .. P - 1."""
+    return [(a, min(P, a + size)) for a in range(k0, P, size)]
+
+
+def _centred(a: int, b: int, W: int, P: int) -> tuple[int, int]:
+    """Symbols [lo, hi) of a window of W symbols centred on [a, b), kept inside [0, P)."""
+    if W <= 0 or W >= P:
+        return 0, P
+    lo = int(np.clip(round((a + b - W) / 2), 0, P - W))
+    return lo, lo + W
+
+
+def _fit(L: np.ndarray, clock: SymbolClock, e: float, lev: np.ndarray, lo: int, hi: int, M: int,
+         st: IscdChannelSettings, cfg: ReceiverConfig) -> ChannelModel:
+    """The iscd channel model from the labelled clean frames of packet symbols [lo, hi)."""
+    y, lv = clean_samples(L, clock, e, lev[lo:hi], lo)
+    return estimate_iscd(y, lv, M, st, cfg.noise_model, cfg.t_nu)
+
+
+
+GAINS = np.exp(np.linspace(np.log(0.8), np.log(1.25), 19))
+"""Relative gains tried by :func:`_match_gain` (2.5 % steps)."""
+
+
+def _match_gain(model: ChannelModel, L: np.ndarray, clock: SymbolClock, e: float, lev: np.ndarray,
+                k_a: int, k_b: int) -> ChannelModel:
+    """``model`` with each camera's light scaled to fit the clean frames of the undecided
+    stretch [k_a, k_b): per camera the gain g (centroids ``mu_1 + g (mu_s - mu_1)``, capped at
+    the brightest value seen) whose best-level costs, summed over the stretch's symbols and
+    LEDs, are least. Decision-free in the sense that every level competes for every
+    sample: thousands of samples fix one number, so a stretch with some wrong decisions
+    still gives the right gain. Follows an LED that brightens as the car closes in."""
+    y, _ = clean_samples(L, clock, e, lev[k_a:k_b], k_a)
+    if y.shape[1] == 0:
+        return model
+    mu = model.mu.copy()
+    for c in range(model.n_cams):
+        yc = y[c:c + 1]
+        if not np.isfinite(yc).any():
+            continue
+        top = float(np.nanmax(L[c]))
+        base = model.mu[c, :, :1]
+        span = model.mu[c] - base
+        costs = np.array([ChannelModel(np.minimum(base + g * span, top)[None], model.var[c:c + 1],
+                                       model.kind, model.nu).level_cost(yc).min(-1).sum()
+                          for g in GAINS])
+        b = int(np.argmin(costs))
+        g = float(GAINS[b])
+        if 0 < b < GAINS.size - 1:  # parabola through the best and its neighbours (log gain)
+            den = costs[b - 1] - 2 * costs[b] + costs[b + 1]
+            if den > 0:
+                step = float(np.log(GAINS[1] / GAINS[0]))
+                g *= float(np.exp(np.clip(0.5 * (costs[b - 1] - costs[b + 1]) / den, -0.5, 0.5) * step))
+        mu[c] = np.minimum(base + g * span, max(top, float(model.mu[c].max())))
+    return ChannelModel(mu=mu, var=model.var, kind=model.kind, nu=model.nu)
+
+
+def _fit_track(L: np.ndarray, clock: SymbolClock, e: float, lev: np.ndarray,
+               segs: list[tuple[int, int]], W: int, M: int, st: IscdChannelSettings,
+               cfg: ReceiverConfig) -> ChannelTrack:
+    """One channel model per stretch, each from the window of W symbols centred on it (the
+    first stretch's model also holds for header and training)."""
+    P = lev.shape[0]
+    models = tuple(_match_gain(_fit(L, clock, e, lev, *_centred(a, b, W, P), M, st, cfg),
+                               L, clock, e, lev, a, b) for a, b in segs)
+    return ChannelTrack((0,) + tuple(a for a, _ in segs[1:]), models)
+
+
 def demodulate_packet(L: np.ndarray, u_guess: float, air: AirInterface, e: float,
                       p_nominal: float, p_prior: float, p_sigma: float, cfg: ReceiverConfig,
                       ) -> PacketResult | Rejection:
@@ -158,7 +236,26 @@ def demodulate_packet(L: np.ndarray, u_guess: float, air: AirInterface, e: float
     L: (C, n, N) luminance of the selected cameras (NaN = missing), covering the whole
     packet; e: exposure in frames; p_nominal: fps / symbol rate; p_prior, p_sigma: expected
     symbol period (frames) and its RMS uncertainty.
+
+    With ``channel_window_symbols`` the channel is first tracked along the packet; if that
+    packet fails its CRC it is demodulated again with one channel for the whole packet
+    (better at low SNR when nothing changes: every symbol estimates it) and the CRC
+    decides which is delivered -- a valid CRC-32 from either is still only a 2^-31 chance
+    for a wrong packet. When both fail the tracked result is reported.
     """
+    res = _demodulate(L, u_guess, air, e, p_nominal, p_prior, p_sigma, cfg)
+    if isinstance(res, PacketResult) and not res.crc_ok and res.channel == "tracked":
+        alt = _demodulate(L, u_guess, air, e, p_nominal, p_prior, p_sigma,
+                          replace(cfg, channel_window_symbols=0))
+        if isinstance(alt, PacketResult) and alt.crc_ok:
+            return alt
+    return res
+
+
+def _demodulate(L: np.ndarray, u_guess: float, air: AirInterface, e: float,
+                p_nominal: float, p_prior: float, p_sigma: float, cfg: ReceiverConfig,
+                ) -> PacketResult | Rejection:
+    """One demodulation attempt (:func:`demodulate_packet`), channel as ``cfg`` says."""
     C, n, N = L.shape
     M = air.levels
     known = known_levels(air)
@@ -193,23 +290,34 @@ def demodulate_packet(L: np.ndarray, u_guess: float, air: AirInterface, e: float
     y, lv = clean_samples(L, clock, e, known, 0)
     model = estimate_iscd(y, lv, M, st, kind, cfg.t_nu)
 
-    # tracking pass: chunks of data, clock re-fitted on everything decided so far
+    # tracking pass: data decided in stretches; with a tracked channel each stretch first
+    # with the channel of the latest window, then again with the window that includes its
+    # own tentative decisions; the clock re-fitted on everything decided so far every
+    # ``chunk_symbols`` (a clock tracked over earlier packets needs no updates within this one)
+    W = cfg.channel_window_symbols
+    tracked = cfg.decision_directed and not cfg.dissertation and 0 < W < P
+    chunk = cfg.chunk_symbols if p_sigma > 30e-6 * p_nominal else P
+    step = min(chunk, _segment_symbols(W)) if tracked else chunk
     lev = np.full((P, N), -1, dtype=np.int64)
     lev[:n_known] = known
-    # (a clock tracked over earlier packets needs no updates within this one)
-    chunk = cfg.chunk_symbols if p_sigma > 30e-6 * p_nominal else P
-    for k_a in range(n_known, P, chunk):
-        k_b = min(P, k_a + chunk)
+    starts, models = [0], [model]
+    next_clock = n_known + chunk
+    for k_a in range(n_known, P, step):
+        k_b = min(P, k_a + step)
+        if tracked:
+            model = _fit(L, clock, e, lev, max(0, k_a - W // 2), k_a, M, st, cfg)
+            model = _match_gain(model, L, clock, e, lev, k_a, k_b)
         d = decide_span(L, clock, e, k_a, k_b, model, lev, 0, False, ts)
         lev[k_a:k_b] = d.levels
-        clock, _ = refine_clock(L, clock, e, lev[:k_b], 0, model, p_prior, p_sigma,
-                                iters=2, timing_sigma=ts)
+        if tracked:
+            starts.append(k_a)
+            models.append(model)
+        if k_b >= next_clock or k_b == P:
+            next_clock += chunk
+            clock, _ = refine_clock(L, clock, e, lev[:k_b], 0, ChannelTrack(tuple(starts), tuple(models)),
+                                    p_prior, p_sigma, iters=2, timing_sigma=ts)
 
     # final pass
-    if cfg.decision_directed and not cfg.dissertation:
-        y, lv = clean_samples(L, clock, e, lev, 0)
-        model = estimate_iscd(y, lv, M, st, kind, cfg.t_nu)
-        clock, _ = refine_clock(L, clock, e, lev, 0, model, p_prior, p_sigma, timing_sigma=ts)
     if cfg.dissertation:
         # channel factors from the training (3.11); without one, from the header's 1 and M
         k0 = HEADER_SYMBOLS if air.training_symbols else 0
@@ -217,20 +325,40 @@ def demodulate_packet(L: np.ndarray, u_guess: float, air: AirInterface, e: float
         dmodel = estimate_dissertation(yt, lt, M)
         d = decide_span(L, clock, e, n_known, P, dmodel, None, 0, False, ts)
         lev[n_known:] = d.levels
+        margins, erasures = d.margin, int((d.n_obs == 0).sum())
     else:
-        pre = clean_costs(L, clock, e, n_known, P, model)
+        segs = _segments(n_known, P, _segment_symbols(W) if tracked else P)
+        track = ChannelTrack.single(model)
+        if tracked:
+            track = _fit_track(L, clock, e, lev, segs, W, M, st, cfg)
+        elif cfg.decision_directed:
+            track = ChannelTrack.single(_fit(L, clock, e, lev, 0, P, M, st, cfg))
+        if cfg.decision_directed:
+            clock, _ = refine_clock(L, clock, e, lev, 0, track, p_prior, p_sigma, timing_sigma=ts)
         # after the packet: idle (level 1) if the packets have gaps, else the next header
         # (level M) or, when the transmission stops, darkness (level 1)
         edge = (0,) if air.idle_symbols else (0, M - 1)
-        for _ in range(cfg.ic_iterations if cfg.straddle else 1):
-            d = decide_span(L, clock, e, n_known, P, model, lev, 0, cfg.straddle, ts,
-                            cfg.straddle_candidates, pre, edge)
-            lev[n_known:] = d.levels
+        pre: list[CleanCosts] | None = None
+        for it in range(cfg.ic_iterations if cfg.straddle else 1):
+            if it and tracked:  # the channel again from the better decisions
+                track = _fit_track(L, clock, e, lev, segs, W, M, st, cfg)
+                pre = None
+            if pre is None:
+                pre = [clean_costs(L, clock, e, a, b, m) for (a, b), m in zip(segs, track.models)]
+            parts = []
+            for (a, b), m, cc in zip(segs, track.models, pre):
+                d = decide_span(L, clock, e, a, b, m, lev, 0, cfg.straddle, ts,
+                                cfg.straddle_candidates, cc, edge)
+                lev[a:b] = d.levels
+                parts.append(d)
+        margins = np.concatenate([d.margin for d in parts])
+        erasures = int(sum((d.n_obs == 0).sum() for d in parts))
     levels = (lev[n_known:] + 1).astype(np.uint8)
     raw, ok = air.decode_data(levels)
     first = int(clean_frame(np.array([0]), clock, e)[0])
     return PacketResult(u0=clock.u0, p=clock.p, first_frame=first, levels=levels, raw=raw,
                         crc_ok=bool(ok), drift_ppm=clock.drift_ppm(p_nominal),
                         header_r2=r2, training_rho=rho_t, contrast=contrast,
-                        margins=d.margin, erasures=int((d.n_obs == 0).sum()))
+                        margins=margins, erasures=erasures,
+                        channel="tracked" if tracked else "static")
 

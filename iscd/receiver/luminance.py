@@ -85,6 +85,146 @@ def roi_mean(frames: np.ndarray, centres: np.ndarray, size: int | tuple[int, int
     return out
 
 
+def box_weights(c: np.ndarray, w: int) -> tuple[np.ndarray, np.ndarray]:
+    """Sub-pixel box of width ``w`` px centred at c (any shape), along one axis: the first
+    of the w + 1 pixels it touches and each one's covered fraction (..., w + 1), summing
+    to w. Pixel j covers [j - 0.5, j + 0.5]."""
+    a = np.asarray(c, dtype=np.float64) - w / 2.0
+    j0 = np.floor(a + 0.5).astype(np.intp)
+    lo = j0[..., None] + np.arange(w + 1) - 0.5  # left edges of the touched pixels
+    cov = np.clip(np.minimum(a[..., None] + w, lo + 1.0) - np.maximum(a[..., None], lo), 0.0, 1.0)
+    return j0, cov
+
+
+def box_mean(frames: np.ndarray, centres: np.ndarray, size: int = 3) -> np.ndarray:
+    """Mean grey level of a ``size`` x ``size`` px box centred *exactly* on each LED (the ROI
+    mean 3.10 with a sub-pixel ROI): (F, N) float32 DN.
+
+    frames: (F, H, W); centres: (N, 2) or per frame (F, N, 2) px (x, y). Edge pixels count
+    with the fraction of them the box covers, so the value changes smoothly as an LED
+    moves (an ROI snapped to whole pixels jumps by a pixel, and while it is off-centre by
+    up to half a pixel its capture changes to first order with every vibration). Pixels
+    outside the image are clamped to the border. Reads (size + 1)^2 pixels per LED.
+    """
+    fr = np.asarray(frames)
+    if fr.ndim != 3:
+        raise ValueError(f"expected frames (F, H, W), got shape {fr.shape}")
+    c = np.asarray(centres, dtype=np.float64)
+    if c.ndim not in (2, 3) or c.shape[-1] != 2 or (c.ndim == 3 and c.shape[0] != fr.shape[0]):
+        raise ValueError(f"centres must be (N, 2) or (F, N, 2) with F = {fr.shape[0]}, got {c.shape}")
+    w = _window(size)[0]
+    F, H, W = fr.shape
+    x0, wx = box_weights(c[..., 0], w)
+    y0, wy = box_weights(c[..., 1], w)
+    k = np.arange(w + 1)
+    xs = np.clip(x0[..., None] + k, 0, W - 1)[..., None, :]  # (.., N, 1, k)
+    ys = np.clip(y0[..., None] + k, 0, H - 1)[..., :, None]  # (.., N, k, 1)
+    if c.ndim == 2:
+        pix = fr[:, ys, xs]  # (F, N, k, k)
+    else:
+        pix = fr[np.arange(F)[:, None, None, None], ys, xs]
+    wgt = (wy[..., :, None] * wx[..., None, :]).astype(np.float32) * np.float32(1.0 / (w * w))
+    spec = "fnij,nij->fn" if c.ndim == 2 else "fnij,fnij->fn"
+    return np.einsum(spec, pix.astype(np.float32), wgt, dtype=np.float32)
+
+
+def gauss_mean(frames: np.ndarray, centres: np.ndarray, sigma_px: float = 1.0,
+               radius: int | None = None) -> np.ndarray:
+    """Gaussian-weighted mean grey level around each LED: (F, N) float32 DN.
+
+    The weights ``exp(-d^2 / (2 sigma^2))`` are evaluated at the pixel centres around the
+    exact (sub-pixel) LED position, over (2 radius + 1)^2 pixels (radius = ceil(2.5
+    sigma) by default), and normalized to sum 1. Unlike a box, whose sharp edges make
+    the captured light depend on where the spot sits within its pixel (a few % of an
+    unsaturated spot with 0.3 px of vibration: the dominant noise of the f/8 camera of an
+    HDR pair), a smooth window sampled on the pixel grid gives a sum that is the same at
+    every sub-pixel phase to ~exp(-2 pi^2 s^2), s^2 = 1 / (1/sigma^2 + 1/sigma_spot^2)
+    (Poisson summation), and it weights the pixels by how much of the LED's light they
+    hold (a matched filter). centres: (N, 2) or (F, N, 2) px.
+    """
+    fr = np.asarray(frames)
+    if fr.ndim != 3:
+        raise ValueError(f"expected frames (F, H, W), got shape {fr.shape}")
+    if not sigma_px > 0:
+        raise ValueError(f"sigma_px must be > 0, got {sigma_px}")
+    F, H, W = fr.shape
+    c = np.broadcast_to(np.asarray(centres, dtype=np.float64), (F,) + np.shape(centres)[-2:])
+    R = int(np.ceil(2.5 * sigma_px)) if radius is None else int(radius)
+    k = np.arange(-R, R + 1)
+    xs = np.rint(c[..., 0])[..., None].astype(np.intp) + k  # (F, N, K)
+    ys = np.rint(c[..., 1])[..., None].astype(np.intp) + k
+    a = np.float32(-0.5 / sigma_px ** 2)
+    wx = np.exp(a * np.square(xs - c[..., 0:1]).astype(np.float32))
+    wy = np.exp(a * np.square(ys - c[..., 1:2]).astype(np.float32))
+    wx /= wx.sum(-1, keepdims=True)
+    wy /= wy.sum(-1, keepdims=True)
+    pix = fr[np.arange(F)[:, None, None, None], np.clip(ys, 0, H - 1)[..., :, None],
+             np.clip(xs, 0, W - 1)[..., None, :]].astype(np.float32)  # (F, N, K, K)
+    return np.einsum("fnij,fni,fnj->fn", pix, wy, wx, dtype=np.float32)
+
+
+def _box_pixels(fr: np.ndarray, c: np.ndarray, w: int) -> tuple[np.ndarray, ...]:
+    """Pixels (F, N, w+1, w+1) float32 touched by w-px boxes centred at c (F, N, 2), their
+    coverage weights wy (F, N, w+1), wx (F, N, w+1) and pixel coordinates ys, xs."""
+    F, H, W = fr.shape
+    x0, wx = box_weights(c[..., 0], w)
+    y0, wy = box_weights(c[..., 1], w)
+    k = np.arange(w + 1)
+    xs = x0[..., None] + k
+    ys = y0[..., None] + k
+    pix = fr[np.arange(F)[:, None, None, None], np.clip(ys, 0, H - 1)[..., :, None],
+             np.clip(xs, 0, W - 1)[..., None, :]].astype(np.float32)
+    return pix, wy, wx, ys, xs
+
+
+def refine_centres(frames: np.ndarray, centres: np.ndarray, size: int = 3, iterations: int = 4,
+                   scale: bool = True, max_px: float = 1.5) -> np.ndarray:
+    """LED centres in each frame: ``centres`` moved by the frame's own image shift (and
+    scale), common to all LEDs of the array: (F, N, 2) px.
+
+    Rig vibration moves every spot of a camera together, frame by frame (up to tens of
+    Hz), and an approaching array grows (its pitch from 4.2 to 6 px within one packet at
+    40 km/h), faster than a grid fitted over tens of frames follows. Per frame and LED the
+    centroid of the light above the box's darkest pixel is taken in a ``size`` px sub-pixel
+    box (:func:`box_weights`) around the current estimate; the LEDs' offsets, weighted by
+    their light (dark LEDs count for nothing), are fitted by a shift (dx, dy) and, with
+    ``scale`` and more than one LED, a scale about their weighted centre (least squares);
+    the boxes are recentred and, since a box truncates the spot and recovers only part of
+    an offset, a few rounds converge. centres: (N, 2) or (F, N, 2) px. A frame without
+    light keeps its centres; the correction is clipped to +-max_px per LED.
+    """
+    fr = np.asarray(frames)
+    if fr.ndim != 3:
+        raise ValueError(f"expected frames (F, H, W), got shape {fr.shape}")
+    F = fr.shape[0]
+    c0 = np.broadcast_to(np.asarray(centres, dtype=np.float64), (F,) + np.shape(centres)[-2:])
+    w = _window(size)[0]
+    cc = c0.copy()
+    for _ in range(iterations):
+        pix, wy, wx, ys, xs = _box_pixels(fr, cc, w)
+        pix -= pix.min(axis=(-2, -1), keepdims=True)
+        pix *= (wy[..., :, None] * wx[..., None, :]).astype(np.float32)
+        m_y = pix.sum(-1)  # (F, N, k) marginal over x
+        m_x = pix.sum(-2)
+        tot = m_x.sum(-1)  # (F, N) light of each LED
+        safe = np.where(tot > 0, tot, 1.0)
+        off = np.stack([(m_x * xs).sum(-1) / safe - cc[..., 0],
+                        (m_y * ys).sum(-1) / safe - cc[..., 1]], -1)  # (F, N, 2)
+        wt = np.maximum(tot, 0.0).astype(np.float64)
+        norm = wt.sum(1, keepdims=True)  # (F, 1)
+        safe_n = np.where(norm > 0, norm, 1.0)
+        d = np.einsum("fn,fnk->fk", wt, off) / safe_n  # (F, 2)
+        step = np.broadcast_to(d[:, None, :], cc.shape)
+        if scale and cc.shape[1] > 1:
+            ctr = np.einsum("fn,fnk->fk", wt, cc) / safe_n
+            g = cc - ctr[:, None, :]
+            den = np.einsum("fn,fnk,fnk->f", wt, g, g)
+            sc = np.einsum("fn,fnk,fnk->f", wt, g, off) / np.where(den > 0, den, 1.0)
+            step = step + sc[:, None, None] * g
+        cc = c0 + np.clip(cc + step - c0, -max_px, max_px)
+    return cc
+
+
 @dataclass
 class _Layout:
     """Pixels of the union of all windows and which LED windows cover each of them."""

@@ -36,6 +36,11 @@ class ReceiverConfig:
     ic_iterations: int = _f(2, lo=1, hi=6, doc="decision-feedback passes over a packet")
     decision_directed: bool = _f(True, doc="re-estimate the channel from the decided data")
     chunk_symbols: int = _f(96, lo=8, doc="symbols decided between clock updates (drift tracking)")
+    channel_window_symbols: int = _f(96, lo=0,
+                                     doc="iscd rule: the channel is re-estimated along the packet from "
+                                         "the decided symbols of a window this long around each stretch "
+                                         "(an approaching car's LEDs brighten within a packet); 0 = one "
+                                         "channel per packet")
     drift_max_ppm: float = _f(300.0, lo=0, lo_open=True,
                               doc="prior RMS of the LED clock error before it is tracked, ppm")
     timing_sigma_frames: float = _f(0.02, lo=0, doc="assumed boundary uncertainty, frames")

@@ -35,7 +35,7 @@ import numpy as np
 from numpy.lib.stride_tricks import sliding_window_view
 
 from iscd.airinterface import BARKER13, HEADER_SYMBOLS
-from iscd.receiver.channel import ChannelModel
+from iscd.receiver.channel import ChannelModel, ChannelTrack
 
 HEADER_BITS = (BARKER13 > 0).astype(np.float64)
 
@@ -231,17 +231,46 @@ def fine_header(L: np.ndarray, u_guess: float, p: float, e: float, half_width: f
     return u, float(score[g])
 
 
+
+def _response(track: ChannelTrack, k: np.ndarray, q: np.ndarray, dl: np.ndarray, e: float,
+              timing_sigma: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Response, slope and variance (C, n, N) of straddling frames with fractional levels
+    q (n, N) between symbols k and k + 1 whose levels differ by dl (n, N): each frame from
+    the model of its symbol k; the variance widened by ``timing_sigma`` frames of boundary
+    error and by the interpolation error where the response bends (saturation)."""
+    seg = track.segment(k)
+    out: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+    for j in np.unique(seg):
+        model = track.models[int(j)]
+        rows = slice(None) if len(track.models) == 1 else seg == j
+        qj, dj = q[rows], dl[rows]
+        mu, slope = model.interp(model.mu, qj)
+        _, var = model.lookup(qj)
+        gain = (model.mu[:, :, -1] - model.mu[:, :, 0]) / max(model.levels - 1, 1)  # (C, N)
+        var = var + (timing_sigma / e * gain[:, None, :] * dj[None]) ** 2
+        var = var + np.square(model.interp_error_at(qj))
+        if len(track.models) == 1:
+            return mu, slope, var
+        if out is None:
+            shape = (mu.shape[0],) + q.shape
+            out = (np.empty(shape), np.empty(shape), np.empty(shape))
+        out[0][:, rows], out[1][:, rows], out[2][:, rows] = mu, slope, var
+    assert out is not None
+    return out
+
 def refine_clock(L: np.ndarray, clock: SymbolClock, e: float, lev: np.ndarray, k_first: int,
-                 model: ChannelModel, p_prior: float, p_sigma: float, iters: int = 3,
+                 model: ChannelModel | ChannelTrack, p_prior: float, p_sigma: float, iters: int = 3,
                  huber: float = 3.0, timing_sigma: float = 0.02,
                  fit_p: bool = True) -> tuple[SymbolClock, int]:
     """Gauss-Newton refinement of the symbol clock on labelled symbols.
 
     L: (C, n, N) buffer luminance; lev: (S, N) 0-based levels of packet symbols
-    ``k_first .. k_first + S - 1`` (-1 = unknown); p_prior, p_sigma: prior on the period
-    (frames). Returns the refined clock and the number of informative straddling
-    observations used (0: clock unchanged).
+    ``k_first .. k_first + S - 1`` (-1 = unknown); model: the channel, one for the span or
+    a :class:`ChannelTrack` (a straddling frame uses the model of its first symbol);
+    p_prior, p_sigma: prior on the period (frames). Returns the refined clock and the
+    number of informative straddling observations used (0: clock unchanged).
     """
+    track = model if isinstance(model, ChannelTrack) else ChannelTrack.single(model)
     C, n, N = L.shape
     S = lev.shape[0]
     kc = k_first + S / 2.0  # parametrize around the span's centre
@@ -262,12 +291,7 @@ def refine_clock(L: np.ndarray, clock: SymbolClock, e: float, lev: np.ndarray, k
         obs = L[:, fr, :]
         valid = (la >= 0) & (lb >= 0) & (la != lb)
         q = alpha[:, None] * la + (1 - alpha[:, None]) * lb
-        mu, slope = model.interp(model.mu, q)
-        _, var = model.lookup(q)
-        gain = (model.mu[:, :, -1] - model.mu[:, :, 0]) / max(model.levels - 1, 1)  # (C, N)
-        var = var + (timing_sigma / e * gain[:, None, :] * (la - lb)[None]) ** 2
-        # where the response bends between levels (saturation) the interpolation is poor
-        var = var + np.square(model.interp_error_at(q))
+        mu, slope, var = _response(track, k, q, la - lb, e, timing_sigma)
         r = obs - mu
         g = -slope * ((la - lb) / e)[None]  # d r / d boundary
         w = np.where(valid[None] & np.isfinite(obs), 1.0 / var, 0.0)
