@@ -138,8 +138,9 @@ def gauss_mean(frames: np.ndarray, centres: np.ndarray, sigma_px: float = 1.0,
     the captured light depend on where the spot sits within its pixel (a few % of an
     unsaturated spot with 0.3 px of vibration: the dominant noise of the f/8 camera of an
     HDR pair), a smooth window sampled on the pixel grid gives a sum that is the same at
-    every sub-pixel phase to ~exp(-2 pi^2 s^2), s^2 = 1 / (1/sigma^2 + 1/sigma_spot^2)
-    (Poisson summation), and it weights the pixels by how much of the LED's light they
+    every sub-pixel phase to a few times exp(-2 pi^2 s^2), s^2 = 1 / (1/sigma^2 +
+    1/sigma_spot^2) (Poisson summation; 0.3 % for sigma = 0.85 px on a 0.85 px spot, where
+    a 3x3 box varies by 7 %), and it weights the pixels by how much of the LED's light they
     hold (a matched filter). centres: (N, 2) or (F, N, 2) px.
     """
     fr = np.asarray(frames)
@@ -210,7 +211,10 @@ def refine_centres(frames: np.ndarray, centres: np.ndarray, size: int = 3, itera
         safe = np.where(tot > 0, tot, 1.0)
         off = np.stack([(m_x * xs).sum(-1) / safe - cc[..., 0],
                         (m_y * ys).sum(-1) / safe - cc[..., 1]], -1)  # (F, N, 2)
+        # an LED counts when it holds a tenth of the block's typical lit-LED light (noise
+        # in a dark box would otherwise pull its frame about)
         wt = np.maximum(tot, 0.0).astype(np.float64)
+        wt[wt < 0.1 * np.percentile(wt, 90)] = 0.0
         norm = wt.sum(1, keepdims=True)  # (F, 1)
         safe_n = np.where(norm > 0, norm, 1.0)
         d = np.einsum("fn,fnk->fk", wt, off) / safe_n  # (F, 2)
