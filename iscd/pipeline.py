@@ -31,7 +31,7 @@ import numpy as np
 from calibration.io import StereoCalibration
 from iscd.airinterface import AirInterface
 from iscd.config import Config, build_section
-from iscd.receiver.luminance import gauss_mean, refine_centres
+from iscd.receiver.luminance import Patches, gather_patches, grid_sample, gauss_in_patches, patch_half, refine_in_patches
 from iscd.receiver.detect import GridFit, detect_array, match_stereo, track_array
 from iscd.receiver.packets import Packet, PacketAssembler
 from iscd.receiver.settings import receiver_config
@@ -214,8 +214,7 @@ class StreamDecoder:
         t_s = np.asarray(t_s, dtype=np.float64)
         self.counters["frames_decoded"] += n
         tr.frames_since_header += n
-        lum_l = self._luminance(0, frame_ids, left)
-        lum_r = self._luminance(1, frame_ids, right)
+        lum_l, lum_r = self._luminance(frame_ids, left, right)
         self.last_luminance = (frame_ids, t_s, lum_l, lum_r)
         # a long gap (a stalled camera, a burst of drops) restarts the packet search
         prev = np.concatenate([[self._last_id if self._last_id is not None else frame_ids[0] - 1], frame_ids[:-1]])
@@ -314,23 +313,36 @@ class StreamDecoder:
         pitch = fit.pitch_px + ahead * v_p  # (F, 1)
         return origin[:, None, :] + grid[None] * pitch[:, :, None]
 
-    def _luminance(self, side: int, frame_ids: np.ndarray, frames: np.ndarray) -> np.ndarray:
-        """(F, N) luminance DN of every LED: a Gaussian-weighted ROI mean
+    def _luminance(self, frame_ids: np.ndarray, left: np.ndarray, right: np.ndarray
+                   ) -> tuple[np.ndarray, np.ndarray]:
+        """(F, N) luminance DN of every LED in each camera: a Gaussian-weighted ROI mean
         (:func:`iscd.receiver.luminance.gauss_mean`, eq. 3.10 with smooth weights, the same
-        at every sub-pixel phase) at the LED's position in each frame -- the grid's
-        motion (:meth:`led_centres`) refined by the frame's own shift and scale
-        (:func:`iscd.receiver.luminance.refine_centres`: rig vibration moves every spot
-        together, faster than the grid fits follow)."""
+        at every sub-pixel phase) at the LED's position in each frame -- followed from the
+        last frame (or the grid's motion, :meth:`led_centres`) and refined by the frame's
+        own shift and scale (:func:`iscd.receiver.luminance.refine_centres`: rig
+        vibration moves every spot together, faster than the grid fits follow). Both
+        cameras go through one vectorized pass (frames stacked)."""
         tr = self.track
         assert tr is not None
-        start = self.led_centres(side, frame_ids)
-        prev = self._followed[side]
-        if prev is not None and prev.shape == start.shape[1:] and \
-                float(np.abs(prev - start[0]).max()) <= self.FOLLOW_MAX_PX:
-            start = prev  # where the LEDs were in the last frame: closer than the grid fit
-        c = refine_centres(frames, start, 2 * tr.roi_radius[side] + 1)
-        self._followed[side] = c[-1].copy()
-        return gauss_mean(frames, c, tr.roi_sigma[side])
+        F = len(frame_ids)
+        size = 2 * max(tr.roi_radius) + 1
+        half = max(patch_half(size), int(np.ceil(2.5 * max(tr.roi_sigma))) + 1)
+        starts, patches = [], []
+        for side, frames in ((0, left), (1, right)):
+            start = self.led_centres(side, frame_ids)
+            prev = self._followed[side]
+            if prev is not None and prev.shape == start.shape[1:] and \
+                    float(np.abs(prev - start[0]).max()) <= self.FOLLOW_MAX_PX:
+                start = np.broadcast_to(prev, start.shape)  # where the LEDs were in the last frame
+            starts.append(start)
+            patches.append(gather_patches(frames, start, half))
+        p = Patches(pix=np.concatenate([q.pix for q in patches]), x0=np.concatenate([q.x0 for q in patches]),
+                    y0=np.concatenate([q.y0 for q in patches]))
+        c = refine_in_patches(p, np.concatenate(starts), size, iterations=4, groups=2,
+                              use=grid_sample(self.rows, self.cols))
+        self._followed = [c[F - 1].copy(), c[-1].copy()]
+        lum = gauss_in_patches(p, c, np.repeat(np.asarray(tr.roi_sigma, dtype=np.float64), F))
+        return lum[:F], lum[F:]
 
     def _roi_sigma(self, fit: GridFit) -> float:
         """Gaussian luminance window, px: the configured one, or (auto) matched to the

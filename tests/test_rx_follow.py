@@ -9,7 +9,7 @@ import math
 import numpy as np
 import pytest
 
-from iscd.receiver.luminance import box_weights, gauss_mean, refine_centres, roi_mean
+from iscd.receiver.luminance import box_cover, gauss_mean, refine_centres, roi_mean
 
 
 def _integrated_spots(centres: np.ndarray, amp: np.ndarray, shape: tuple[int, int], sigma: float,
@@ -37,12 +37,13 @@ def _grid(rows: int, pitch: float, x0: float = 20.0, y0: float = 18.0) -> np.nda
     return np.stack([x0 + c.ravel() * pitch, y0 + r.ravel() * pitch], axis=1)
 
 
-def test_box_weights_cover_the_box_exactly() -> None:
+def test_box_cover_covers_the_box_exactly() -> None:
     c = np.array([3.0, 3.25, 3.5, 3.99])
-    j0, w = box_weights(c, 3)
-    np.testing.assert_allclose(w.sum(-1), 3.0)
-    # the weighted mean of pixel indices is the box centre
-    np.testing.assert_allclose(((j0[:, None] + np.arange(4)) * w).sum(-1) / 3.0, c, atol=1e-12)
+    px = np.broadcast_to(np.arange(8, dtype=np.float32), (4, 8))
+    w = box_cover(c, px, 3)
+    np.testing.assert_allclose(w.sum(-1), 3.0, rtol=1e-6)
+    # the weighted mean of the pixel positions is the box centre
+    np.testing.assert_allclose((px * w).sum(-1) / 3.0, c, atol=1e-5)
 
 
 def test_gauss_mean_is_the_same_at_every_sub_pixel_phase() -> None:

@@ -25,6 +25,7 @@ packet, and with ``decision_directed`` also the decided data symbols):
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass
 from functools import cached_property
 
@@ -299,8 +300,10 @@ def estimate_iscd(y: np.ndarray, lev: np.ndarray, M: int,
             r = np.abs(y[c] - np.take_along_axis(mu_c, lv.T, axis=1).T)
             ok = np.isfinite(r) & (lev >= 0)
             # robust scale per level: 1.4826 x median |residual| over all LEDs
-            med = np.array([np.median(r[ok & (lv == s)]) if (ok & (lv == s)).any() else np.nan
-                            for s in range(M)])
+            by_level = np.where(ok[None] & (lv[None] == np.arange(M)[:, None, None]), r[None], np.nan)
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", RuntimeWarning)  # a level without samples
+                med = np.nanmedian(by_level.reshape(M, -1), axis=1)
             med = np.where(np.isfinite(med), med, np.nanmedian(med) if np.isfinite(med).any() else 1.0)
             sd = np.maximum(1.4826 * med, st.var_floor_dn)
             bad = ok & (r > st.outlier_sigma * sd[lv])

@@ -180,8 +180,11 @@ def _fit(L: np.ndarray, clock: SymbolClock, e: float, lev: np.ndarray, lo: int, 
 
 
 
-GAINS = np.exp(np.linspace(np.log(0.8), np.log(1.25), 19))
-"""Relative gains tried by :func:`_match_gain` (2.5 % steps)."""
+GAINS = np.exp(np.linspace(np.log(0.8), np.log(1.25), 11))
+"""Relative gains tried by :func:`_match_gain` (4.5 % steps, refined by a parabola)."""
+
+GAIN_SAMPLES = 1024
+"""Most clean samples per camera :func:`_match_gain` fits (one number: plenty)."""
 
 
 def _match_gain(model: ChannelModel, L: np.ndarray, clock: SymbolClock, e: float, lev: np.ndarray,
@@ -195,17 +198,30 @@ def _match_gain(model: ChannelModel, L: np.ndarray, clock: SymbolClock, e: float
     y, _ = clean_samples(L, clock, e, lev[k_a:k_b], k_a)
     if y.shape[1] == 0:
         return model
+    if y.shape[1] * y.shape[2] > GAIN_SAMPLES:  # every k-th frame is enough
+        y = y[:, ::int(np.ceil(y.shape[1] * y.shape[2] / GAIN_SAMPLES))]
     mu = model.mu.copy()
+    G = GAINS.astype(np.float32)[None, :, None, None]  # (1, G, 1, 1)
     for c in range(model.n_cams):
-        yc = y[c:c + 1]
-        if not np.isfinite(yc).any():
+        yc = y[c]  # (n, N)
+        ok = np.isfinite(yc)
+        if not ok.any():
             continue
         top = float(np.nanmax(L[c]))
-        base = model.mu[c, :, :1]
-        span = model.mu[c] - base
-        costs = np.array([ChannelModel(np.minimum(base + g * span, top)[None], model.var[c:c + 1],
-                                       model.kind, model.nu).level_cost(yc).min(-1).sum()
-                          for g in GAINS])
+        base = model.mu[c, :, 0].astype(np.float32)  # (N,)
+        span = (model.mu[c] - model.mu[c, :, :1]).T.astype(np.float32)  # (M, N)
+        # levels first, so that the best level is an elementwise minimum of M arrays
+        mu_g = np.minimum(base + G * span[:, None, None, :], np.float32(top))  # (M, G, 1, N)
+        r2 = np.square(np.where(ok, yc, 0.0).astype(np.float32)[None, None] - mu_g)  # (M, G, n, N)
+        # Gaussian costs (cheap; the gain is one number fitted to thousands of samples)
+        var = model.var[c].T.astype(np.float32)[:, None, None, :]  # (M, 1, 1, N)
+        r2 /= var
+        r2 += np.log(var)
+        best = r2[0].copy()  # (G, n, N); a loop of contiguous minima (faster than a reduce)
+        for r in r2[1:]:
+            np.minimum(best, r, out=best)
+        best[:, ~ok] = 0.0
+        costs = best.sum(axis=(1, 2), dtype=np.float64)
         b = int(np.argmin(costs))
         g = float(GAINS[b])
         if 0 < b < GAINS.size - 1:  # parabola through the best and its neighbours (log gain)
@@ -213,20 +229,24 @@ def _match_gain(model: ChannelModel, L: np.ndarray, clock: SymbolClock, e: float
             if den > 0:
                 step = float(np.log(GAINS[1] / GAINS[0]))
                 g *= float(np.exp(np.clip(0.5 * (costs[b - 1] - costs[b + 1]) / den, -0.5, 0.5) * step))
-        mu[c] = np.minimum(base + g * span, max(top, float(model.mu[c].max())))
+        mu[c] = np.minimum(model.mu[c, :, :1] + g * (model.mu[c] - model.mu[c, :, :1]),
+                           max(top, float(model.mu[c].max())))
     return ChannelModel(mu=mu, var=model.var, kind=model.kind, nu=model.nu)
 
 
-def _fit_track(L: np.ndarray, clock: SymbolClock, e: float, lev: np.ndarray,
-               segs: list[tuple[int, int]], W: int, M: int, st: IscdChannelSettings,
-               cfg: ReceiverConfig) -> ChannelTrack:
-    """One channel model per stretch, each from the window of W symbols centred on it (the
-    first stretch's model also holds for header and training)."""
+def _fit_segment(L: np.ndarray, clock: SymbolClock, e: float, lev: np.ndarray, a: int, b: int,
+                 W: int, M: int, st: IscdChannelSettings, cfg: ReceiverConfig) -> ChannelModel:
+    """The channel of stretch [a, b): the model of the W symbols centred on it, its light
+    matched to the stretch's own frames (:func:`_match_gain`: a window at the packet's
+    ends is off-centre and lags)."""
     P = lev.shape[0]
-    models = tuple(_match_gain(_fit(L, clock, e, lev, *_centred(a, b, W, P), M, st, cfg),
-                               L, clock, e, lev, a, b) for a, b in segs)
-    return ChannelTrack((0,) + tuple(a for a, _ in segs[1:]), models)
+    return _match_gain(_fit(L, clock, e, lev, *_centred(a, b, W, P), M, st, cfg), L, clock, e, lev, a, b)
 
+
+def _track(segs: list[tuple[int, int]], models: list[ChannelModel]) -> ChannelTrack:
+    """The models of consecutive stretches as a track (the first also holds for the
+    header and training)."""
+    return ChannelTrack((0,) + tuple(a for a, _ in segs[1:]), tuple(models))
 
 def demodulate_packet(L: np.ndarray, u_guess: float, air: AirInterface, e: float,
                       p_nominal: float, p_prior: float, p_sigma: float, cfg: ReceiverConfig,
@@ -241,15 +261,21 @@ def demodulate_packet(L: np.ndarray, u_guess: float, air: AirInterface, e: float
     packet fails its CRC it is demodulated again with one channel for the whole packet
     (better at low SNR when nothing changes: every symbol estimates it) and the CRC
     decides which is delivered -- a valid CRC-32 from either is still only a 2^-31 chance
-    for a wrong packet. When both fail the tracked result is reported.
+    for a wrong packet. When both fail, the one with the larger mean decision margin is
+    reported.
     """
     res = _demodulate(L, u_guess, air, e, p_nominal, p_prior, p_sigma, cfg)
     if isinstance(res, PacketResult) and not res.crc_ok and res.channel == "tracked":
         alt = _demodulate(L, u_guess, air, e, p_nominal, p_prior, p_sigma,
                           replace(cfg, channel_window_symbols=0))
-        if isinstance(alt, PacketResult) and alt.crc_ok:
+        if isinstance(alt, PacketResult) and (alt.crc_ok or _mean_margin(alt) > _mean_margin(res)):
             return alt
     return res
+
+
+def _mean_margin(res: PacketResult) -> float:
+    """Mean decision margin of a packet (which of two failed attempts fits better)."""
+    return float(np.mean(res.margins)) if res.margins.size else 0.0
 
 
 def _demodulate(L: np.ndarray, u_guess: float, air: AirInterface, e: float,
@@ -297,7 +323,7 @@ def _demodulate(L: np.ndarray, u_guess: float, air: AirInterface, e: float,
     W = cfg.channel_window_symbols
     tracked = cfg.decision_directed and not cfg.dissertation and 0 < W < P
     chunk = cfg.chunk_symbols if p_sigma > 30e-6 * p_nominal else P
-    step = min(chunk, _segment_symbols(W)) if tracked else chunk
+    step = min(chunk, 2 * _segment_symbols(W)) if tracked else chunk
     lev = np.full((P, N), -1, dtype=np.int64)
     lev[:n_known] = known
     starts, models = [0], [model]
@@ -328,27 +354,34 @@ def _demodulate(L: np.ndarray, u_guess: float, air: AirInterface, e: float,
         margins, erasures = d.margin, int((d.n_obs == 0).sum())
     else:
         segs = _segments(n_known, P, _segment_symbols(W) if tracked else P)
-        track = ChannelTrack.single(model)
+        models = [model]
         if tracked:
-            track = _fit_track(L, clock, e, lev, segs, W, M, st, cfg)
+            models = [_fit_segment(L, clock, e, lev, a, b, W, M, st, cfg) for a, b in segs]
         elif cfg.decision_directed:
-            track = ChannelTrack.single(_fit(L, clock, e, lev, 0, P, M, st, cfg))
+            models = [_fit(L, clock, e, lev, 0, P, M, st, cfg)]
         if cfg.decision_directed:
-            clock, _ = refine_clock(L, clock, e, lev, 0, track, p_prior, p_sigma, timing_sigma=ts)
+            clock, _ = refine_clock(L, clock, e, lev, 0, _track(segs, models), p_prior, p_sigma,
+                                    timing_sigma=ts)
         # after the packet: idle (level 1) if the packets have gaps, else the next header
         # (level M) or, when the transmission stops, darkness (level 1)
         edge = (0,) if air.idle_symbols else (0, M - 1)
-        pre: list[CleanCosts] | None = None
+        pre: list[CleanCosts | None] = [None] * len(segs)
+        before = lev.copy()
         for it in range(cfg.ic_iterations if cfg.straddle else 1):
-            if it and tracked:  # the channel again from the better decisions
-                track = _fit_track(L, clock, e, lev, segs, W, M, st, cfg)
-                pre = None
-            if pre is None:
-                pre = [clean_costs(L, clock, e, a, b, m) for (a, b), m in zip(segs, track.models)]
+            if it and tracked:  # the channel again where the decisions changed
+                changed = np.flatnonzero((lev != before).any(axis=1))
+                before = lev.copy()
+                for j, (a, b) in enumerate(segs):
+                    lo, hi = _centred(a, b, W, P)
+                    if changed.size and ((changed >= lo) & (changed < hi)).any():
+                        models[j] = _fit_segment(L, clock, e, lev, a, b, W, M, st, cfg)
+                        pre[j] = None
             parts = []
-            for (a, b), m, cc in zip(segs, track.models, pre):
-                d = decide_span(L, clock, e, a, b, m, lev, 0, cfg.straddle, ts,
-                                cfg.straddle_candidates, cc, edge)
+            for j, (a, b) in enumerate(segs):
+                if pre[j] is None:
+                    pre[j] = clean_costs(L, clock, e, a, b, models[j])
+                d = decide_span(L, clock, e, a, b, models[j], lev, 0, cfg.straddle, ts,
+                                cfg.straddle_candidates, pre[j], edge)
                 lev[a:b] = d.levels
                 parts.append(d)
         margins = np.concatenate([d.margin for d in parts])

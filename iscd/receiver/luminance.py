@@ -24,6 +24,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from numpy.lib.stride_tricks import sliding_window_view
 
 
 def _window(size: int | tuple[int, int]) -> tuple[int, int]:
@@ -85,47 +86,78 @@ def roi_mean(frames: np.ndarray, centres: np.ndarray, size: int | tuple[int, int
     return out
 
 
-def box_weights(c: np.ndarray, w: int) -> tuple[np.ndarray, np.ndarray]:
-    """Sub-pixel box of width ``w`` px centred at c (any shape), along one axis: the first
-    of the w + 1 pixels it touches and each one's covered fraction (..., w + 1), summing
-    to w. Pixel j covers [j - 0.5, j + 0.5]."""
-    a = np.asarray(c, dtype=np.float64) - w / 2.0
-    j0 = np.floor(a + 0.5).astype(np.intp)
-    lo = j0[..., None] + np.arange(w + 1) - 0.5  # left edges of the touched pixels
-    cov = np.clip(np.minimum(a[..., None] + w, lo + 1.0) - np.maximum(a[..., None], lo), 0.0, 1.0)
-    return j0, cov
+@dataclass
+class Patches:
+    """The pixels around each LED in each frame, gathered once: ``pix`` (F, N, K, K)
+    float32, whose first column and row are image pixels ``x0``, ``y0`` (F, N). A patch
+    at the image edge is moved inside the image (so an LED there is off its centre)."""
+
+    pix: np.ndarray
+    x0: np.ndarray
+    y0: np.ndarray
+
+    @property
+    def xs(self) -> np.ndarray:
+        """(F, N, K) x of the patch columns, px."""
+        return (self.x0[..., None] + np.arange(self.pix.shape[-1])).astype(np.float32)
+
+    @property
+    def ys(self) -> np.ndarray:
+        """(F, N, K) y of the patch rows, px."""
+        return (self.y0[..., None] + np.arange(self.pix.shape[-2])).astype(np.float32)
 
 
-def box_mean(frames: np.ndarray, centres: np.ndarray, size: int = 3) -> np.ndarray:
-    """Mean grey level of a ``size`` x ``size`` px box centred *exactly* on each LED (the ROI
-    mean 3.10 with a sub-pixel ROI): (F, N) float32 DN.
-
-    frames: (F, H, W); centres: (N, 2) or per frame (F, N, 2) px (x, y). Edge pixels count
-    with the fraction of them the box covers, so the value changes smoothly as an LED
-    moves (an ROI snapped to whole pixels jumps by a pixel, and while it is off-centre by
-    up to half a pixel its capture changes to first order with every vibration). Pixels
-    outside the image are clamped to the border. Reads (size + 1)^2 pixels per LED.
-    """
+def gather_patches(frames: np.ndarray, centres: np.ndarray, half: int) -> Patches:
+    """(2 half + 1)^2 px patches around the rounded centres (N, 2) or (F, N, 2), px."""
     fr = np.asarray(frames)
     if fr.ndim != 3:
         raise ValueError(f"expected frames (F, H, W), got shape {fr.shape}")
-    c = np.asarray(centres, dtype=np.float64)
-    if c.ndim not in (2, 3) or c.shape[-1] != 2 or (c.ndim == 3 and c.shape[0] != fr.shape[0]):
-        raise ValueError(f"centres must be (N, 2) or (F, N, 2) with F = {fr.shape[0]}, got {c.shape}")
-    w = _window(size)[0]
     F, H, W = fr.shape
-    x0, wx = box_weights(c[..., 0], w)
-    y0, wy = box_weights(c[..., 1], w)
-    k = np.arange(w + 1)
-    xs = np.clip(x0[..., None] + k, 0, W - 1)[..., None, :]  # (.., N, 1, k)
-    ys = np.clip(y0[..., None] + k, 0, H - 1)[..., :, None]  # (.., N, k, 1)
-    if c.ndim == 2:
-        pix = fr[:, ys, xs]  # (F, N, k, k)
-    else:
-        pix = fr[np.arange(F)[:, None, None, None], ys, xs]
-    wgt = (wy[..., :, None] * wx[..., None, :]).astype(np.float32) * np.float32(1.0 / (w * w))
-    spec = "fnij,nij->fn" if c.ndim == 2 else "fnij,fnij->fn"
-    return np.einsum(spec, pix.astype(np.float32), wgt, dtype=np.float32)
+    c = np.asarray(centres, dtype=np.float64)
+    if c.ndim not in (2, 3) or c.shape[-1] != 2 or (c.ndim == 3 and c.shape[0] != F):
+        raise ValueError(f"centres must be (N, 2) or (F, N, 2) with F = {F}, got {c.shape}")
+    c = np.broadcast_to(c, (F,) + c.shape[-2:])
+    K = 2 * half + 1
+    x0 = np.rint(c[..., 0]).astype(np.intp) - half
+    y0 = np.rint(c[..., 1]).astype(np.intp) - half
+    if H >= K and W >= K:
+        # whole K x K blocks out of a sliding-window view (4x faster than pixel indexing);
+        # a patch that would cross the image edge is moved inside it
+        x0 = np.clip(x0, 0, W - K)
+        y0 = np.clip(y0, 0, H - K)
+        view = sliding_window_view(fr, (K, K), axis=(1, 2))
+        pix = view[np.arange(F)[:, None], y0, x0].astype(np.float32)
+    else:  # an image smaller than a patch: edge pixels repeat
+        k = np.arange(K)
+        xs = np.clip(x0[..., None] + k, 0, W - 1)[..., None, :]
+        ys = np.clip(y0[..., None] + k, 0, H - 1)[..., :, None]
+        pix = fr[np.arange(F)[:, None, None, None], ys, xs].astype(np.float32)
+    return Patches(pix=pix, x0=x0, y0=y0)
+
+
+def box_cover(c: np.ndarray, px: np.ndarray, w: int) -> np.ndarray:
+    """Fraction of each pixel (centres ``px`` (..., K), pixel j covering [px_j - 0.5,
+    px_j + 0.5]) inside a sub-pixel box of width ``w`` px centred at c (...): (..., K)
+    float32, summing to w when the box lies inside."""
+    a = (np.asarray(c, dtype=np.float32) - np.float32(w / 2.0))[..., None]
+    return np.clip(np.minimum(a + np.float32(w), px + 0.5) - np.maximum(a, px - 0.5), 0.0, 1.0)
+
+
+def gauss_in_patches(p: Patches, centres: np.ndarray, sigma_px: float | np.ndarray) -> np.ndarray:
+    """Gaussian-weighted mean (F, N) of each patch around sub-pixel centres (F, N, 2)
+    (see :func:`gauss_mean`); sigma_px: one, or one per frame (F,)."""
+    sig = np.asarray(sigma_px, dtype=np.float64)
+    if not np.all(sig > 0):
+        raise ValueError(f"sigma_px must be > 0, got {sigma_px}")
+    a = (-0.5 / sig ** 2).astype(np.float32)
+    if a.ndim:
+        a = a[:, None, None]
+    c = np.asarray(centres, dtype=np.float32)
+    wx = np.exp(a * np.square(p.xs - c[..., 0:1]))
+    wy = np.exp(a * np.square(p.ys - c[..., 1:2]))
+    wx /= wx.sum(-1, keepdims=True)
+    wy /= wy.sum(-1, keepdims=True)
+    return np.einsum("fnij,fni,fnj->fn", p.pix, wy, wx, dtype=np.float32)
 
 
 def gauss_mean(frames: np.ndarray, centres: np.ndarray, sigma_px: float = 1.0,
@@ -143,39 +175,75 @@ def gauss_mean(frames: np.ndarray, centres: np.ndarray, sigma_px: float = 1.0,
     a 3x3 box varies by 7 %), and it weights the pixels by how much of the LED's light they
     hold (a matched filter). centres: (N, 2) or (F, N, 2) px.
     """
-    fr = np.asarray(frames)
-    if fr.ndim != 3:
-        raise ValueError(f"expected frames (F, H, W), got shape {fr.shape}")
     if not sigma_px > 0:
         raise ValueError(f"sigma_px must be > 0, got {sigma_px}")
-    F, H, W = fr.shape
-    c = np.broadcast_to(np.asarray(centres, dtype=np.float64), (F,) + np.shape(centres)[-2:])
     R = int(np.ceil(2.5 * sigma_px)) if radius is None else int(radius)
-    k = np.arange(-R, R + 1)
-    xs = np.rint(c[..., 0])[..., None].astype(np.intp) + k  # (F, N, K)
-    ys = np.rint(c[..., 1])[..., None].astype(np.intp) + k
-    a = np.float32(-0.5 / sigma_px ** 2)
-    wx = np.exp(a * np.square(xs - c[..., 0:1]).astype(np.float32))
-    wy = np.exp(a * np.square(ys - c[..., 1:2]).astype(np.float32))
-    wx /= wx.sum(-1, keepdims=True)
-    wy /= wy.sum(-1, keepdims=True)
-    pix = fr[np.arange(F)[:, None, None, None], np.clip(ys, 0, H - 1)[..., :, None],
-             np.clip(xs, 0, W - 1)[..., None, :]].astype(np.float32)  # (F, N, K, K)
-    return np.einsum("fnij,fni,fnj->fn", pix, wy, wx, dtype=np.float32)
+    p = gather_patches(frames, centres, R)
+    c = np.broadcast_to(np.asarray(centres, dtype=np.float64), p.x0.shape + (2,))
+    return gauss_in_patches(p, c, sigma_px)
 
 
-def _box_pixels(fr: np.ndarray, c: np.ndarray, w: int) -> tuple[np.ndarray, ...]:
-    """Pixels (F, N, w+1, w+1) float32 touched by w-px boxes centred at c (F, N, 2), their
-    coverage weights wy (F, N, w+1), wx (F, N, w+1) and pixel coordinates ys, xs."""
-    F, H, W = fr.shape
-    x0, wx = box_weights(c[..., 0], w)
-    y0, wy = box_weights(c[..., 1], w)
-    k = np.arange(w + 1)
-    xs = x0[..., None] + k
-    ys = y0[..., None] + k
-    pix = fr[np.arange(F)[:, None, None, None], np.clip(ys, 0, H - 1)[..., :, None],
-             np.clip(xs, 0, W - 1)[..., None, :]].astype(np.float32)
-    return pix, wy, wx, ys, xs
+def refine_in_patches(p: Patches, centres: np.ndarray, size: int = 3, iterations: int = 4,
+                      scale: bool = True, max_px: float = 1.5, groups: int = 1,
+                      use: np.ndarray | None = None) -> np.ndarray:
+    """:func:`refine_centres` on patches gathered around ``centres`` (F, N, 2) px (the
+    patches must reach size / 2 + max_px px around them). ``groups``: the frames are that
+    many equal runs from different cameras (their light levels differ), each with its own
+    least-light threshold. ``use``: indices of the LEDs whose centroids are measured (all
+    by default); the shift and scale they give move every LED."""
+    w = _window(size)[0]
+    c0 = np.asarray(centres, dtype=np.float64)
+    F, N = c0.shape[:2]
+    sel = np.arange(N) if use is None else np.asarray(use, dtype=np.intp)
+    pix = p.pix[:, sel]
+    n = sel.size
+    img = pix - pix.reshape(F, n, -1).min(-1)[..., None, None]  # light above the darkest pixel
+    xs, ys = p.xs[:, sel], p.ys[:, sel]
+    cc = c0.copy()
+    floor = None
+    for _ in range(iterations):
+        cs = cc[:, sel]
+        wx = box_cover(cs[..., 0], xs, w)
+        wy = box_cover(cs[..., 1], ys, w)
+        m_x = np.matmul(wy[..., None, :], img)[..., 0, :]  # (F, n, K): rows weighted, summed
+        m_y = np.matmul(img, wx[..., :, None])[..., 0]  # (F, n, K)
+        tot = np.einsum("fnk,fnk->fn", m_x, wx)
+        safe = np.where(tot > 0, tot, 1.0)
+        off = np.stack([np.einsum("fnk,fnk,fnk->fn", m_x, wx, xs) / safe - cs[..., 0],
+                        np.einsum("fnk,fnk,fnk->fn", m_y, wy, ys) / safe - cs[..., 1]], -1)
+        # an LED counts when it holds a tenth of the block's typical lit-LED light (noise
+        # in a dark box would otherwise pull its frame about)
+        wt = np.maximum(tot, 0.0).astype(np.float64)
+        if floor is None:
+            per = np.percentile(wt.reshape(groups, -1), 90, axis=1)  # (groups,)
+            floor = np.repeat(0.1 * per, F // groups)[:, None]
+        wt[wt < floor] = 0.0
+        norm = wt.sum(1, keepdims=True)  # (F, 1)
+        safe_n = np.where(norm > 0, norm, 1.0)
+        d = np.einsum("fn,fnk->fk", wt, off) / safe_n  # (F, 2)
+        step = np.broadcast_to(d[:, None, :], cc.shape)
+        if scale and n > 1:
+            ctr = np.einsum("fn,fnk->fk", wt, cs) / safe_n
+            g = cs - ctr[:, None, :]
+            den = np.einsum("fn,fnk,fnk->f", wt, g, g)
+            sc = np.einsum("fn,fnk,fnk->f", wt, g, off) / np.where(den > 0, den, 1.0)
+            step = step + sc[:, None, None] * (cc - ctr[:, None, :])
+        cc = c0 + np.clip(cc + step - c0, -max_px, max_px)
+    return cc
+
+
+def grid_sample(rows: int, cols: int, per_axis: int = 4) -> np.ndarray:
+    """Row-major indices of a ``per_axis`` x ``per_axis`` sample of a rows x cols grid
+    that includes its corners (all LEDs when the grid is that small): enough centroids
+    to fix a shift and a scale, at a quarter of the work for an 8x8 array."""
+    r = np.unique(np.rint(np.linspace(0, rows - 1, min(rows, per_axis))).astype(np.intp))
+    c = np.unique(np.rint(np.linspace(0, cols - 1, min(cols, per_axis))).astype(np.intp))
+    return (r[:, None] * cols + c[None, :]).ravel()
+
+
+def patch_half(size: int, max_px: float = 1.5) -> int:
+    """Patch half-size that holds a ``size`` px box moved up to max_px."""
+    return int(np.ceil(size / 2.0 + max_px))
 
 
 def refine_centres(frames: np.ndarray, centres: np.ndarray, size: int = 3, iterations: int = 4,
@@ -186,47 +254,18 @@ def refine_centres(frames: np.ndarray, centres: np.ndarray, size: int = 3, itera
     Rig vibration moves every spot of a camera together, frame by frame (up to tens of
     Hz), and an approaching array grows (its pitch from 4.2 to 6 px within one packet at
     40 km/h), faster than a grid fitted over tens of frames follows. Per frame and LED the
-    centroid of the light above the box's darkest pixel is taken in a ``size`` px sub-pixel
-    box (:func:`box_weights`) around the current estimate; the LEDs' offsets, weighted by
-    their light (dark LEDs count for nothing), are fitted by a shift (dx, dy) and, with
-    ``scale`` and more than one LED, a scale about their weighted centre (least squares);
-    the boxes are recentred and, since a box truncates the spot and recovers only part of
-    an offset, a few rounds converge. centres: (N, 2) or (F, N, 2) px. A frame without
-    light keeps its centres; the correction is clipped to +-max_px per LED.
+    centroid of the light above the patch's darkest pixel is taken in a ``size`` px
+    sub-pixel box (:func:`box_cover`) around the current estimate; the LEDs' offsets,
+    weighted by their light (LEDs with less than a tenth of the typical light count for
+    nothing), are fitted by a shift (dx, dy) and, with ``scale`` and more than one LED, a
+    scale about their weighted centre (least squares); the boxes are recentred and, since
+    a box truncates the spot and recovers only part of an offset, a few rounds converge.
+    centres: (N, 2) or (F, N, 2) px. A frame without light keeps its centres; the
+    correction is clipped to +-max_px per LED.
     """
-    fr = np.asarray(frames)
-    if fr.ndim != 3:
-        raise ValueError(f"expected frames (F, H, W), got shape {fr.shape}")
-    F = fr.shape[0]
-    c0 = np.broadcast_to(np.asarray(centres, dtype=np.float64), (F,) + np.shape(centres)[-2:])
-    w = _window(size)[0]
-    cc = c0.copy()
-    for _ in range(iterations):
-        pix, wy, wx, ys, xs = _box_pixels(fr, cc, w)
-        pix -= pix.min(axis=(-2, -1), keepdims=True)
-        pix *= (wy[..., :, None] * wx[..., None, :]).astype(np.float32)
-        m_y = pix.sum(-1)  # (F, N, k) marginal over x
-        m_x = pix.sum(-2)
-        tot = m_x.sum(-1)  # (F, N) light of each LED
-        safe = np.where(tot > 0, tot, 1.0)
-        off = np.stack([(m_x * xs).sum(-1) / safe - cc[..., 0],
-                        (m_y * ys).sum(-1) / safe - cc[..., 1]], -1)  # (F, N, 2)
-        # an LED counts when it holds a tenth of the block's typical lit-LED light (noise
-        # in a dark box would otherwise pull its frame about)
-        wt = np.maximum(tot, 0.0).astype(np.float64)
-        wt[wt < 0.1 * np.percentile(wt, 90)] = 0.0
-        norm = wt.sum(1, keepdims=True)  # (F, 1)
-        safe_n = np.where(norm > 0, norm, 1.0)
-        d = np.einsum("fn,fnk->fk", wt, off) / safe_n  # (F, 2)
-        step = np.broadcast_to(d[:, None, :], cc.shape)
-        if scale and cc.shape[1] > 1:
-            ctr = np.einsum("fn,fnk->fk", wt, cc) / safe_n
-            g = cc - ctr[:, None, :]
-            den = np.einsum("fn,fnk,fnk->f", wt, g, g)
-            sc = np.einsum("fn,fnk,fnk->f", wt, g, off) / np.where(den > 0, den, 1.0)
-            step = step + sc[:, None, None] * g
-        cc = c0 + np.clip(cc + step - c0, -max_px, max_px)
-    return cc
+    p = gather_patches(frames, centres, patch_half(size, max_px))
+    c = np.broadcast_to(np.asarray(centres, dtype=np.float64), p.x0.shape + (2,))
+    return refine_in_patches(p, c, size, iterations, scale, max_px)
 
 
 @dataclass

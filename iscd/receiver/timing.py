@@ -245,7 +245,7 @@ def _response(track: ChannelTrack, k: np.ndarray, q: np.ndarray, dl: np.ndarray,
         rows = slice(None) if len(track.models) == 1 else seg == j
         qj, dj = q[rows], dl[rows]
         mu, slope = model.interp(model.mu, qj)
-        _, var = model.lookup(qj)
+        var, _ = model.interp(model.var, qj)
         gain = (model.mu[:, :, -1] - model.mu[:, :, 0]) / max(model.levels - 1, 1)  # (C, N)
         var = var + (timing_sigma / e * gain[:, None, :] * dj[None]) ** 2
         var = var + np.square(model.interp_error_at(qj))
