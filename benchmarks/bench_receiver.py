@@ -12,6 +12,9 @@ daemon does. Cases:
 - ``search``: no transmitter in view (noise), frames pushed 10 at a time: the cost of
   searching for headers while unlocked;
 - ``roi_mean``: luminance extraction (3.10) of the 64 LEDs (3x3 ROI) in both 512x512 frames;
+- ``follow+gauss``: what the pipeline does instead, per stereo pair: each frame's LED
+  positions refined (shift and scale from 16 spot centroids) and the Gaussian-weighted
+  luminance (``follow_and_measure``), in blocks of 16 pairs;
 - ``spot``: the crosstalk/saturation-aware luminance (``SpotLuminance``, fitted once).
 
 Each line prints frames/s, the ratio to 1000 frames/s (>= 1 keeps up on one core) and the
@@ -38,7 +41,7 @@ import numpy as np  # noqa: E402
 
 from iscd.airinterface import AirInterface  # noqa: E402
 from iscd.config import TransmitterConfig  # noqa: E402
-from iscd.receiver.luminance import SpotLuminance, roi_mean  # noqa: E402
+from iscd.receiver.luminance import SpotLuminance, follow_and_measure, grid_sample, roi_mean  # noqa: E402
 from iscd.receiver.packets import PacketAssembler  # noqa: E402
 from iscd.receiver.settings import ReceiverConfig  # noqa: E402
 from iscd.receiver.synth import SynthCamera, render_spots, synth_recording  # noqa: E402
@@ -113,6 +116,14 @@ def bench(n_packets: int, repeats: int, n_image_frames: int) -> list[tuple[str, 
                                                peak_dn=600, sigma_px=0.9)
     t = best_time(lambda: roi_mean(frames, centres, 3), repeats) / n_image_frames / 2  # per camera
     rows.append(("roi_mean", 1.0 / (2 * t), 2 * t / t_base))
+    use = grid_sample(8, 8)
+
+    def follow() -> None:  # as the pipeline: blocks of 16 pairs, both cameras in one pass
+        for a in range(0, n_image_frames, 16):
+            follow_and_measure([frames[a:a + 16], frames[a:a + 16]], [centres, centres], 3, [0.9, 0.9], use)
+
+    t = best_time(follow, repeats) / n_image_frames
+    rows.append(("follow+gauss", 1.0 / t, t / t_base))
     spot = SpotLuminance(centres, 3).fit(frames[: min(300, n_image_frames)])
     t = best_time(lambda: spot(frames), repeats) / n_image_frames
     rows.append(("spot", 1.0 / (2 * t), 2 * t / t_base))

@@ -31,7 +31,7 @@ import numpy as np
 from calibration.io import StereoCalibration
 from iscd.airinterface import AirInterface
 from iscd.config import Config, build_section
-from iscd.receiver.luminance import Patches, gather_patches, grid_sample, gauss_in_patches, patch_half, refine_in_patches
+from iscd.receiver.luminance import follow_and_measure, grid_sample
 from iscd.receiver.detect import GridFit, detect_array, match_stereo, track_array
 from iscd.receiver.packets import Packet, PacketAssembler
 from iscd.receiver.settings import receiver_config
@@ -324,25 +324,19 @@ class StreamDecoder:
         cameras go through one vectorized pass (frames stacked)."""
         tr = self.track
         assert tr is not None
-        F = len(frame_ids)
-        size = 2 * max(tr.roi_radius) + 1
-        half = max(patch_half(size), int(np.ceil(2.5 * max(tr.roi_sigma))) + 1)
-        starts, patches = [], []
-        for side, frames in ((0, left), (1, right)):
+        starts = []
+        for side in (0, 1):
             start = self.led_centres(side, frame_ids)
             prev = self._followed[side]
             if prev is not None and prev.shape == start.shape[1:] and \
                     float(np.abs(prev - start[0]).max()) <= self.FOLLOW_MAX_PX:
-                start = np.broadcast_to(prev, start.shape)  # where the LEDs were in the last frame
+                start = prev  # where the LEDs were in the last frame
             starts.append(start)
-            patches.append(gather_patches(frames, start, half))
-        p = Patches(pix=np.concatenate([q.pix for q in patches]), x0=np.concatenate([q.x0 for q in patches]),
-                    y0=np.concatenate([q.y0 for q in patches]))
-        c = refine_in_patches(p, np.concatenate(starts), size, iterations=4, groups=2,
-                              use=grid_sample(self.rows, self.cols))
-        self._followed = [c[F - 1].copy(), c[-1].copy()]
-        lum = gauss_in_patches(p, c, np.repeat(np.asarray(tr.roi_sigma, dtype=np.float64), F))
-        return lum[:F], lum[F:]
+        (c_l, c_r), (lum_l, lum_r) = follow_and_measure(
+            [left, right], starts, 2 * max(tr.roi_radius) + 1, list(tr.roi_sigma),
+            use=grid_sample(self.rows, self.cols))
+        self._followed = [c_l[-1].copy(), c_r[-1].copy()]
+        return lum_l, lum_r
 
     def _roi_sigma(self, fit: GridFit) -> float:
         """Gaussian luminance window, px: the configured one, or (auto) matched to the

@@ -25,7 +25,6 @@ packet, and with ``decision_directed`` also the decided data symbols):
 
 from __future__ import annotations
 
-import warnings
 from dataclasses import dataclass
 from functools import cached_property
 
@@ -277,6 +276,18 @@ def _estimate_camera(y: np.ndarray, lev: np.ndarray, M: int, st: IscdChannelSett
     return mu, var
 
 
+def _median_by_level(r: np.ndarray, lv: np.ndarray, M: int) -> np.ndarray:
+    """Median of r per level 0..M-1 (NaN for a level without samples), by one sort."""
+    top = float(r.max()) if r.size else 0.0
+    order = np.argsort(lv + r / (top * 1.001 + 1e-300), kind="stable")  # level, then residual
+    cnt = np.bincount(lv, minlength=M)
+    start = np.concatenate([[0], np.cumsum(cnt)[:-1]])
+    rs = r[order]
+    lo = rs[np.minimum(start + (cnt - 1) // 2, max(rs.size - 1, 0))] if rs.size else np.zeros(M)
+    hi = rs[np.minimum(start + cnt // 2, max(rs.size - 1, 0))] if rs.size else np.zeros(M)
+    return np.where(cnt > 0, 0.5 * (lo + hi), np.nan)
+
+
 def estimate_iscd(y: np.ndarray, lev: np.ndarray, M: int,
                   settings: IscdChannelSettings | None = None, kind: str = "gauss",
                   nu: float = 6.0) -> ChannelModel:
@@ -300,10 +311,7 @@ def estimate_iscd(y: np.ndarray, lev: np.ndarray, M: int,
             r = np.abs(y[c] - np.take_along_axis(mu_c, lv.T, axis=1).T)
             ok = np.isfinite(r) & (lev >= 0)
             # robust scale per level: 1.4826 x median |residual| over all LEDs
-            by_level = np.where(ok[None] & (lv[None] == np.arange(M)[:, None, None]), r[None], np.nan)
-            with warnings.catch_warnings():
-                warnings.simplefilter("ignore", RuntimeWarning)  # a level without samples
-                med = np.nanmedian(by_level.reshape(M, -1), axis=1)
+            med = _median_by_level(r[ok], lv[ok], M)
             med = np.where(np.isfinite(med), med, np.nanmedian(med) if np.isfinite(med).any() else 1.0)
             sd = np.maximum(1.4826 * med, st.var_floor_dn)
             bad = ok & (r > st.outlier_sigma * sd[lv])
@@ -335,6 +343,12 @@ class ChannelTrack:
     @classmethod
     def single(cls, model: ChannelModel) -> "ChannelTrack":
         return cls((0,), (model,))
+
+    @cached_property
+    def tables(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Stacked centroids, variances (J, C, N, M) and interpolation errors (J, C, N, M-1)."""
+        return (np.stack([m.mu for m in self.models]), np.stack([m.var for m in self.models]),
+                np.stack([m.interp_error for m in self.models]))
 
     def segment(self, k: np.ndarray) -> np.ndarray:
         """Index of the model holding for each packet symbol k."""

@@ -157,7 +157,8 @@ def gauss_in_patches(p: Patches, centres: np.ndarray, sigma_px: float | np.ndarr
     wy = np.exp(a * np.square(p.ys - c[..., 1:2]))
     wx /= wx.sum(-1, keepdims=True)
     wy /= wy.sum(-1, keepdims=True)
-    return np.einsum("fnij,fni,fnj->fn", p.pix, wy, wx, dtype=np.float32)
+    rows = np.matmul(wy[..., None, :], p.pix)[..., 0, :]  # (F, N, K)
+    return np.einsum("fnk,fnk->fn", rows, wx)
 
 
 def gauss_mean(frames: np.ndarray, centres: np.ndarray, sigma_px: float = 1.0,
@@ -183,14 +184,16 @@ def gauss_mean(frames: np.ndarray, centres: np.ndarray, sigma_px: float = 1.0,
     return gauss_in_patches(p, c, sigma_px)
 
 
-def refine_in_patches(p: Patches, centres: np.ndarray, size: int = 3, iterations: int = 4,
+def refine_in_patches(p: Patches, centres: np.ndarray, size: int = 3, iterations: int = 3,
                       scale: bool = True, max_px: float = 1.5, groups: int = 1,
-                      use: np.ndarray | None = None) -> np.ndarray:
+                      use: np.ndarray | None = None, accelerate: bool = True) -> np.ndarray:
     """:func:`refine_centres` on patches gathered around ``centres`` (F, N, 2) px (the
     patches must reach size / 2 + max_px px around them). ``groups``: the frames are that
     many equal runs from different cameras (their light levels differ), each with its own
     least-light threshold. ``use``: indices of the LEDs whose centroids are measured (all
-    by default); the shift and scale they give move every LED."""
+    by default); the shift and scale they give move every LED. ``accelerate``: the second
+    round extrapolates the geometric series of the rounds' steps (3 rounds then do what 6
+    plain ones would)."""
     w = _window(size)[0]
     c0 = np.asarray(centres, dtype=np.float64)
     F, N = c0.shape[:2]
@@ -201,7 +204,8 @@ def refine_in_patches(p: Patches, centres: np.ndarray, size: int = 3, iterations
     xs, ys = p.xs[:, sel], p.ys[:, sel]
     cc = c0.copy()
     floor = None
-    for _ in range(iterations):
+    prev: tuple[np.ndarray, np.ndarray] | None = None
+    for it in range(iterations):
         cs = cc[:, sel]
         wx = box_cover(cs[..., 0], xs, w)
         wy = box_cover(cs[..., 1], ys, w)
@@ -221,13 +225,23 @@ def refine_in_patches(p: Patches, centres: np.ndarray, size: int = 3, iterations
         norm = wt.sum(1, keepdims=True)  # (F, 1)
         safe_n = np.where(norm > 0, norm, 1.0)
         d = np.einsum("fn,fnk->fk", wt, off) / safe_n  # (F, 2)
-        step = np.broadcast_to(d[:, None, :], cc.shape)
+        sc = np.zeros(F)
+        ctr = np.zeros((F, 2))
         if scale and n > 1:
             ctr = np.einsum("fn,fnk->fk", wt, cs) / safe_n
             g = cs - ctr[:, None, :]
             den = np.einsum("fn,fnk,fnk->f", wt, g, g)
             sc = np.einsum("fn,fnk,fnk->f", wt, g, off) / np.where(den > 0, den, 1.0)
-            step = step + sc[:, None, None] * (cc - ctr[:, None, :])
+        if it == 1 and accelerate and prev is not None:
+            # a box truncates the spot, so each round recovers the same share of what is
+            # left: the rounds form a geometric series; add its remaining terms at once
+            # (the ratio pooled over the block's frames)
+            for cur, last in ((d, prev[0]), (sc, prev[1])):
+                den2 = float(np.sum(last * last))
+                rho = float(np.clip(np.sum(cur * last) / den2, 0.0, 0.8)) if den2 > 0 else 0.0
+                cur *= 1.0 / (1.0 - rho)
+        prev = (d.copy(), sc.copy())
+        step = d[:, None, :] + sc[:, None, None] * (cc - ctr[:, None, :])
         cc = c0 + np.clip(cc + step - c0, -max_px, max_px)
     return cc
 
@@ -241,13 +255,36 @@ def grid_sample(rows: int, cols: int, per_axis: int = 4) -> np.ndarray:
     return (r[:, None] * cols + c[None, :]).ravel()
 
 
+def follow_and_measure(frames: list[np.ndarray], starts: list[np.ndarray], size: int,
+                       sigmas: list[float], use: np.ndarray | None = None, iterations: int = 3
+                       ) -> tuple[list[np.ndarray], list[np.ndarray]]:
+    """Follow the LEDs and measure their luminance in each camera, in one vectorized pass.
+
+    frames: per camera (F, H, W); starts: per camera (N, 2) or (F, N, 2) px, where the
+    LEDs are thought to be; size: the following box, px; sigmas: per camera the Gaussian
+    window, px. One patch gather per camera serves both steps: :func:`refine_in_patches`
+    (shift and scale of each frame, from the LEDs ``use``) and :func:`gauss_in_patches`.
+    Returns per camera the refined centres (F, N, 2) px and the luminance (F, N) DN.
+    """
+    F = frames[0].shape[0]
+    half = max(patch_half(size), int(np.ceil(2.5 * max(sigmas))) + 1)
+    st = [np.broadcast_to(np.asarray(s, dtype=np.float64), (F,) + np.shape(s)[-2:]) for s in starts]
+    ps = [gather_patches(fr, s, half) for fr, s in zip(frames, st)]
+    p = Patches(pix=np.concatenate([q.pix for q in ps]), x0=np.concatenate([q.x0 for q in ps]),
+                y0=np.concatenate([q.y0 for q in ps]))
+    c = refine_in_patches(p, np.concatenate(st), size, iterations, groups=len(frames), use=use)
+    lum = gauss_in_patches(p, c, np.repeat(np.asarray(sigmas, dtype=np.float64), F))
+    n = len(frames)
+    return [c[k * F:(k + 1) * F] for k in range(n)], [lum[k * F:(k + 1) * F] for k in range(n)]
+
+
 def patch_half(size: int, max_px: float = 1.5) -> int:
     """Patch half-size that holds a ``size`` px box moved up to max_px."""
     return int(np.ceil(size / 2.0 + max_px))
 
 
-def refine_centres(frames: np.ndarray, centres: np.ndarray, size: int = 3, iterations: int = 4,
-                   scale: bool = True, max_px: float = 1.5) -> np.ndarray:
+def refine_centres(frames: np.ndarray, centres: np.ndarray, size: int = 3, iterations: int = 3,
+                   scale: bool = True, max_px: float = 1.5, accelerate: bool = True) -> np.ndarray:
     """LED centres in each frame: ``centres`` moved by the frame's own image shift (and
     scale), common to all LEDs of the array: (F, N, 2) px.
 
@@ -265,7 +302,7 @@ def refine_centres(frames: np.ndarray, centres: np.ndarray, size: int = 3, itera
     """
     p = gather_patches(frames, centres, patch_half(size, max_px))
     c = np.broadcast_to(np.asarray(centres, dtype=np.float64), p.x0.shape + (2,))
-    return refine_in_patches(p, c, size, iterations, scale, max_px)
+    return refine_in_patches(p, c, size, iterations, scale, max_px, accelerate=accelerate)
 
 
 @dataclass

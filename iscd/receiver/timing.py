@@ -235,28 +235,27 @@ def fine_header(L: np.ndarray, u_guess: float, p: float, e: float, half_width: f
 def _response(track: ChannelTrack, k: np.ndarray, q: np.ndarray, dl: np.ndarray, e: float,
               timing_sigma: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Response, slope and variance (C, n, N) of straddling frames with fractional levels
-    q (n, N) between symbols k and k + 1 whose levels differ by dl (n, N): each frame from
-    the model of its symbol k; the variance widened by ``timing_sigma`` frames of boundary
-    error and by the interpolation error where the response bends (saturation)."""
-    seg = track.segment(k)
-    out: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
-    for j in np.unique(seg):
-        model = track.models[int(j)]
-        rows = slice(None) if len(track.models) == 1 else seg == j
-        qj, dj = q[rows], dl[rows]
-        mu, slope = model.interp(model.mu, qj)
-        var, _ = model.interp(model.var, qj)
-        gain = (model.mu[:, :, -1] - model.mu[:, :, 0]) / max(model.levels - 1, 1)  # (C, N)
-        var = var + (timing_sigma / e * gain[:, None, :] * dj[None]) ** 2
-        var = var + np.square(model.interp_error_at(qj))
-        if len(track.models) == 1:
-            return mu, slope, var
-        if out is None:
-            shape = (mu.shape[0],) + q.shape
-            out = (np.empty(shape), np.empty(shape), np.empty(shape))
-        out[0][:, rows], out[1][:, rows], out[2][:, rows] = mu, slope, var
-    assert out is not None
-    return out
+    q (n, N) between symbols k (n,) and k + 1 whose levels differ by dl (n, N): each frame
+    from the model of its symbol k (linear interpolation between the centroids); the
+    variance widened by ``timing_sigma`` frames of boundary error and by the interpolation
+    error where the response bends (saturation)."""
+    mu_t, var_t, err_t = track.tables  # (J, C, N, M), (J, C, N, M - 1)
+    J, C, N, M = mu_t.shape
+    seg = track.segment(k)[:, None]  # (n, 1)
+    q0 = np.clip(np.floor(q), 0, M - 2).astype(np.intp)
+    f = (q - q0)[None]
+    led = np.arange(N)[None, :]
+    # advanced indices around a slice: the gathered axes (n, N) come first
+    a = np.moveaxis(mu_t[seg, :, led, q0], -1, 0)  # (C, n, N)
+    slope = np.moveaxis(mu_t[seg, :, led, q0 + 1], -1, 0) - a
+    va = np.moveaxis(var_t[seg, :, led, q0], -1, 0)
+    var = va + f * (np.moveaxis(var_t[seg, :, led, q0 + 1], -1, 0) - va)
+    gain = np.moveaxis((mu_t[:, :, :, -1] - mu_t[:, :, :, 0])[seg, :, led], -1, 0) / max(M - 1, 1)
+    var = var + (timing_sigma / e * gain * dl[None]) ** 2
+    seg_err = np.clip(q, 0, M - 2).astype(np.intp)
+    var = var + np.square(np.moveaxis(err_t[seg, :, led, seg_err], -1, 0))
+    return a + f * slope, slope, var
+
 
 def refine_clock(L: np.ndarray, clock: SymbolClock, e: float, lev: np.ndarray, k_first: int,
                  model: ChannelModel | ChannelTrack, p_prior: float, p_sigma: float, iters: int = 3,
