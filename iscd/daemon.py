@@ -22,6 +22,7 @@ import functools
 import logging
 import os
 import signal
+import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -118,7 +119,8 @@ class Daemon:
 
         cfg, st = self.cfg, self.settings
         cal = load_calibration(self.calibration_path) if self.calibration_path else None
-        decoder = StreamDecoder(cfg, cal, async_demod=True)
+        # packets are demodulated in a worker process: no GIL shared with the frame loop
+        decoder = StreamDecoder(cfg, cal, async_demod="process")
         H, W = cfg.camera.height, cfg.camera.width
         dtype = np.uint8 if cfg.camera.bit_depth == 8 else np.uint16
         ring = StereoRing.create(height=H, width=W, capacity=capacity_for(st.ring_ms, cfg.camera.fps), dtype=dtype)
@@ -170,7 +172,7 @@ class Daemon:
             a = acq.stats()
             rs = ring.stats()
             p50, p99 = lat.take()
-            share, rss = cpu.sample([os.getpid()] + ([acq.pid] if acq.pid else []))
+            share, rss = cpu.sample([os.getpid()] + ([acq.pid] if acq.pid else []) + decoder.worker_pids)
             rec = {"type": "stats", "tx": 0, "frame": int(last_frame),
                    "t_s": last_t_s,  # camera time of the last decoded frame, as in the other records
                    "uptime_s": round(time.monotonic() - t_start, 3), "final": final,
@@ -189,7 +191,8 @@ class Daemon:
                    "cpu_cores": share, "rss_mb": round(rss / 2**20, 1),
                    "pair_gaps": counters["pair_gaps"],
                    "acquisition": a.as_dict(), "acquisition_restarts": counters["acquisition_restarts"],
-                   "output_errors": counters["output_errors"], "decode_errors": counters["decode_errors"]}
+                   "output_errors": counters["output_errors"], "decode_errors": counters["decode_errors"],
+                   "demod_worker_restarts": decoder.counters.get("demod_worker_restarts", 0)}
             for o in outputs:
                 c = getattr(o, "counters", None)
                 if callable(c):

@@ -23,6 +23,7 @@ import math
 import time
 from collections import deque
 from concurrent.futures import Future, ThreadPoolExecutor
+from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -31,6 +32,7 @@ import numpy as np
 from calibration.io import StereoCalibration
 from iscd.airinterface import AirInterface
 from iscd.config import Config, build_section
+from iscd.demod_worker import DemodWorker
 from iscd.receiver.luminance import follow_and_measure, grid_sample
 from iscd.receiver.detect import GridFit, detect_array, match_stereo, track_array
 from iscd.receiver.packets import Packet, PacketAssembler
@@ -110,14 +112,20 @@ class StreamDecoder:
 
     def __init__(self, cfg: Config, calibration: StereoCalibration | None = None, *, tx_index: int = 0,
                  settings: PipelineSettings | None = None, ranging: RangingSettings | None = None,
-                 async_demod: bool = False) -> None:
-        """``async_demod``: run the packet assembler in one worker thread, so that
-        demodulating a whole packet (tens of ms for an 8x8 array) does not delay the
-        per-frame range records; packets then come out of a later :meth:`push` (in order)
-        or of :meth:`finish`. The daemon uses it; replay and tests run synchronously."""
+                 async_demod: bool | str = False) -> None:
+        """``async_demod``: run the packet assembler elsewhere, so that demodulating a
+        whole packet (0.1-0.2 s for an 8x8 array) does not delay the per-frame work;
+        packets then come out of a later :meth:`push` (in order) or of :meth:`finish`.
+        ``"process"`` (the daemon): a worker process (:mod:`iscd.demod_worker`; no GIL
+        shared with the frame loop); ``True`` or ``"thread"``: a worker thread. Replay and
+        tests run synchronously."""
+        if async_demod not in (False, True, "thread", "process"):
+            raise ValueError(f"async_demod: expected False, True, 'thread' or 'process', got {async_demod!r}")
         self.cfg = cfg
         self._pool: ThreadPoolExecutor | None = (
-            ThreadPoolExecutor(max_workers=1, thread_name_prefix="iscd-demod") if async_demod else None)
+            ThreadPoolExecutor(max_workers=1, thread_name_prefix="iscd-demod")
+            if async_demod in (True, "thread") else None)
+        self._worker: DemodWorker | None = DemodWorker() if async_demod == "process" else None
         self._pending: deque[Future] = deque()
         self.tx_index = tx_index
         self.settings = settings or build_section(PipelineSettings, dict(cfg.extra.get("tracking", {})), "tracking")
@@ -147,11 +155,11 @@ class StreamDecoder:
         self._followed: list[np.ndarray | None] = [None, None]
         """per camera, the LED centres (N, 2) px refined in the last decoded frame"""
         self._win: tuple[tuple[int, int, int, int], tuple[int, int, int, int]] = ((0, 0, 0, 0), (0, 0, 0, 0))
-        self.assembler = self._make_assembler()
+        self._new_assembler()
         self.counters: dict[str, int] = {"acquisitions": 0, "losses": 0, "rejected_candidates": 0,
                                          "packets_ok": 0, "packets_bad": 0, "ranges": 0,
                                          "frames_decoded": 0, "assembler_resets": 0,
-                                         "ranging_skipped": 0}
+                                         "ranging_skipped": 0, "demod_worker_restarts": 0}
 
     # ------------------------------------------------------------------ demodulation hook
     def _make_assembler(self) -> PacketAssembler:
@@ -168,14 +176,32 @@ class StreamDecoder:
             out.append(_jsonable(pkt.record(self.tx_index)))
         return out
 
+    @property
+    def worker_pids(self) -> list[int]:
+        """Process ids of the demodulation worker (``async_demod="process"``), else []."""
+        return self._worker.pids if self._worker is not None else []
+
+    def _new_assembler(self) -> None:
+        """A fresh assembler (a new track); steps already queued finish on the old one."""
+        if self._worker is None:
+            self.assembler = self._make_assembler()
+        else:
+            self._pending.append(self._worker.submit("new", self.cfg.transmitter, self.fps,
+                                                     self.cfg.camera.exposure_s, self.rx_cfg))
+
     def _demod(self, frame_ids: np.ndarray, t_s: np.ndarray, lum_l: np.ndarray, lum_r: np.ndarray) -> list[dict]:
+        if self._worker is not None:
+            self._pending.append(self._worker.submit("push", frame_ids, t_s, lum_l, lum_r))
+            return []
         if self._pool is None:
             return self._records(self.assembler.push(frame_ids, t_s, lum_l, lum_r))
         self._pending.append(self._pool.submit(self.assembler.push, frame_ids, t_s, lum_l, lum_r))
         return []
 
     def _reset_assembler(self) -> None:
-        if self._pool is None:
+        if self._worker is not None:
+            self._pending.append(self._worker.submit("reset"))
+        elif self._pool is None:
             self.assembler.reset()
         else:  # in order with the pushes already queued
             self._pending.append(self._pool.submit(lambda a=self.assembler: a.reset() or []))
@@ -184,7 +210,20 @@ class StreamDecoder:
         """Records of the finished asynchronous demodulation steps, in order."""
         out: list[dict] = []
         while self._pending and (wait or self._pending[0].done()):
-            out += self._records(self._pending.popleft().result())
+            fut = self._pending.popleft()
+            try:
+                out += self._records(fut.result())
+            except BrokenProcessPool:
+                # the worker died (killed, out of memory): the packet in progress is lost;
+                # a new worker starts with a fresh assembler
+                log.error("demodulation worker died; starting a new one (packet in progress lost)")
+                self.counters["demod_worker_restarts"] += 1
+                self._pending.clear()
+                assert self._worker is not None
+                self._worker.shutdown(wait=False)
+                self._worker = DemodWorker()
+                self._new_assembler()
+                break
         return out
 
     # ------------------------------------------------------------------ main entry
@@ -263,6 +302,11 @@ class StreamDecoder:
 
     def finish(self) -> list[dict]:
         """End of stream: decode what the assembler still holds."""
+        if self._worker is not None:
+            self._pending.append(self._worker.submit("flush"))
+            out = self._collect(wait=True)
+            self._worker.shutdown()
+            return out
         out = self._collect(wait=True)
         if self._pool is not None:
             self._pool.shutdown(wait=True)
@@ -415,7 +459,7 @@ class StreamDecoder:
                             roi_sigma=(self._roi_sigma(fl), self._roi_sigma(fr)),
                             since_frame=int(frame_ids[-1]), fit_frame=float(meta[:, 0].mean()))
         self.counters["acquisitions"] += 1
-        self.assembler = self._make_assembler()  # queued steps finish on the old one
+        self._new_assembler()
         if self.kalman is not None:
             self.kalman.reset()
         log.info("transmitter acquired: left %.1f,%.1f right %.1f,%.1f pitch %.2f px",

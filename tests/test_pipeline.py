@@ -12,10 +12,11 @@ from iscd.sim.presets import override, single_led
 from iscd.sim.scene import Scene
 
 
-def _decode(cfg, frames: np.ndarray, block: int = 16, ranging: bool = False) -> tuple[list[dict], StreamDecoder, Scene]:
+def _decode(cfg, frames: np.ndarray, block: int = 16, ranging: bool = False, async_demod: bool | str = False,
+            on_block=None) -> tuple[list[dict], StreamDecoder, Scene]:
     cfg = cfg.replace(extra={**cfg.extra, "tracking": {"ranging": ranging}})
     scene = Scene(cfg)
-    dec = StreamDecoder(cfg)
+    dec = StreamDecoder(cfg, async_demod=async_demod)
     H, W = cfg.camera.height, cfg.camera.width
     L = np.empty((block, H, W), np.uint8)
     R = np.empty_like(L)
@@ -25,6 +26,8 @@ def _decode(cfg, frames: np.ndarray, block: int = 16, ranging: bool = False) -> 
         for i, n in enumerate(ids):
             scene.render_pair_into(int(n), L[i], R[i])
         out += dec.push(ids, ids / cfg.camera.fps, L[:len(ids)], R[:len(ids)])
+        if on_block is not None:
+            on_block(dec, int(ids[-1]))
     out += dec.finish()
     return out, dec, scene
 
@@ -175,3 +178,41 @@ def test_16_bit_frames_are_detected() -> None:
     tr = scene.truth(np.arange(64))
     assert fit is not None
     assert abs(fit.center[0] - tr.u_left[0, 0]) < 0.5 and abs(fit.center[1] - tr.v_left[0, 0]) < 0.5
+
+
+def test_demodulation_in_a_worker_process_gives_the_same_packets() -> None:
+    """The daemon's layout (``async_demod="process"``): the same packets as decoding in
+    line, in order, delivered by later pushes or by finish()."""
+    cfg = default_config()
+    frames = np.arange(0, 2 * 1306 + 40)
+    inline = [r for r in _decode(cfg, frames)[0] if r["type"] == "packet"]
+    recs, dec, _ = _decode(cfg, frames, async_demod="process")
+    worker = [r for r in recs if r["type"] == "packet"]
+    assert len(worker) == 2 and [r["payload_hex"] for r in worker] == [r["payload_hex"] for r in inline]
+    assert [r["frame"] for r in worker] == [r["frame"] for r in inline]
+    assert dec.counters["packets_ok"] == 2 and dec.worker_pids == []  # shut down by finish()
+
+
+def test_a_killed_demodulation_worker_is_replaced() -> None:
+    """The worker dies mid-stream (OOM killer, kill -9): counted, a new one starts, and the
+    packets after it still decode."""
+    import os
+    import signal
+    import time
+
+    cfg = default_config()
+    frames = np.arange(0, 3 * 1306 + 40)
+    killed: list[int] = []
+
+    def kill_once(dec: StreamDecoder, last: int) -> None:
+        if not killed and last > 600 and dec.worker_pids:
+            pid = dec.worker_pids[0]
+            os.kill(pid, signal.SIGKILL)
+            killed.append(pid)
+            time.sleep(0.5)  # let the pool notice
+
+    recs, dec, scene = _decode(cfg, frames, async_demod="process", on_block=kill_once)
+    assert killed and dec.counters["demod_worker_restarts"] == 1
+    pk = [r for r in recs if r["type"] == "packet" and r["crc_ok"]]
+    payloads = scene.truth(frames).payloads
+    assert len(pk) >= 2 and all(bytes.fromhex(r["payload_hex"]) in payloads for r in pk)

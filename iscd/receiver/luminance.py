@@ -107,8 +107,10 @@ class Patches:
         return (self.y0[..., None] + np.arange(self.pix.shape[-2])).astype(np.float32)
 
 
-def gather_patches(frames: np.ndarray, centres: np.ndarray, half: int) -> Patches:
-    """(2 half + 1)^2 px patches around the rounded centres (N, 2) or (F, N, 2), px."""
+def gather_patches(frames: np.ndarray, centres: np.ndarray, half: int,
+                   out: np.ndarray | None = None) -> Patches:
+    """(2 half + 1)^2 px patches around the rounded centres (N, 2) or (F, N, 2), px;
+    written into ``out`` (F, N, K, K) float32 when given."""
     fr = np.asarray(frames)
     if fr.ndim != 3:
         raise ValueError(f"expected frames (F, H, W), got shape {fr.shape}")
@@ -126,12 +128,20 @@ def gather_patches(frames: np.ndarray, centres: np.ndarray, half: int) -> Patche
         x0 = np.clip(x0, 0, W - K)
         y0 = np.clip(y0, 0, H - K)
         view = sliding_window_view(fr, (K, K), axis=(1, 2))
-        pix = view[np.arange(F)[:, None], y0, x0].astype(np.float32)
+        blocks = view[np.arange(F)[:, None], y0, x0]
+        if out is None:
+            pix = blocks.astype(np.float32)
+        else:
+            np.copyto(out, blocks)
+            pix = out
     else:  # an image smaller than a patch: edge pixels repeat
         k = np.arange(K)
         xs = np.clip(x0[..., None] + k, 0, W - 1)[..., None, :]
         ys = np.clip(y0[..., None] + k, 0, H - 1)[..., :, None]
         pix = fr[np.arange(F)[:, None, None, None], ys, xs].astype(np.float32)
+        if out is not None:
+            out[...] = pix
+            pix = out
     return Patches(pix=pix, x0=x0, y0=y0)
 
 
@@ -269,9 +279,11 @@ def follow_and_measure(frames: list[np.ndarray], starts: list[np.ndarray], size:
     F = frames[0].shape[0]
     half = max(patch_half(size), int(np.ceil(2.5 * max(sigmas))) + 1)
     st = [np.broadcast_to(np.asarray(s, dtype=np.float64), (F,) + np.shape(s)[-2:]) for s in starts]
-    ps = [gather_patches(fr, s, half) for fr, s in zip(frames, st)]
-    p = Patches(pix=np.concatenate([q.pix for q in ps]), x0=np.concatenate([q.x0 for q in ps]),
-                y0=np.concatenate([q.y0 for q in ps]))
+    N = st[0].shape[1]
+    K = 2 * half + 1
+    pix = np.empty((len(frames) * F, N, K, K), np.float32)  # every camera's patches, stacked
+    ps = [gather_patches(fr, s, half, out=pix[k * F:(k + 1) * F]) for k, (fr, s) in enumerate(zip(frames, st))]
+    p = Patches(pix=pix, x0=np.concatenate([q.x0 for q in ps]), y0=np.concatenate([q.y0 for q in ps]))
     c = refine_in_patches(p, np.concatenate(st), size, iterations, groups=len(frames), use=use)
     lum = gauss_in_patches(p, c, np.repeat(np.asarray(sigmas, dtype=np.float64), F))
     n = len(frames)
