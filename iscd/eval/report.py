@@ -147,8 +147,17 @@ def ranging_tables(rows: list[RangingRow]) -> str:
             mi = r.result.stats(mine).mae
             body.append([f"{r.distance_m:g}"] + [fmt(mi / r.result.stats(m).mae, 2) for m in peers])
         live = " (the live pipeline's method)" if mine == rows[0].result.project_method else ""
-        parts.append(f"**Ratio of MAE, {mine}{live} / peer** (below 1: {mine} is better)\n\n"
-                     + _table(["distance m"] + peers, body))
+        parts.append(f"**Ratio of MAE, {mine}{live} / peer**, every scored frame (below 1: {mine} is "
+                     "better)\n\n" + _table(["distance m"] + peers, body))
+        body = []
+        for r in rows:
+            mi = r.result.stats_emitted(mine).mae
+            share = float(np.mean(r.result.emitted_by_all())) if r.result.frames.size else float("nan")
+            body.append([f"{r.distance_m:g}", f"{100 * share:.1f} %"]
+                        + [fmt(mi / r.result.stats_emitted(m).mae, 2) for m in peers])
+        parts.append(f"**Ratio of MAE, {mine} / peer, on the frames every ranger emits** (the same "
+                     "frames for every method: those that pass the common spot-SNR gate)\n\n"
+                     + _table(["distance m", "frames emitted"] + peers, body))
     body = []
     for r in rows:
         body.append([f"{r.distance_m:g}"] + [

@@ -277,6 +277,22 @@ class RangingResult:
         e = self.errors_m[method] if rep is None else self.errors_m[method][rep]
         return error_stats(e, 0.0)
 
+    def emitted_by_all(self) -> np.ndarray:
+        """(n,) frames that every method's ranger emits (passes its spot-SNR and match
+        gate): the same frames for every method, and the only ones a user sees a range for
+        (the gate is the same spot-SNR test for every method; ~0.1 % of the scored frames,
+        the dimmest PWM level at a symbol edge, fail it)."""
+        mask = np.ones(self.frames.size, bool)
+        for m in self.errors_m:
+            rep = self.reported.get(m)
+            if rep is not None:
+                mask &= rep
+        return mask
+
+    def stats_emitted(self, method: str) -> ErrorStats:
+        """Errors on :meth:`emitted_by_all` frames."""
+        return error_stats(self.errors_m[method][self.emitted_by_all()], 0.0)
+
     def reported_share(self, method: str) -> float:
         rep = self.reported.get(method)
         if rep is None or rep.size == 0:
