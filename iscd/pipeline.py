@@ -38,6 +38,7 @@ from iscd.receiver.detect import GridFit, detect_array, match_stereo, track_arra
 from iscd.receiver.packets import Packet, PacketAssembler
 from iscd.receiver.settings import receiver_config
 from iscd.ranging.kalman import RangeKalman
+from iscd.ranging.range import LedRanger
 from iscd.stereo_range import RangingSettings, StereoRanger
 
 log = logging.getLogger(__name__)
@@ -132,6 +133,11 @@ class StreamDecoder:
         rs = ranging or build_section(RangingSettings, dict(cfg.extra.get("ranging", {})), "ranging")
         self.cal = calibration or StereoCalibration.ideal(cfg.camera)
         self.ranger = StereoRanger(self.cal, rs) if self.settings.ranging else None
+        self.led_ranger = (LedRanger(self.cal, method="iscd", patch_px=rs.patch_px)
+                           if self.ranger is not None and rs.per_led else None)
+        self.per_led_every = rs.per_led_every_frames
+        self.last_centres: tuple[np.ndarray, np.ndarray] | None = None
+        """(left, right) (F, N, 2) LED centres px followed in the last block decoded."""
         self.kalman = (RangeKalman(accel_psd=rs.accel_psd, gate=rs.kalman_gate)
                        if self.ranger is not None and rs.kalman else None)
         self.air = AirInterface.from_config(cfg.transmitter)
@@ -281,8 +287,30 @@ class StreamDecoder:
             self.counters["ranges"] += int(np.isfinite(res.z_m).sum())
             if self.kalman is not None:
                 records += self._filtered(frame_ids, t_s, res.z_m, res.sigma_m)
+            if self.led_ranger is not None:
+                records += self._per_led(frame_ids, t_s, left, right)
         self._retrack(frame_ids, left, right)
         return self._collect() + records
+
+    def _per_led(self, frame_ids: np.ndarray, t_s: np.ndarray, left: np.ndarray, right: np.ndarray) -> list[dict]:
+        """``range_leds`` records ([ranging] per_led): one range per LED of the array on the
+        frames whose id is a multiple of ``per_led_every_frames``, each LED ranged in its
+        own patch (:class:`iscd.ranging.range.LedRanger`) at the position it was followed
+        to in that frame; JSON null where an LED gave no valid range (dark in that frame,
+        or a poor match). Separate from the whole-array ``range`` records."""
+        assert self.led_ranger is not None and self.last_centres is not None
+        c_l, c_r = self.last_centres
+        if c_l.shape[0] != len(frame_ids):
+            return []
+        out: list[dict] = []
+        for i in np.flatnonzero(np.asarray(frame_ids) % self.per_led_every == 0):
+            est = self.led_ranger.measure(left[i], right[i], c_l[i], c_r[i])
+            ok = est.valid
+            out.append({"type": "range_leds", "tx": self.tx_index, "frame": int(frame_ids[i]),
+                        "t_s": float(t_s[i]), "n_valid": int(ok.sum()),
+                        "z_m": [round(float(z), 4) if v else None for z, v in zip(est.z_m, ok)],
+                        "sigma_m": [round(float(q), 4) if v else None for q, v in zip(est.sigma_m, ok)]})
+        return out
 
     def _filtered(self, frame_ids: np.ndarray, t_s: np.ndarray, z: np.ndarray, sig: np.ndarray) -> list[dict]:
         """Kalman-filtered range and closing speed ([ranging] kalman): a separate record
@@ -380,6 +408,7 @@ class StreamDecoder:
             [left, right], starts, 2 * max(tr.roi_radius) + 1, list(tr.roi_sigma),
             use=grid_sample(self.rows, self.cols))
         self._followed = [c_l[-1].copy(), c_r[-1].copy()]
+        self.last_centres = (c_l, c_r)
         return lum_l, lum_r
 
     def _roi_sigma(self, fit: GridFit) -> float:

@@ -75,6 +75,10 @@ def test_recording_round_trip(tmp_path: Path) -> None:
                      "frames_dropped": 2, "pairs_decoded": 118, "packets_ok": 2, "packets_bad": 1,
                      "latency_ms_p50": 3.5, "latency_ms_p99": 9.0, "ring_fill": 0.25, "ser": 1e-3,
                      "zmq_dropped": 0, "running": True, "note": "x"})
+    view.log_record({"type": "range_leds", "tx": 0, "frame": 40, "t_s": 0.04, "n_valid": 2,
+                     "z_m": [30.5, None, 30.7, None], "sigma_m": [0.1, None, 0.1, None]})
+    view.log_record({"type": "range_filtered", "tx": 0, "frame": 41, "t_s": 0.041, "z_m": 30.4,
+                     "sigma_m": 0.01, "closing_speed_mps": 11.1, "accepted": True})
     view.log_record({"type": "hello"})              # unknown types are ignored
     assert view.errors == 0
     view.close()
@@ -107,6 +111,10 @@ def test_recording_round_trip(tmp_path: Path) -> None:
     np.testing.assert_allclose([v[0] for _, v in z], 30 + np.arange(n_frames) / 100)
     assert data["/range/z_m/tx0/led3"]["Scalars:scalars"] == [(5, [31.0])]
     assert data["/range/sigma_m/tx0"]["Scalars:scalars"][0] == (0, [0.05])
+    assert data["/range/z_m/tx0/led0"]["Scalars:scalars"] == [(40, [30.5])]
+    assert data["/range/z_m/tx0/led2"]["Scalars:scalars"] == [(40, [30.7])]
+    assert "/range/z_m/tx0/led1" not in data              # null: no valid range
+    assert data["/range_filtered/closing_speed_mps/tx0"]["Scalars:scalars"] == [(41, [11.1])]
 
     assert data["/packets/ok/tx0"]["Scalars:scalars"] == [(10, [1.0]), (30, [2.0])]
     assert data["/packets/bad/tx0"]["Scalars:scalars"] == [(20, [1.0])]

@@ -216,3 +216,26 @@ def test_a_killed_demodulation_worker_is_replaced() -> None:
     pk = [r for r in recs if r["type"] == "packet" and r["crc_ok"]]
     payloads = scene.truth(frames).payloads
     assert len(pk) >= 2 and all(bytes.fromhex(r["payload_hex"]) in payloads for r in pk)
+
+
+def test_per_led_range_records_at_a_reduced_rate() -> None:
+    """[ranging] per_led: a range_leds record on every 10th frame with one range per LED
+    (null where none), against the simulator's truth; separate from the whole-array
+    range records, which stay one per frame."""
+    cfg = default_config()
+    cfg = cfg.replace(extra={**cfg.extra, "ranging": {"per_led": True, "per_led_every_frames": 10}})
+    frames = np.arange(0, 640)
+    recs, dec, scene = _decode(cfg, frames, ranging=True)
+    rl = [r for r in recs if r["type"] == "range_leds"]
+    assert rl and all(r["frame"] % 10 == 0 for r in rl) and all(len(r["z_m"]) == 64 for r in rl)
+    z = np.array([[np.nan if v is None else v for v in r["z_m"]] for r in rl])
+    assert all(r["n_valid"] == int(np.isfinite(row).sum()) for r, row in zip(rl, z))
+    err = z - scene.truth(np.array([r["frame"] for r in rl])).z_m[:, None]
+    print(f"per-LED at 30 m: {len(rl)} records, valid {np.isfinite(z).mean():.3f}, "
+          f"MAE {np.nanmean(np.abs(err)):.3f} m, bias {np.nanmean(err):+.3f} m")
+    assert np.isfinite(z).mean() > 0.9
+    assert np.nanmean(np.abs(err)) < 0.15
+    whole = [r for r in recs if r["type"] == "range"]
+    assert len(whole) > 5 * len(rl)
+    off, _, _ = _decode(default_config(), frames[:200], ranging=True)
+    assert not [r for r in off if r["type"] == "range_leds"]

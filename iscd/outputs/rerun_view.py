@@ -263,7 +263,8 @@ class RerunView:
 
     @_guarded
     def log_record(self, record: dict[str, Any]) -> None:
-        """A SPEC section 7 record (``range``, ``packet``, ``stats``); other types are ignored."""
+        """A SPEC section 7 record (``range``, ``packet``, ``stats``) or one of the project's
+        (``range_leds``, ``range_filtered``); other types are ignored."""
         kind = record.get("type")
         frame = int(record.get("frame", 0))
         t_s = float(record.get("t_s", frame / self.fps))
@@ -276,6 +277,15 @@ class RerunView:
                 v = record.get(key)
                 if isinstance(v, (int, float)) and not isinstance(v, bool):
                     self._add(f"range/{key}/{suffix}", fr, ts, np.array([[float(v)]]))
+        elif kind == "range_leds":  # one range per LED of the array ([ranging] per_led)
+            for i, v in enumerate(record.get("z_m") or []):
+                if isinstance(v, (int, float)) and not isinstance(v, bool):
+                    self._add(f"range/z_m/tx{tx}/led{i}", fr, ts, np.array([[float(v)]]))
+        elif kind == "range_filtered":  # [ranging] kalman
+            for key in ("z_m", "closing_speed_mps"):
+                v = record.get(key)
+                if isinstance(v, (int, float)) and not isinstance(v, bool):
+                    self._add(f"range_filtered/{key}/tx{tx}", fr, ts, np.array([[float(v)]]))
         elif kind == "packet":
             ok = bool(record.get("crc_ok"))
             n = self._packets[(tx, ok)] = self._packets.get((tx, ok), 0) + 1

@@ -51,7 +51,11 @@ class RangingSettings:
     saturation_dn: int = _f(0, lo=0, hi=65535, doc="grey level at which the sensor clips (0 = the frames' "
                                                     "type maximum: 255 for 8-bit; set 4095 for 12-bit data in 16 bits)")
     patch_px: int = _f(16, lo=4, hi=256, doc="per-LED ranging (LedRanger): side of a single-LED patch, px")
-    per_led: bool = _f(False, doc="per-LED ranges (LedRanger); the live pipeline does not emit them yet")
+    per_led: bool = _f(False, doc="also emit range_leds records: one range per LED of the array "
+                                  "(LedRanger, at the LEDs' followed positions) every per_led_every_frames")
+    per_led_every_frames: int = _f(10, lo=1, hi=100000,
+                                   doc="per-LED ranges on one frame in this many (a 64-LED array costs "
+                                       "~1.2 ms a frame: 10 = 100 per-LED ranges/s per LED)")
     kalman: bool = _f(False, doc="also emit range_filtered records: Kalman-filtered range and closing speed")
     accel_psd: float = _f(1.0, lo=0, lo_open=True, doc="Kalman process noise, (m/s^2)^2/Hz")
     kalman_gate: float = _f(5.0, lo=0, lo_open=True, doc="Kalman outlier gate, standard deviations")
