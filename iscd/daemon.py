@@ -8,8 +8,12 @@ Process layout (2 cores, so decoding and acquisition do not share a GIL):
   the oldest pair if the decoder falls behind (counted, never blocking the cameras);
 * this process takes pairs from the ring in small blocks (at most ``block_max`` pairs, so
   that latency stays low), copies only the pixels the decoder needs once the transmitter
-  is tracked, runs :class:`iscd.pipeline.StreamDecoder` and hands records to the outputs
-  (JSON Lines, optional ZeroMQ socket, optional Rerun view).
+  is tracked, runs :class:`iscd.pipeline.StreamDecoder` (per frame: tracking, the LEDs
+  followed and their luminance, ranging) and hands records to the outputs (JSON Lines,
+  optional ZeroMQ socket, optional Rerun view);
+* a demodulation worker process (:mod:`iscd.demod_worker`) holds the packet assembler:
+  a packet's demodulation (0.1-0.2 s of many small numpy calls) would otherwise hold the
+  GIL against the frame loop. A killed worker is replaced (``demod_worker_restarts``).
 
 A ``stats`` record is written every ``stats_interval_s`` and once at the end. SIGTERM and
 SIGINT stop the loop gracefully (the final stats record is written and the files flushed);

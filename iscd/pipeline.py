@@ -24,7 +24,7 @@ import time
 from collections import deque
 from concurrent.futures import Future, ThreadPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -72,6 +72,12 @@ def _jsonable(rec: dict[str, Any]) -> dict[str, Any]:
     return out
 
 
+def _spread(centres: np.ndarray) -> float:
+    """RMS distance of points (N, 2) from their mean, px (0 for one point)."""
+    c = np.asarray(centres, dtype=np.float64)
+    return float(np.sqrt(((c - c.mean(0)) ** 2).sum(1).mean())) if c.shape[0] > 1 else 0.0
+
+
 def _clip(b: tuple[int, int, int, int], W: int, H: int) -> tuple[int, int, int, int]:
     return max(0, b[0]), max(0, b[1]), min(W, b[2]), min(H, b[3])
 
@@ -96,6 +102,8 @@ class _Track:
     """decoded frames since acquisition, the last packet or a search restart"""
     roi_radius: tuple[int, int] = (1, 1)
     """half-size of the box that follows each spot, per camera"""
+    spread0: tuple[float, float] = (0.0, 0.0)
+    """RMS distance of the LEDs from the array's centre at acquisition, px, per camera"""
     roi_sigma: tuple[float, float] = (1.0, 1.0)
     """Gaussian luminance window per camera, px, fixed while the track lasts (a changing
     window would change the channel within a packet)"""
@@ -355,8 +363,10 @@ class StreamDecoder:
         self._acq_ids.clear()
 
     FOLLOW_MAX_PX = 2.0
-    """The LEDs are followed from the last frame's refined centres unless these have moved
-    further than this from the grid fit (then the fit restarts them)."""
+    """The LEDs are followed from the last frame's refined centres unless the array's
+    centre there is further than this (or half a pitch, if more) from the grid fit's
+    (then the fit restarts them). The centre, not each LED: from close by the fit's
+    pitch lags and its edge LEDs are pixels off while the followed ones are right."""
 
     MOTION_HORIZON = 4.0
     """The grid's motion is extrapolated at most this many tracking intervals ahead."""
@@ -400,16 +410,40 @@ class StreamDecoder:
         for side in (0, 1):
             start = self.led_centres(side, frame_ids)
             prev = self._followed[side]
+            fit = tr.left if side == 0 else tr.right
+            limit = max(self.FOLLOW_MAX_PX, 0.5 * fit.pitch_px)
             if prev is not None and prev.shape == start.shape[1:] and \
-                    float(np.abs(prev - start[0]).max()) <= self.FOLLOW_MAX_PX:
+                    float(np.abs(prev.mean(0) - start[0].mean(0)).max()) <= limit:
                 start = prev  # where the LEDs were in the last frame
             starts.append(start)
+        growth = self._growth(starts)
+        box = 2 * max(1, int(round(max(tr.roi_radius) * max(growth)))) + 1
         (c_l, c_r), (lum_l, lum_r) = follow_and_measure(
-            [left, right], starts, 2 * max(tr.roi_radius) + 1, list(tr.roi_sigma),
+            [left, right], starts, box,
+            [float(np.clip(sig * g, 0.6, max(sig, self.MAX_SIGMA_PX))) for sig, g in zip(tr.roi_sigma, growth)],
             use=grid_sample(self.rows, self.cols))
         self._followed = [c_l[-1].copy(), c_r[-1].copy()]
         self.last_centres = (c_l, c_r)
         return lum_l, lum_r
+
+    MAX_SIGMA_PX = 4.0
+    """Largest Gaussian luminance window, px (an array seen from close by)."""
+
+    def _growth(self, starts: list[np.ndarray]) -> list[float]:
+        """Per camera how much the array's image has grown since acquisition (its spread
+        now over its spread then; 1 for one LED). The following box and the Gaussian
+        window grow with it: an array that comes from 50 to 10 m grows 5x, its spots
+        become discs, and a window fixed at 50 m would see only their saturated cores and
+        a box inside a flat core no centroid. The growth within a block is small and
+        smooth, which the tracked channel follows."""
+        tr = self.track
+        assert tr is not None
+        out = []
+        for side, st in enumerate(starts):
+            ref = tr.spread0[side]
+            c = np.asarray(st, dtype=np.float64).reshape(-1, st.shape[-2], 2)[0]
+            out.append(max(1.0, _spread(c) / ref) if ref > 0 else 1.0)
+        return out
 
     def _roi_sigma(self, fit: GridFit) -> float:
         """Gaussian luminance window, px: the configured one, or (auto) matched to the
@@ -486,6 +520,7 @@ class StreamDecoder:
         self.track = _Track(left=fl, right=fr, first_score=min(fl.score, fr.score),
                             roi_radius=(self._roi_radius(fl), self._roi_radius(fr)),
                             roi_sigma=(self._roi_sigma(fl), self._roi_sigma(fr)),
+                            spread0=(_spread(fl.centers), _spread(fr.centers)),
                             since_frame=int(frame_ids[-1]), fit_frame=float(meta[:, 0].mean()))
         self.counters["acquisitions"] += 1
         self._new_assembler()
@@ -521,6 +556,8 @@ class StreamDecoder:
             nr = track_array(R, tr.right.shifted(-bx0, -by0)).shifted(bx0, by0)
         except ValueError:
             nl = nr = None  # type: ignore[assignment]
+        if nl is not None and nr is not None:
+            nl, nr = self._agree_with_followed(0, nl), self._agree_with_followed(1, nr)
         score = min(nl.score, nr.score) if nl is not None and nr is not None else 0.0
         n_fit = L.shape[0]
         if score < self.settings.lost_score_ratio * tr.first_score:
@@ -548,6 +585,29 @@ class StreamDecoder:
             # counted in decoded frames, so dropped frames never condemn a transmitter
             self._exclude(tr, now, f"sent no header for {self.settings.verify_packets:g} packets")
             self.track = None
+
+    FOLLOW_TRUST_PX = 1.0
+    """A grid fit further than this (RMS over the LEDs) from the LEDs as followed frame by
+    frame is replaced by the grid through the followed positions."""
+
+    def _agree_with_followed(self, side: int, fit: GridFit) -> GridFit:
+        """The grid fit, or the grid through the LEDs' followed positions (least squares
+        origin and pitch) when they disagree: the fit is made on an activity map of tens of
+        frames and, from close by, with discs for spots, can lock a fraction of a pitch off
+        while the followed positions stay within hundredths of a pixel."""
+        fol = self._followed[side]
+        if fol is None or fit.rows * fit.cols < 2 or fol.shape != (fit.rows * fit.cols, 2):
+            return fit
+        if float(np.sqrt(((fit.centers - fol) ** 2).sum(1).mean())) <= self.FOLLOW_TRUST_PX:
+            return fit
+        r, c = np.divmod(np.arange(fit.rows * fit.cols), fit.cols)
+        g = np.stack([c, r], 1).astype(np.float64)
+        gc, fc = g - g.mean(0), fol - fol.mean(0)
+        pitch = float((gc * fc).sum() / (gc * gc).sum())
+        if not pitch > 0:
+            return fit
+        origin = fol.mean(0) - pitch * g.mean(0)
+        return replace(fit, origin=(float(origin[0]), float(origin[1])), pitch_px=pitch)
 
     def _exclude(self, tr: _Track, now: int, why: str) -> None:
         """Reject a candidate: acquisition ignores its place for ``exclude_packets`` packets."""

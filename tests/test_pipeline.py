@@ -239,3 +239,32 @@ def test_per_led_range_records_at_a_reduced_rate() -> None:
     assert len(whole) > 5 * len(rl)
     off, _, _ = _decode(default_config(), frames[:200], ranging=True)
     assert not [r for r in off if r["type"] == "range_leds"]
+
+
+def test_leds_followed_frame_by_frame_from_50_to_15_m() -> None:
+    """An 8x8 array closing at 40 km/h from 50 m with 0.3 px RMS rig vibration: the LED
+    positions the decoder measures in each frame (both cameras) stay within 0.08 px RMS of
+    the truth to 20 m (0.006-0.056 measured) and within 0.5 px at 15 m (its pitch has grown 4.2 -> 14 px; the
+    activity-map grid fit alone is 0.3-1.3 px off)."""
+    from iscd.eval.suites import APPROACH_SPEED_MPS, chapter4_cfg
+
+    cfg = chapter4_cfg(default_config(), 50.0, 8, 8.0, 7, speed_mps=APPROACH_SPEED_MPS, vibration_px=0.3)
+    errs: list[tuple[float, float, float]] = []
+
+    def check(dec: StreamDecoder, last: int) -> None:
+        if dec.last_centres is None or last % 160 != 15:
+            return
+        ids = np.arange(last - 15, last + 1)
+        tr = scene_ref[0].truth(ids)
+        cl, cr = dec.last_centres
+        el = np.sqrt(((cl - np.stack([tr.u_left, tr.v_left], -1)) ** 2).sum(-1).mean())
+        er = np.sqrt(((cr - np.stack([tr.u_right, tr.v_right], -1)) ** 2).sum(-1).mean())
+        errs.append((float(tr.z_m[0]), float(el), float(er)))
+
+    scene_ref = [Scene(cfg)]
+    _decode(cfg, np.arange(0, 3200), block=16, on_block=check)
+    print([(round(z, 1), round(a, 3), round(b, 3)) for z, a, b in errs])
+    far = [max(a, b) for z, a, b in errs if z >= 20.0]
+    near = [max(a, b) for z, a, b in errs if z < 20.0]
+    assert len(far) >= 15 and max(far) < 0.08
+    assert near and max(near) < 0.5

@@ -382,8 +382,10 @@ def markdown(results: EvalResults, plots: dict[str, str] | None = None, note: st
         out += ["Per point:", "", comms_table(results.hdr, dissertation_col=False)]
     if results.approach:
         out += ["", "## A car approaching", "",
-                "8x8 array, PWM-8, HDR f/4 + f/8, closing at 40 km/h from 50 m (so about 21 m after two "
-                "packets), 0.3 px RMS rig vibration:", "", comms_table(results.approach, dissertation_col=False)]
+                "8x8 array, PWM-8, HDR f/4 + f/8, closing at 40 km/h from 50 m for two packets (to about "
+                "21 m), 0.3 px RMS rig vibration. (Closer than ~17 m, where the light grows 30 % within "
+                "the channel window and both cameras saturate, the receiver does not decode yet.)", "",
+                comms_table(results.approach, dissertation_col=False)]
     if results.ranging:
         out += ["", "## Ranging (dissertation chapter 3, fig. 3.7)", "",
                 f"One LED, PWM-8, b = 0.6 m, f/4, right camera defocused (0.3 px), independent air "

@@ -8,6 +8,12 @@ outside the image are left out of its mean (a window entirely outside gives NaN)
 
 * :func:`roi_mean` -- the dissertation's luminance (3.10): the mean of the pixel values in
   the LED's rectangular ROI.
+* :func:`gauss_mean` -- the pipeline's: (3.10) with Gaussian weights around the exact
+  sub-pixel LED position, the same at every sub-pixel phase (a box is not).
+* :func:`refine_centres` -- each frame's LED positions: the array's shift and scale in that
+  frame from spot centroids (rig vibration, an approaching array).
+  :func:`follow_and_measure` does both for both cameras from one patch gather
+  (:func:`gather_patches`).
 * :class:`SpotLuminance` -- per frame, least squares of all windows' pixels against
   per-LED spot templates (estimated from the data by alternating least squares, each
   template confined to its LED's window, with a static per-pixel background). Pixels at
