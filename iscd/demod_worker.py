@@ -44,13 +44,28 @@ def _call(op: str, *args: Any) -> list[Packet]:
     raise ValueError(f"demodulation worker: unknown operation {op!r}")
 
 
+WORKER_NICE = 5
+"""The worker runs at a lower priority than the acquisition and the frame loop: it has a
+whole packet's time (1.3 s) for each packet, they have a millisecond per frame."""
+
+
+def _init() -> None:
+    import os
+
+    try:
+        os.nice(WORKER_NICE)
+    except OSError:  # not permitted (some containers): run at normal priority
+        pass
+
+
 class DemodWorker:
     """One worker process holding a packet assembler; operations run in submission order."""
 
     def __init__(self) -> None:
         # spawn: the decoding process runs threads; the worker inherits its environment
         # (one BLAS thread, set by the CLI before numpy loads)
-        self._pool = ProcessPoolExecutor(max_workers=1, mp_context=multiprocessing.get_context("spawn"))
+        self._pool = ProcessPoolExecutor(max_workers=1, mp_context=multiprocessing.get_context("spawn"),
+                                         initializer=_init)
 
     @property
     def pids(self) -> list[int]:

@@ -168,6 +168,8 @@ class StreamDecoder:
         self._blk_ids: list[np.ndarray] = []
         self._followed: list[np.ndarray | None] = [None, None]
         """per camera, the LED centres (N, 2) px refined in the last decoded frame"""
+        self._lit_light: np.ndarray | None = None
+        """per camera, the box light of a lit LED (following ignores LEDs far below it)"""
         self._win: tuple[tuple[int, int, int, int], tuple[int, int, int, int]] = ((0, 0, 0, 0), (0, 0, 0, 0))
         self._new_assembler()
         self.counters: dict[str, int] = {"acquisitions": 0, "losses": 0, "rejected_candidates": 0,
@@ -357,6 +359,7 @@ class StreamDecoder:
         self._blk_r.clear()
         self._blk_ids.clear()
         self._followed = [None, None]
+        self._lit_light = None
         self._since_fit = 0
         self._acq_l.clear()
         self._acq_r.clear()
@@ -418,10 +421,14 @@ class StreamDecoder:
             starts.append(start)
         growth = self._growth(starts)
         box = 2 * max(1, int(round(max(tr.roi_radius) * max(growth)))) + 1
+        info: dict[str, np.ndarray] = {}
         (c_l, c_r), (lum_l, lum_r) = follow_and_measure(
             [left, right], starts, box,
             [float(np.clip(sig * g, 0.6, max(sig, self.MAX_SIGMA_PX))) for sig, g in zip(tr.roi_sigma, growth)],
-            use=grid_sample(self.rows, self.cols))
+            use=grid_sample(self.rows, self.cols), lit_light=self._lit_light, info=info)
+        # the light of a lit LED, held over dark stretches (halves in ~5 s of darkness)
+        light = info["light"]
+        self._lit_light = light if self._lit_light is None else np.maximum(light, self.LIT_DECAY * self._lit_light)
         self._followed = [c_l[-1].copy(), c_r[-1].copy()]
         self.last_centres = (c_l, c_r)
         return lum_l, lum_r
@@ -517,6 +524,7 @@ class StreamDecoder:
             log.debug("transmitter seen in the left camera at %s but not matched in the right", fl.center)
             return None
         self._followed = [None, None]
+        self._lit_light = None
         self.track = _Track(left=fl, right=fr, first_score=min(fl.score, fr.score),
                             roi_radius=(self._roi_radius(fl), self._roi_radius(fr)),
                             roi_sigma=(self._roi_sigma(fl), self._roi_sigma(fr)),
@@ -585,6 +593,9 @@ class StreamDecoder:
             # counted in decoded frames, so dropped frames never condemn a transmitter
             self._exclude(tr, now, f"sent no header for {self.settings.verify_packets:g} packets")
             self.track = None
+
+    LIT_DECAY = 0.998
+    """Per block, how much of the remembered light of a lit LED is kept."""
 
     FOLLOW_TRUST_PX = 1.0
     """A grid fit further than this (RMS over the LEDs) from the LEDs as followed frame by

@@ -109,3 +109,26 @@ def test_refine_centres_single_led_and_dark_frames() -> None:
     np.testing.assert_array_equal(got[2], start)
     with pytest.raises(ValueError, match="frames"):
         refine_centres(frames[0], start)
+
+
+def test_a_dark_stretch_does_not_walk_the_centres_away() -> None:
+    """A block in which every LED is dark (zero padding, a dark symbol run): with the light
+    of a lit LED remembered from an earlier block, noise moves no LED (without it, a
+    tenth of the block's own 90th percentile is noise, and the centres would wander)."""
+    base = _grid(8, 4.2)
+    F = 16
+    lit = _integrated_spots(np.broadcast_to(base, (F, 64, 2)).copy(), np.full((F, 64), 600.0), (80, 80),
+                            sigma=0.85, noise=1.0, seed=2)
+    info: dict = {}
+    from iscd.receiver.luminance import gather_patches, refine_in_patches
+
+    p = gather_patches(lit, base, 3)
+    refine_in_patches(p, np.broadcast_to(base, (F, 64, 2)), 3, info=info)
+    dark = _integrated_spots(np.broadcast_to(base, (F, 64, 2)).copy(), np.zeros((F, 64)), (80, 80),
+                             sigma=0.85, noise=1.0, seed=3)
+    start = base + 0.2
+    pd = gather_patches(dark, start, 3)
+    held = refine_in_patches(pd, np.broadcast_to(start, (F, 64, 2)), 3, lit_light=info["light"])
+    np.testing.assert_array_equal(held, np.broadcast_to(start, (F, 64, 2)))
+    wander = refine_in_patches(pd, np.broadcast_to(start, (F, 64, 2)), 3)
+    assert np.abs(wander - start).max() > 0.05

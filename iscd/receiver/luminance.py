@@ -202,14 +202,19 @@ def gauss_mean(frames: np.ndarray, centres: np.ndarray, sigma_px: float = 1.0,
 
 def refine_in_patches(p: Patches, centres: np.ndarray, size: int = 3, iterations: int = 3,
                       scale: bool = True, max_px: float = 1.5, groups: int = 1,
-                      use: np.ndarray | None = None, accelerate: bool = True) -> np.ndarray:
+                      use: np.ndarray | None = None, accelerate: bool = True,
+                      lit_light: np.ndarray | None = None, info: dict | None = None) -> np.ndarray:
     """:func:`refine_centres` on patches gathered around ``centres`` (F, N, 2) px (the
     patches must reach size / 2 + max_px px around them). ``groups``: the frames are that
     many equal runs from different cameras (their light levels differ), each with its own
     least-light threshold. ``use``: indices of the LEDs whose centroids are measured (all
     by default); the shift and scale they give move every LED. ``accelerate``: the second
     round extrapolates the geometric series of the rounds' steps (3 rounds then do what 6
-    plain ones would)."""
+    plain ones would). ``lit_light``: per group, the box light of a lit LED known from
+    earlier blocks; an LED counts only with a tenth of it (else a tenth of this block's
+    90th percentile, which in a block where every LED is dark -- zero padding -- is noise,
+    and noise would walk the centres away). ``info``: filled with this block's 90th
+    percentile per group (``"light"``), to keep as the next block's ``lit_light``."""
     w = _window(size)[0]
     c0 = np.asarray(centres, dtype=np.float64)
     F, N = c0.shape[:2]
@@ -236,7 +241,10 @@ def refine_in_patches(p: Patches, centres: np.ndarray, size: int = 3, iterations
         wt = np.maximum(tot, 0.0).astype(np.float64)
         if floor is None:
             per = np.percentile(wt.reshape(groups, -1), 90, axis=1)  # (groups,)
-            floor = np.repeat(0.1 * per, F // groups)[:, None]
+            if info is not None:
+                info["light"] = per
+            ref = per if lit_light is None else np.maximum(per, np.asarray(lit_light, dtype=np.float64))
+            floor = np.repeat(0.1 * ref, F // groups)[:, None]
         wt[wt < floor] = 0.0
         norm = wt.sum(1, keepdims=True)  # (F, 1)
         safe_n = np.where(norm > 0, norm, 1.0)
@@ -272,15 +280,17 @@ def grid_sample(rows: int, cols: int, per_axis: int = 4) -> np.ndarray:
 
 
 def follow_and_measure(frames: list[np.ndarray], starts: list[np.ndarray], size: int,
-                       sigmas: list[float], use: np.ndarray | None = None, iterations: int = 3
+                       sigmas: list[float], use: np.ndarray | None = None, iterations: int = 3,
+                       lit_light: np.ndarray | None = None, info: dict | None = None
                        ) -> tuple[list[np.ndarray], list[np.ndarray]]:
     """Follow the LEDs and measure their luminance in each camera, in one vectorized pass.
 
     frames: per camera (F, H, W); starts: per camera (N, 2) or (F, N, 2) px, where the
     LEDs are thought to be; size: the following box, px; sigmas: per camera the Gaussian
     window, px. One patch gather per camera serves both steps: :func:`refine_in_patches`
-    (shift and scale of each frame, from the LEDs ``use``) and :func:`gauss_in_patches`.
-    Returns per camera the refined centres (F, N, 2) px and the luminance (F, N) DN.
+    (shift and scale of each frame, from the LEDs ``use``; ``lit_light`` and ``info`` as
+    there, per camera) and :func:`gauss_in_patches`. Returns per camera the refined
+    centres (F, N, 2) px and the luminance (F, N) DN.
     """
     F = frames[0].shape[0]
     half = max(patch_half(size), int(np.ceil(2.5 * max(sigmas))) + 1)
@@ -290,7 +300,8 @@ def follow_and_measure(frames: list[np.ndarray], starts: list[np.ndarray], size:
     pix = np.empty((len(frames) * F, N, K, K), np.float32)  # every camera's patches, stacked
     ps = [gather_patches(fr, s, half, out=pix[k * F:(k + 1) * F]) for k, (fr, s) in enumerate(zip(frames, st))]
     p = Patches(pix=pix, x0=np.concatenate([q.x0 for q in ps]), y0=np.concatenate([q.y0 for q in ps]))
-    c = refine_in_patches(p, np.concatenate(st), size, iterations, groups=len(frames), use=use)
+    c = refine_in_patches(p, np.concatenate(st), size, iterations, groups=len(frames), use=use,
+                          lit_light=lit_light, info=info)
     lum = gauss_in_patches(p, c, np.repeat(np.asarray(sigmas, dtype=np.float64), F))
     n = len(frames)
     return [c[k * F:(k + 1) * F] for k in range(n)], [lum[k * F:(k + 1) * F] for k in range(n)]
