@@ -173,7 +173,7 @@ class RigConfig:
     right: str = _f("", doc="right camera, as left")
     producer: str = _f("", doc="GenTL producer .cti path (default: GENICAM_GENTL64_PATH)")
     pace: bool = _f(True, doc="mock: deliver frames at fps in real time (False: as fast as possible)")
-    buffer_frames: int = _f(128, lo=1, hi=4096, doc="frames a camera buffers for a late reader (mock: queue; genicam: buffers)")
+    buffer_frames: int = _f(256, lo=1, hi=4096, doc="frames a camera buffers for a late reader (mock: queue; genicam: buffers)")
     faults: list[FaultConfig] = _f([], doc="mock: injected faults")
 
 

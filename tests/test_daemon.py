@@ -216,6 +216,7 @@ def test_soak_full_rate(tmp_path: Path) -> None:
     recs = _records(out)
     stats = [r for r in recs if r["type"] == "stats"]
     final = stats[-1]
+    print({k: v for k, v in final.items() if k != "acquisition"}, final["acquisition"])
     assert final["frames_dropped"] == 0
     assert final["packets_bad"] == 0 and final["packets_ok"] >= 40
     assert final["latency_ms_p99"] <= 30
