@@ -461,7 +461,7 @@ class StreamDecoder:
             return float(s)
         s = fit.spot_px / 2.355
         if fit.rows * fit.cols > 1 and fit.pitch_px > 0:
-            s = min(s, fit.pitch_px / 5.0)
+            s = min(s, (fit.pitch_px - 0.8) / 4.0)
         return float(np.clip(s, 0.6, 2.0))
 
     def _roi_radius(self, fit: GridFit) -> int:

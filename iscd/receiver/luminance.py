@@ -182,7 +182,7 @@ def gauss_mean(frames: np.ndarray, centres: np.ndarray, sigma_px: float = 1.0,
     """Gaussian-weighted mean grey level around each LED: (F, N) float32 DN.
 
     The weights ``exp(-d^2 / (2 sigma^2))`` are evaluated at the pixel centres around the
-    exact (sub-pixel) LED position, over (2 radius + 1)^2 pixels (radius = ceil(2.5
+    exact (sub-pixel) LED position, over (2 radius + 1)^2 pixels (radius = ceil(3.5
     sigma) by default), and normalized to sum 1. Unlike a box, whose sharp edges make
     the captured light depend on where the spot sits within its pixel (a few % of an
     unsaturated spot with 0.3 px of vibration: the dominant noise of the f/8 camera of an
@@ -194,7 +194,7 @@ def gauss_mean(frames: np.ndarray, centres: np.ndarray, sigma_px: float = 1.0,
     """
     if not sigma_px > 0:
         raise ValueError(f"sigma_px must be > 0, got {sigma_px}")
-    R = int(np.ceil(2.5 * sigma_px)) if radius is None else int(radius)
+    R = int(np.ceil(3.5 * sigma_px)) if radius is None else int(radius)
     p = gather_patches(frames, centres, R)
     c = np.broadcast_to(np.asarray(centres, dtype=np.float64), p.x0.shape + (2,))
     return gauss_in_patches(p, c, sigma_px)
@@ -293,7 +293,9 @@ def follow_and_measure(frames: list[np.ndarray], starts: list[np.ndarray], size:
     centres (F, N, 2) px and the luminance (F, N) DN.
     """
     F = frames[0].shape[0]
-    half = max(patch_half(size), int(np.ceil(2.5 * max(sigmas))) + 1)
+    # the Gaussian reaches 3.5 sigma on every side however the LED sits in its patch (a
+    # truncated window would depend on the sub-pixel position again)
+    half = max(patch_half(size), int(np.ceil(3.5 * max(sigmas))) + 1)
     st = [np.broadcast_to(np.asarray(s, dtype=np.float64), (F,) + np.shape(s)[-2:]) for s in starts]
     N = st[0].shape[1]
     K = 2 * half + 1
