@@ -56,7 +56,7 @@ class PipelineSettings:
     lost_packets: float = field(default=1.2, metadata={"lo": 0.1, "doc": "dark this many packet durations = lost"})
     lost_score_ratio: float = field(default=0.2, metadata={"lo": 0, "hi": 1, "doc": "grid score below this share of the first fit = lost"})
     roi_radius_px: int = field(default=-1, metadata={"lo": -1, "hi": 8, "doc": "half-size of the box that follows each spot frame by frame, px ((2r+1)^2 pixels); -1 = from the spot size and LED pitch"})
-    roi_sigma_px: float = field(default=-1.0, metadata={"lo": -1.0, "hi": 8.0, "doc": "luminance window: Gaussian weights of this RMS radius, px; -1 = matched to the spot (its FWHM / 2.355, at most pitch / 5 in an array)"})
+    roi_sigma_px: float = field(default=-1.0, metadata={"lo": -1.0, "hi": 8.0, "doc": "luminance window: Gaussian weights of this RMS radius, px; -1 = matched to the spot (its FWHM / 2.355, at most (pitch - 0.8) / 4 in an array)"})
     ranging: bool = field(default=True, metadata={"doc": "measure the range every frame"})
 
 
@@ -454,7 +454,7 @@ class StreamDecoder:
 
     def _roi_sigma(self, fit: GridFit) -> float:
         """Gaussian luminance window, px: the configured one, or (auto) matched to the
-        spot (FWHM / 2.355), at most a fifth of the pitch in an array (a neighbour's
+        spot (FWHM / 2.355), at most (pitch - 0.8) / 4 in an array (a neighbour's
         light then weighs ~1 %)."""
         s = self.settings.roi_sigma_px
         if s > 0:
