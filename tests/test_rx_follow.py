@@ -114,10 +114,11 @@ def test_refine_centres_single_led_and_dark_frames() -> None:
 def test_a_dark_stretch_does_not_walk_the_centres_away() -> None:
     """A block in which every LED is dark (zero padding, a dark symbol run): with the light
     of a lit LED remembered from an earlier block, noise moves no LED (without it, a
-    tenth of the block's own 90th percentile is noise, and the centres would wander)."""
+    tenth of the block's own 90th percentile is noise, and the centres wander)."""
     base = _grid(8, 4.2)
     F = 16
-    lit = _integrated_spots(np.broadcast_to(base, (F, 64, 2)).copy(), np.full((F, 64), 600.0), (80, 80),
+    levels = np.random.default_rng(4).integers(0, 8, size=(F, 64)) / 7.0  # PWM-8 data, dark ones too
+    lit = _integrated_spots(np.broadcast_to(base, (F, 64, 2)).copy(), levels * 600.0, (80, 80),
                             sigma=0.85, noise=1.0, seed=2)
     info: dict = {}
     from iscd.receiver.luminance import gather_patches, refine_in_patches
@@ -132,3 +133,24 @@ def test_a_dark_stretch_does_not_walk_the_centres_away() -> None:
     np.testing.assert_array_equal(held, np.broadcast_to(start, (F, 64, 2)))
     wander = refine_in_patches(pd, np.broadcast_to(start, (F, 64, 2)), 3)
     assert np.abs(wander - start).max() > 0.05
+
+
+def test_all_dark_frames_over_a_textured_background_do_not_move_the_leds() -> None:
+    """A header's dark symbols over a textured background (the failure the 60 s daemon run
+    found: the texture's own 'centroids' moved the LEDs by a pixel): the background is
+    each pixel's least value over the block, so a dark frame keeps its centres and the lit
+    frames are still followed."""
+    rng = np.random.default_rng(5)
+    base = _grid(8, 7.0)
+    F = 16
+    amp = rng.integers(0, 8, size=(F, 64)) / 7.0 * 3000.0
+    amp[[4, 5, 11]] = 0.0  # three frames with every LED dark
+    shift = rng.normal(0.0, 0.2, size=(F, 2))
+    true = base[None] + shift[:, None, :]
+    texture = rng.uniform(20.0, 80.0, size=(90, 90))
+    frames = _integrated_spots(true, amp, (90, 90), sigma=1.2, background=0.0, noise=1.0, seed=6) + texture
+    got = refine_centres(frames, base, 5)
+    dark = [4, 5, 11]
+    np.testing.assert_allclose(got[dark], np.broadcast_to(base, (3, 64, 2)), atol=1e-9)
+    lit = [f for f in range(F) if f not in dark]
+    assert np.sqrt(((got[lit] - true[lit]) ** 2).sum(-1).mean()) < 0.03

@@ -221,7 +221,7 @@ def refine_in_patches(p: Patches, centres: np.ndarray, size: int = 3, iterations
     sel = np.arange(N) if use is None else np.asarray(use, dtype=np.intp)
     pix = p.pix[:, sel]
     n = sel.size
-    img = pix - pix.reshape(F, n, -1).min(-1)[..., None, None]  # light above the darkest pixel
+    img = pix - _background(pix, p.x0[:, sel], p.y0[:, sel], groups)
     xs, ys = p.xs[:, sel], p.ys[:, sel]
     cc = c0.copy()
     floor = None
@@ -268,6 +268,21 @@ def refine_in_patches(p: Patches, centres: np.ndarray, size: int = 3, iterations
         step = d[:, None, :] + sc[:, None, None] * (cc - ctr[:, None, :])
         cc = c0 + np.clip(cc + step - c0, -max_px, max_px)
     return cc
+
+
+def _background(pix: np.ndarray, x0: np.ndarray, y0: np.ndarray, groups: int) -> np.ndarray:
+    """What is not LED light in patches (F, n, K, K): per pixel the least value over the
+    frames of its group (camera) when the patches stay put over them (a textured background
+    then cancels: in a dark frame nothing is left to pull a centroid, and every lit spot
+    keeps its shape), else the patch's darkest pixel."""
+    F, n = pix.shape[:2]
+    Fg = F // groups
+    if Fg > 1 and groups * Fg == F:
+        xs, ys = x0.reshape(groups, Fg, n), y0.reshape(groups, Fg, n)
+        if bool((xs == xs[:, :1]).all() and (ys == ys[:, :1]).all()):
+            bg = pix.reshape(groups, Fg, n, *pix.shape[2:]).min(axis=1)  # (groups, n, K, K)
+            return np.repeat(bg, Fg, axis=0)
+    return pix.reshape(F, n, -1).min(-1)[..., None, None]
 
 
 def grid_sample(rows: int, cols: int, per_axis: int = 4) -> np.ndarray:
@@ -322,8 +337,9 @@ def refine_centres(frames: np.ndarray, centres: np.ndarray, size: int = 3, itera
     Rig vibration moves every spot of a camera together, frame by frame (up to tens of
     Hz), and an approaching array grows (its pitch from 4.2 to 6 px within one packet at
     40 km/h), faster than a grid fitted over tens of frames follows. Per frame and LED the
-    centroid of the light above the patch's darkest pixel is taken in a ``size`` px
-    sub-pixel box (:func:`box_cover`) around the current estimate; the LEDs' offsets,
+    centroid of the light above the background is taken in a ``size`` px
+    sub-pixel box (:func:`box_cover`) around the current estimate (the light above each
+    pixel's least value over the block, which removes a textured background); the LEDs' offsets,
     weighted by their light (LEDs with less than a tenth of the typical light count for
     nothing), are fitted by a shift (dx, dy) and, with ``scale`` and more than one LED, a
     scale about their weighted centre (least squares); the boxes are recentred and, since
