@@ -153,4 +153,4 @@ def test_all_dark_frames_over_a_textured_background_do_not_move_the_leds() -> No
     dark = [4, 5, 11]
     np.testing.assert_allclose(got[dark], np.broadcast_to(base, (3, 64, 2)), atol=1e-9)
     lit = [f for f in range(F) if f not in dark]
-    assert np.sqrt(((got[lit] - true[lit]) ** 2).sum(-1).mean()) < 0.03
+    assert np.sqrt(((got[lit] - true[lit]) ** 2).sum(-1).mean()) < 0.05  # texture +-30 DN per pixel

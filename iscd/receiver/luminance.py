@@ -221,10 +221,21 @@ def refine_in_patches(p: Patches, centres: np.ndarray, size: int = 3, iterations
     sel = np.arange(N) if use is None else np.asarray(use, dtype=np.intp)
     pix = p.pix[:, sel]
     n = sel.size
-    img = pix - _background(pix, p.x0[:, sel], p.y0[:, sel], groups)
+    # which LEDs are lit in which frame: their patch's light above each pixel's least value
+    # over the block (a textured background cancels there, so a dark frame shows nothing),
+    # against a quarter of a lit LED's (this block's 90th percentile, or what earlier
+    # blocks showed: in a block where every LED is dark that percentile is noise)
+    shown = (pix - _background(pix, p.x0[:, sel], p.y0[:, sel], groups)).sum(axis=(-2, -1))
+    per = np.percentile(shown.reshape(groups, -1), 90, axis=1)  # (groups,)
+    if info is not None:
+        info["light"] = per
+    ref = per if lit_light is None else np.maximum(per, np.asarray(lit_light, dtype=np.float64))
+    lit = shown >= np.repeat(LIT_SHARE * ref, F // groups)[:, None]
+    # the centroids: light above the patch's darkest pixel (a spot that moves within the
+    # block keeps its shape there)
+    img = pix - pix.reshape(F, n, -1).min(-1)[..., None, None]
     xs, ys = p.xs[:, sel], p.ys[:, sel]
     cc = c0.copy()
-    floor = None
     prev: tuple[np.ndarray, np.ndarray] | None = None
     for it in range(iterations):
         cs = cc[:, sel]
@@ -236,16 +247,7 @@ def refine_in_patches(p: Patches, centres: np.ndarray, size: int = 3, iterations
         safe = np.where(tot > 0, tot, 1.0)
         off = np.stack([np.einsum("fnk,fnk,fnk->fn", m_x, wx, xs) / safe - cs[..., 0],
                         np.einsum("fnk,fnk,fnk->fn", m_y, wy, ys) / safe - cs[..., 1]], -1)
-        # an LED counts when it holds a tenth of the block's typical lit-LED light (noise
-        # in a dark box would otherwise pull its frame about)
-        wt = np.maximum(tot, 0.0).astype(np.float64)
-        if floor is None:
-            per = np.percentile(wt.reshape(groups, -1), 90, axis=1)  # (groups,)
-            if info is not None:
-                info["light"] = per
-            ref = per if lit_light is None else np.maximum(per, np.asarray(lit_light, dtype=np.float64))
-            floor = np.repeat(0.1 * ref, F // groups)[:, None]
-        wt[wt < floor] = 0.0
+        wt = np.where(lit, np.maximum(tot, 0.0), 0.0).astype(np.float64)
         norm = wt.sum(1, keepdims=True)  # (F, 1)
         safe_n = np.where(norm > 0, norm, 1.0)
         d = np.einsum("fn,fnk->fk", wt, off) / safe_n  # (F, 2)
@@ -268,6 +270,10 @@ def refine_in_patches(p: Patches, centres: np.ndarray, size: int = 3, iterations
         step = d[:, None, :] + sc[:, None, None] * (cc - ctr[:, None, :])
         cc = c0 + np.clip(cc + step - c0, -max_px, max_px)
     return cc
+
+
+LIT_SHARE = 0.25
+"""An LED steers the following in a frame when its patch shows this share of a lit LED's light."""
 
 
 def _background(pix: np.ndarray, x0: np.ndarray, y0: np.ndarray, groups: int) -> np.ndarray:
