@@ -207,8 +207,9 @@ def test_bad_config_is_one_line(tmp_path: Path) -> None:
 @pytest.mark.slow
 def test_soak_full_rate(tmp_path: Path) -> None:
     """`iscd run --duration 60` on the embedded default at 1000 fps: every packet decoded,
-    no dropped frames, p99 latency <= 30 ms (measured 15-25 ms since every frame's LED
-    positions are refined; 9-13 ms before), CPU and RSS flat after warm-up."""
+    no dropped frames, p99 latency <= 40 ms (measured 24-31 ms: blocks of 16 pairs are
+    waited for, since the LED following takes its background over a block's frames; 9-13 ms
+    before the LEDs were followed), CPU and RSS flat after warm-up."""
     cfg = C.default_config()
     out = tmp_path / "soak.jsonl"
     d = Daemon(cfg, out=str(out), duration_s=60.0, install_signals=False)
@@ -219,7 +220,7 @@ def test_soak_full_rate(tmp_path: Path) -> None:
     print({k: v for k, v in final.items() if k != "acquisition"}, final["acquisition"])
     assert final["frames_dropped"] == 0
     assert final["packets_bad"] == 0 and final["packets_ok"] >= 40
-    assert final["latency_ms_p99"] <= 30
+    assert final["latency_ms_p99"] <= 40
     rss = [s["rss_mb"] for s in stats[10:-1]]
     assert max(rss) - min(rss) < 50
     cpu = [s["cpu_cores"] for s in stats[10:-1]]
