@@ -210,11 +210,12 @@ def refine_in_patches(p: Patches, centres: np.ndarray, size: int = 3, iterations
     least-light threshold. ``use``: indices of the LEDs whose centroids are measured (all
     by default); the shift and scale they give move every LED. ``accelerate``: the second
     round extrapolates the geometric series of the rounds' steps (3 rounds then do what 6
-    plain ones would). ``lit_light``: per group, the box light of a lit LED known from
-    earlier blocks; an LED counts only with a tenth of it (else a tenth of this block's
-    90th percentile, which in a block where every LED is dark -- zero padding -- is noise,
-    and noise would walk the centres away). ``info``: filled with this block's 90th
-    percentile per group (``"light"``), to keep as the next block's ``lit_light``."""
+    plain ones would). ``lit_light``: per group, the patch light of a lit LED known from
+    earlier blocks; an LED steers a frame only with ``LIT_SHARE`` of it or of this block's
+    90th percentile, whichever is more (in a block where every LED is dark -- zero padding
+    -- that percentile is noise, and noise would walk the centres away). ``info``: filled
+    with this block's 90th percentile per group (``"light"``), to keep as the next block's
+    ``lit_light``."""
     w = _window(size)[0]
     c0 = np.asarray(centres, dtype=np.float64)
     F, N = c0.shape[:2]
@@ -346,8 +347,8 @@ def refine_centres(frames: np.ndarray, centres: np.ndarray, size: int = 3, itera
     centroid of the light above the background is taken in a ``size`` px
     sub-pixel box (:func:`box_cover`) around the current estimate (the light above each
     pixel's least value over the block, which removes a textured background); the LEDs' offsets,
-    weighted by their light (LEDs with less than a tenth of the typical light count for
-    nothing), are fitted by a shift (dx, dy) and, with ``scale`` and more than one LED, a
+    weighted by their light (LEDs with less than a quarter of a lit LED's light, measured
+    above each pixel's least value over the block, count for nothing), are fitted by a shift (dx, dy) and, with ``scale`` and more than one LED, a
     scale about their weighted centre (least squares); the boxes are recentred and, since
     a box truncates the spot and recovers only part of an offset, a few rounds converge.
     centres: (N, 2) or (F, N, 2) px. A frame without light keeps its centres; the
