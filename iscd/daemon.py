@@ -292,6 +292,7 @@ class Daemon:
             notifier.stopping(status="stopped")
             return final
         finally:
+            decoder.close()  # no demodulation worker outlives the daemon (after finish: a no-op)
             try:
                 acq.stop()
             except Exception as e:  # pragma: no cover - best effort on the way out

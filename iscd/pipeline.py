@@ -351,6 +351,18 @@ class StreamDecoder:
         flush = getattr(self.assembler, "flush", None)
         return out + (self._records(flush()) if flush is not None else [])
 
+    def close(self) -> None:
+        """Stop the demodulation worker (process or thread) without waiting for what it
+        still holds: for a daemon leaving on an error (:meth:`finish` is the orderly end).
+        Idempotent."""
+        if self._worker is not None:
+            self._worker.shutdown(wait=False)
+            self._worker = None
+        if self._pool is not None:
+            self._pool.shutdown(wait=False, cancel_futures=True)
+            self._pool = None
+        self._pending.clear()
+
     def restart(self) -> None:
         """Drop the track and every per-track buffer: acquisition starts again (the daemon
         calls it after a decoding error so that one bad block cannot wedge the decoder)."""

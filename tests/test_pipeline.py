@@ -268,3 +268,36 @@ def test_leds_followed_frame_by_frame_from_50_to_15_m() -> None:
     near = [max(a, b) for z, a, b in errs if z < 20.0]
     assert len(far) >= 15 and max(far) < 0.08
     assert near and max(near) < 0.5
+
+
+def test_close_stops_the_demodulation_worker() -> None:
+    """A daemon leaving on an error closes the decoder: its worker process is gone."""
+    import os
+    import time
+
+    cfg = default_config()
+    dec = StreamDecoder(cfg, async_demod="process")
+    scene = Scene(cfg)
+    H, W = cfg.camera.height, cfg.camera.width
+    L, R = np.empty((64, H, W), np.uint8), np.empty((64, H, W), np.uint8)
+    for i in range(64):
+        scene.render_pair_into(i, L[i], R[i])
+    ids = np.arange(64)
+    dec.push(ids, ids / cfg.camera.fps, L, R)
+    deadline = time.monotonic() + 10
+    while not dec.worker_pids and time.monotonic() < deadline:
+        time.sleep(0.02)
+    pids = dec.worker_pids
+    assert pids
+    dec.close()
+    dec.close()  # idempotent
+    assert dec.worker_pids == []
+    deadline = time.monotonic() + 10
+    alive = True
+    while alive and time.monotonic() < deadline:
+        try:
+            os.kill(pids[0], 0)
+            time.sleep(0.05)
+        except ProcessLookupError:
+            alive = False
+    assert not alive
