@@ -16,13 +16,16 @@ whatever was rendered before).
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+import time
+from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
+import cv2
 import numpy as np
 
 from iscd.airinterface import AirInterface, duty
 from iscd.config import Config, to_dict
+from iscd.sim import kernels
 from iscd.sim.background import background_pair, flicker_gain
 from iscd.sim.exposure import LedClock, on_time
 from iscd.sim.geometry import (Jitter, StereoGeometry, Vibration, distance, led_offsets,
@@ -57,6 +60,46 @@ class _Source:
     slot: int = 0  # footprint cache slot
 
 
+@dataclass
+class _Shape:
+    """How a source of radius R px looks in one camera (amplitude-free part of _Source)."""
+
+    tab: SpotTable
+    core_scale: float  # core peak scale per DN of light: (1 - g) (R / R_table)^2
+    flux_scale: float  # glare flux per DN of light: g pi R^2, px^2
+    glare_sigma: float  # px
+    glare_half: int  # px, 0: no glare
+
+
+@dataclass
+class _SetPlan:
+    """One source set of a render window, ready for :func:`kernels.add_sources`: its
+    cached footprint and where its per-frame light comes from (``st[key][i, cols] * c_amp``)."""
+
+    kern: np.ndarray  # (n, k, k) float32
+    ix: np.ndarray  # (n,) int64 window origins, canvas px
+    iy: np.ndarray
+    key: str  # "on_fraction" (the LEDs) or "flicker"
+    cols: slice
+    c_amp: float  # DN of a fully-on source
+    c_core: float
+    c_flux: float
+    gy: np.ndarray  # (h, m) float64, m = 0: no glare
+    gxt: np.ndarray  # (q, w) float64
+    grid_q: int
+
+
+@dataclass
+class _GroupPlan:
+    """A render window (canvas ``box``, clipped to the image: ``clip``) with its buffers."""
+
+    box: tuple[int, int, int, int]
+    clip: tuple[int, int, int, int]  # X0, Y0, X1, Y1; empty when X0 >= X1 or Y0 >= Y1
+    sets: list[_SetPlan] = field(default_factory=list)
+    acc: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)))  # (h, w) float64 DN
+    z: np.ndarray = field(default_factory=lambda: np.zeros((0, 0), np.float32))  # N(0,1) draws
+
+
 class _Camera:
     """Per-camera static state: aperture, blur, background, PRNU, noise bank, RNG."""
 
@@ -70,6 +113,8 @@ class _Camera:
         self.bank: np.ndarray  # (B, Hp, Wp) uint8
         self.jitter: Jitter
         self.fp_cache: dict[int, tuple[tuple, Footprint]] = {}
+        self.plan_key: tuple | None = None  # (radius, u, v) of the cached render plan
+        self.plan: list[_GroupPlan] = []
 
     def footprint(self, s: _Source, box: tuple[int, int, int, int]) -> Footprint:
         """The (cached) footprint of source ``s`` in the canvas ``box``."""
@@ -96,6 +141,9 @@ class Scene:
     lens distortion, principal points, focal lengths, rotation R and translation T); spot
     shapes, distractors and the background stay those of the ideal rig (docs/calibration.md).
     None (default): the ideal pinhole rig of ``cfg.camera``.
+    compiled: render with the compiled kernels of :mod:`iscd.sim.kernels` (default; call
+    :meth:`warm_up` before a real-time clock starts); False: with their numpy references
+    (the same frames, see :mod:`iscd.sim.kernels` for the tolerance).
 
     Frames are always 8-bit (``camera.bit_depth`` is ignored). ``truth()`` holds (F, N)
     float64 arrays: query long runs in chunks.
@@ -105,7 +153,7 @@ class Scene:
 
     def __init__(self, cfg: Config, level_source: LevelSource | None = None, *,
                  noise: bool = True, bank_size: int = 16,
-                 rig: StereoCalibration | None = None) -> None:
+                 rig: StereoCalibration | None = None, compiled: bool = True) -> None:
         self.cfg = cfg
         tx, cam, sc, op = cfg.transmitter, cfg.camera, cfg.scene, cfg.optics
         self.geometry = StereoGeometry.from_config(cam)
@@ -119,6 +167,7 @@ class Scene:
         self.n_leds = tx.n_leds
         self.levels_m = tx.levels
         self.noise = noise
+        self.compiled = compiled
         self.seed = sc.seed & 0xFFFFFFFF
         self.source: LevelSource = (level_source if level_source is not None
                                     else PacketSource.from_config(cfg))
@@ -132,6 +181,11 @@ class Scene:
         self.offsets = led_offsets(tx)
         self.grid = (tx.rows, tx.cols)
         self.sensor = SensorModel.from_config(cfg.sensor, 8, noise=noise)
+        sm = self.sensor  # the float32 constants of SensorModel.expose
+        self._k32 = np.float32(sm.gain_dn_per_e)
+        self._r2_32 = np.float32(sm.read_dn ** 2)
+        self._off32 = np.float32(sm.dark_dn + 0.5)
+        self._top32 = np.float32(sm.max_dn + 0.5 - 1e-3)
         self.vibration = Vibration(sc.vibration_px, self.seed)
         self.margin = min(int(math.ceil(4 * sc.vibration_px)), 64)
         self.tables = TableCache()
@@ -166,16 +220,22 @@ class Scene:
             out.append(src)
         return out
 
-    def _make_source(self, c: _Camera, u: np.ndarray, v: np.ndarray, amp: np.ndarray,
-                     radius_px: float) -> _Source:
+    def _shape(self, c: _Camera, radius_px: float) -> _Shape:
+        """Spot table, core and glare scales of a disk of ``radius_px`` in camera ``c``."""
         op = self.cfg.optics
         g = op.glare_fraction
         tab = self.tables.get(radius_px, c.sigma_core)
-        core = amp * ((1.0 - g) * (radius_px / tab.radius_px) ** 2)
         gs = math.sqrt(op.glare_sigma_px ** 2 + radius_px ** 2 / 4.0 + PIXEL_VAR)
-        flux = amp * (g * math.pi * radius_px ** 2)
-        gh = int(math.ceil(3.5 * gs)) if g > 0 else 0
-        return _Source(u, v, np.asarray(core, np.float64), tab, np.asarray(flux, np.float64), gs, gh)
+        return _Shape(tab, (1.0 - g) * (radius_px / tab.radius_px) ** 2,
+                      g * math.pi * radius_px ** 2, gs, int(math.ceil(3.5 * gs)) if g > 0 else 0)
+
+    def _make_source(self, c: _Camera, u: np.ndarray, v: np.ndarray, amp: np.ndarray,
+                     radius_px: float) -> _Source:
+        """Sources at (u, v) px with light ``amp`` (DN of the resolved disk)."""
+        sh = self._shape(c, radius_px)
+        return _Source(u, v, np.asarray(amp * sh.core_scale, np.float64), sh.tab,
+                       np.asarray(amp * sh.flux_scale, np.float64), sh.glare_sigma,
+                       sh.glare_half)
 
     def _build_backgrounds(self, rng: np.random.Generator, bank_size: int) -> None:
         sc = self.cfg.scene
@@ -248,6 +308,14 @@ class Scene:
         return st, i
 
     # ------------------------------------------------------------------ rendering
+    def warm_up(self) -> float:
+        """Compile (or load from the cache) the render kernels; returns the seconds taken.
+        Call it before a real-time clock starts (the first frame would compile them)."""
+        t0 = time.perf_counter()
+        if self.compiled:
+            kernels.warm()
+        return time.perf_counter() - t0
+
     def render_pair(self, n: int) -> tuple[np.ndarray, np.ndarray]:
         """Frame ``n`` of both cameras as new (H, W) uint8 arrays."""
         out_l = np.empty((self.height, self.width), np.uint8)
@@ -271,14 +339,91 @@ class Scene:
 
     def _render_camera(self, c: _Camera, n: int, st: dict[str, np.ndarray], i: int,
                        out: np.ndarray) -> None:
-        H, W, m = self.height, self.width, self.margin
-        if m:
-            vx, vy = st["vib"][i]
-            sx = min(max(int(round(vx)), -m), m)
-            sy = min(max(int(round(vy)), -m), m)
+        if self.compiled:
+            self._render_camera_compiled(c, n, st, i, out)
         else:
-            sx = sy = 0
-        oy, ox = m + sy, m + sx  # padded-array origin of image pixel (0, 0)
+            self._render_camera_ref(c, n, st, i, out)
+
+    def _origin(self, st: dict[str, np.ndarray], i: int) -> tuple[int, int]:
+        """(oy, ox): padded-array origin of image pixel (0, 0) (whole-pixel vibration)."""
+        m = self.margin
+        if not m:
+            return 0, 0
+        vx, vy = st["vib"][i]
+        sx = min(max(int(round(vx)), -m), m)
+        sy = min(max(int(round(vy)), -m), m)
+        return m + sy, m + sx
+
+    def _render_camera_compiled(self, c: _Camera, n: int, st: dict[str, np.ndarray], i: int,
+                                out: np.ndarray) -> None:
+        """Camera ``c``'s frame ``n`` (chunk state ``st``, row ``i``) into ``out``: the bank
+        frame, then every render window through :mod:`iscd.sim.kernels`."""
+        oy, ox = self._origin(st, i)
+        kernels.copy_frame(out, c.bank[st["bank"][i, c.idx]], oy, ox)
+        seed = self._noise_base + (n * 2 + c.idx) * 8
+        sm = self.sensor
+        for gi, g in enumerate(self._plan(c, st, i)):
+            X0, Y0, X1, Y1 = g.clip
+            if X0 >= X1 or Y0 >= Y1:
+                continue
+            for j, sp in enumerate(g.sets):
+                kernels.add_sources(g.acc, j == 0, sp.kern, sp.ix, sp.iy, st[sp.key][i, sp.cols],
+                                    sp.c_amp, sp.c_core, sp.c_flux, sp.gy, sp.gxt, sp.grid_q)
+            if self.noise:  # the draws of SensorModel.expose (same seed, same stream)
+                cv2.setRNGSeed((seed + gi) & 0x7FFFFFFF)
+                cv2.randn(g.z, 0.0, 1.0)
+            x0, y0 = g.box[0], g.box[1]
+            kernels.expose_window(out, Y0, X0, g.acc, Y0 - y0, X0 - x0, c.bg, c.prnu, oy + Y0,
+                                  ox + X0, g.z, sm.noise and self.noise, self._k32, self._r2_32,
+                                  self._off32, self._top32)
+
+    def _plan(self, c: _Camera, st: dict[str, np.ndarray], i: int) -> list[_GroupPlan]:
+        """The render windows of camera ``c`` in frame row ``i`` (cached while the LEDs keep
+        their positions and size)."""
+        pre = "left" if c.idx == 0 else "right"
+        u, v = st["u_" + pre][i], st["v_" + pre][i]
+        radius = float(st["radius"][i])
+        key = (radius, u.tobytes(), v.tobytes())
+        if c.plan_key != key:
+            c.plan = self._build_plan(c, u, v, radius)
+            c.plan_key = key
+        return c.plan
+
+    def _build_plan(self, c: _Camera, u: np.ndarray, v: np.ndarray, radius: float
+                    ) -> list[_GroupPlan]:
+        """Group the sources (LED array, flickering distractors) into windows as
+        :meth:`_render_camera_ref` does and precompute their footprints."""
+        sh = self._shape(c, radius)
+        one = np.ones(u.size)
+        led = _Source(u, v, one, sh.tab, one, sh.glare_sigma, sh.glare_half, self.grid)
+        info = {id(led): ("on_fraction", slice(None),
+                          self.cfg.transmitter.radiance_dn * c.gain, sh)}  # type: ignore[attr-defined]
+        sources = [led]
+        for j, (d, s) in enumerate(zip(self.flicker, self._distractor_sources(
+                c, self.flicker, np.ones(len(self.flicker))))):
+            R = self.geometry.focal_px * d.diameter_m / (2 * d.z_m)
+            info[id(s)] = ("flicker", slice(j, j + 1), d.brightness_dn * c.gain,  # type: ignore[attr-defined]
+                           self._shape(c, R))
+            sources.append(s)
+        plans = []
+        for group in _merge_groups(sources):
+            box = _group_box(group)
+            x0, y0, x1, y1 = box
+            clip = (max(x0, 0), max(y0, 0), min(x1, self.width), min(y1, self.height))
+            g = _GroupPlan(box, clip, acc=np.zeros((y1 - y0, x1 - x0)),
+                           z=np.zeros((max(clip[3] - clip[1], 0), max(clip[2] - clip[0], 0)),
+                                      np.float32))
+            for s in group:
+                key, cols, c_amp, ssh = info[id(s)]
+                g.sets.append(_set_plan(c.footprint(s, box), key, cols, c_amp, ssh))
+            plans.append(g)
+        return plans
+
+    def _render_camera_ref(self, c: _Camera, n: int, st: dict[str, np.ndarray], i: int,
+                           out: np.ndarray) -> None:
+        """The numpy reference of :meth:`_render_camera_compiled`."""
+        H, W, m = self.height, self.width, self.margin
+        oy, ox = self._origin(st, i)
         bank = c.bank
         k = st["bank"][i, c.idx]
         if m:
@@ -390,6 +535,20 @@ def _bank_sequence(seed: int, chunk: int, n: int, bank_size: int) -> np.ndarray:
     rng = np.random.default_rng([seed, 0xBA5, chunk])
     steps = rng.integers(1, bank_size, size=(n, 2))
     return np.cumsum(steps, axis=0) % bank_size
+
+
+def _set_plan(fp: Footprint, key: str, cols: slice, c_amp: float, sh: _Shape) -> _SetPlan:
+    """A :class:`_SetPlan` of footprint ``fp`` (its kernel, window origins and glare)."""
+    n = fp.kern.shape[0]
+    k = int(round(math.sqrt(fp.kern.shape[1])))
+    H, W = fp.shape
+    base = fp.flat[::k * k]
+    gy = fp.gy if fp.gy is not None else np.zeros((H, 0))
+    gxt = (np.ascontiguousarray(fp.gx.T) if fp.gx is not None else np.zeros((0, W)))
+    grid_q = fp.grid[1] if (fp.grid is not None and fp.gy is not None) else 0
+    return _SetPlan(np.ascontiguousarray(fp.kern.reshape(n, k, k)), base % W, base // W,
+                    key, cols, float(c_amp), float(sh.core_scale), float(sh.flux_scale),
+                    np.ascontiguousarray(gy), gxt, int(grid_q))
 
 
 def _group_box(group: list[_Source]) -> tuple[int, int, int, int]:

@@ -1,0 +1,215 @@
+"""Compiled per-frame kernels of the scene renderer, each with its pure-numpy reference.
+
+The scene renders a frame as: copy a noisy background frame from the bank (:func:`copy_frame`),
+then for each window around the LEDs (and flickering distractors) add the light of every
+source set (:func:`add_sources`: the spot cores from their cached footprints and the
+separable glare) into a float64 canvas and read it out through the sensor
+(:func:`expose_window`: background, PRNU, shot and read noise, dark level, rounding,
+clipping). The references (``*_ref``) do the same with the numpy functions of
+:mod:`iscd.sim.optics` and :mod:`iscd.sim.sensor` (``Scene(..., compiled=False)`` renders
+with them); ``tests/test_sim_kernels.py`` checks that both agree.
+
+Agreement: the cores are summed in the same order and precision as ``np.bincount`` (float64
+sums of float32 products), the sensor arithmetic is the same float32 sequence as
+:meth:`~iscd.sim.sensor.SensorModel.expose`, and the Gaussian draws are the same
+``cv2.randn`` stream (the caller draws them); only the glare's matrix products may round
+differently (float64, ~1e-16 relative). So frames agree to the last bit except where a
+pixel's signal lies within ~1e-12 DN of a rounding boundary (never seen in the tests).
+
+Units: px, DN (grey levels). All kernels are ``iscd.jit.njit`` (cached, nogil) and
+registered for :func:`iscd.jit.warm_up`; :func:`warm` compiles (or loads) just these.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from iscd.jit import njit
+
+# ---------------------------------------------------------------- warm-up arguments
+
+
+def _warm_copy() -> tuple:
+    return (np.empty((4, 4), np.uint8), np.zeros((6, 6), np.uint8), 1, 1)
+
+
+def _warm_sources() -> tuple:
+    acc = np.zeros((8, 8))
+    kern = np.ones((2, 3, 3), np.float32)
+    ij = np.array([1, 4], np.int64)
+    return (acc, True, kern, ij, ij, np.ones(2), 1.0, 0.5, 0.1,
+            np.ones((8, 1)), np.ones((2, 8)), 2)
+
+
+def _warm_expose() -> tuple:
+    f32 = np.float32
+    z = np.zeros((2, 2), np.float32)
+    return (np.zeros((4, 4), np.uint8), 1, 1, np.zeros((4, 4)), 0, 0,
+            np.ones((6, 6), np.float32), np.ones((6, 6), np.float32), 1, 1, z, True,
+            f32(0.01), f32(0.06), f32(2.5), f32(255.499))
+
+
+# ---------------------------------------------------------------- background copy
+
+
+@njit(warm=_warm_copy)
+def copy_frame(out: np.ndarray, src: np.ndarray, oy: int, ox: int) -> None:
+    """out[:, :] = src[oy:oy + H, ox:ox + W] for (H, W) = out.shape (uint8).
+
+    A plain (vectorized) loop: ``np.copyto`` of a 256 kB frame takes 10-15x longer
+    (150 instead of 10 us) when the destination starts 1-31 bytes after the source modulo
+    4 kB (glibc's ``rep movsb`` on AMD EPYC), which fresh ``np.empty`` frames often do.
+    """
+    H, W = out.shape
+    for y in range(H):  # row views: indices provably >= 0, so the loop vectorizes
+        d = out[y]
+        s = src[oy + y, ox:ox + W]
+        for x in range(W):
+            d[x] = s[x]
+
+
+def copy_frame_ref(out: np.ndarray, src: np.ndarray, oy: int, ox: int) -> None:
+    """Reference of :func:`copy_frame`."""
+    H, W = out.shape
+    np.copyto(out, src[oy:oy + H, ox:ox + W])
+
+
+# ---------------------------------------------------------------- light of the sources
+
+
+@njit(warm=_warm_sources)
+def add_sources(acc: np.ndarray, clear: bool, kern: np.ndarray, ix: np.ndarray,
+                iy: np.ndarray, w: np.ndarray, c_amp: float, c_core: float, c_flux: float,
+                gy: np.ndarray, gxt: np.ndarray, grid_q: int) -> None:
+    """Add n sources of one spot table into the canvas ``acc`` ((h, w) float64, DN).
+
+    clear: set ``acc`` to 0 first. kern: (n, k, k) float32 core profile P of each source's
+    window (from :func:`iscd.sim.optics.footprint`); ix, iy: (n,) window origins in canvas
+    px. Source s has light L_s = w[s] * c_amp (DN: on-fraction or flicker gain times the
+    grey level of a fully-on source), core peak scale float32(L_s * c_core) and glare flux
+    L_s * c_flux (DN px^2). gy: (h, m) and gxt: (q, w) unit-area glare Gaussians of the
+    source rows and columns (m = 0: no glare); grid_q > 0: the sources form a row-major
+    (m, grid_q) grid (an LED array), else m = q = n (one row and column per source).
+    """
+    n, k, _ = kern.shape
+    H, W = acc.shape
+    if clear:
+        acc[:, :] = 0.0
+    for s in range(n):
+        a32 = np.float32(w[s] * c_amp * c_core)
+        y0, x0 = iy[s], ix[s]
+        for r in range(k):
+            for q in range(k):
+                acc[y0 + r, x0 + q] += np.float64(kern[s, r, q] * a32)
+    m = gy.shape[1]
+    if m == 0:
+        return
+    t = np.zeros((m, W))  # flux (m, q) @ gx^T
+    for r in range(m):
+        if grid_q > 0:
+            for c in range(grid_q):
+                f = w[r * grid_q + c] * c_amp * c_flux
+                for x in range(W):
+                    t[r, x] += f * gxt[c, x]
+        else:
+            f = w[r] * c_amp * c_flux
+            for x in range(W):
+                t[r, x] = f * gxt[r, x]
+    row = np.empty(W)
+    for y in range(H):  # acc += gy @ t
+        row[:] = 0.0
+        for r in range(m):
+            g = gy[y, r]
+            for x in range(W):
+                row[x] += g * t[r, x]
+        for x in range(W):
+            acc[y, x] += row[x]
+
+
+def add_sources_ref(acc: np.ndarray, clear: bool, kern: np.ndarray, ix: np.ndarray,
+                    iy: np.ndarray, w: np.ndarray, c_amp: float, c_core: float,
+                    c_flux: float, gy: np.ndarray, gxt: np.ndarray, grid_q: int) -> None:
+    """Reference of :func:`add_sources` (``np.bincount`` and matrix products, as
+    :func:`iscd.sim.optics.render`)."""
+    n, k, _ = kern.shape
+    H, W = acc.shape
+    amp = w * c_amp
+    core = (amp * c_core).astype(np.float32)
+    off = (np.arange(k)[:, None] * W + np.arange(k)[None, :]).ravel()
+    flat = ((iy * W + ix)[:, None] + off[None, :]).ravel()
+    light = np.bincount(flat, (kern.reshape(n, k * k) * core[:, None]).ravel(),
+                        minlength=H * W).reshape(H, W)
+    if clear:
+        acc[:, :] = light
+    else:
+        acc += light
+    if gy.shape[1]:
+        flux = amp * c_flux
+        if grid_q > 0:
+            acc += gy @ (flux.reshape(-1, grid_q) @ gxt)
+        else:
+            acc += (gy * flux[None, :]) @ gxt
+
+
+# ---------------------------------------------------------------- sensor read-out
+
+
+@njit(warm=_warm_expose)
+def expose_window(out: np.ndarray, Y0: int, X0: int, acc: np.ndarray, ay: int, ax: int,
+                  bg: np.ndarray, prnu: np.ndarray, by: int, bx: int, z: np.ndarray,
+                  noise: bool, gain: np.float32, read2: np.float32, offset: np.float32,
+                  top: np.float32) -> None:
+    """Read out the window out[Y0:Y0 + h, X0:X0 + w], (h, w) = z.shape (uint8).
+
+    Photo-signal S = float32(acc[ay + i, ax + j]) + bg[by + i, bx + j] (DN); the sensor of
+    :meth:`iscd.sim.sensor.SensorModel.expose` in the same float32 arithmetic:
+    S *= prnu; if noise: S += sqrt(max(gain S + read2, 0)) z (z: N(0, 1) draws, gain:
+    DN per electron, read2: read noise^2, DN^2); S += offset (dark + 0.5); clip to
+    [0, top]; truncate.
+    """
+    h, w = z.shape
+    zero = np.float32(0.0)
+    for i in range(h):
+        for j in range(w):
+            s = np.float32(acc[ay + i, ax + j]) + bg[by + i, bx + j]
+            s = s * prnu[by + i, bx + j]
+            if noise:
+                sd = s * gain + read2
+                if sd < zero:
+                    sd = zero
+                s = s + np.sqrt(sd) * z[i, j]
+            s = s + offset
+            if s < zero:
+                s = zero
+            elif s > top:
+                s = top
+            out[Y0 + i, X0 + j] = np.uint8(s)
+
+
+def expose_window_ref(out: np.ndarray, Y0: int, X0: int, acc: np.ndarray, ay: int, ax: int,
+                      bg: np.ndarray, prnu: np.ndarray, by: int, bx: int, z: np.ndarray,
+                      noise: bool, gain: np.float32, read2: np.float32, offset: np.float32,
+                      top: np.float32) -> None:
+    """Reference of :func:`expose_window` (numpy, the arithmetic of ``SensorModel.expose``
+    with the draws ``z`` given)."""
+    h, w = z.shape
+    s = np.add(acc[ay:ay + h, ax:ax + w], bg[by:by + h, bx:bx + w], dtype=np.float32)
+    s *= prnu[by:by + h, bx:bx + w]
+    if noise:
+        sd = s * gain
+        sd += read2
+        np.maximum(sd, 0.0, out=sd)
+        np.sqrt(sd, out=sd)
+        sd *= z
+        s += sd
+    s += offset
+    np.clip(s, 0.0, top, out=s)
+    out[Y0:Y0 + h, X0:X0 + w] = s
+
+
+def warm() -> None:
+    """Compile (or load from the cache) the kernels of this module, with the argument types
+    the scene passes (call before a real-time clock starts)."""
+    copy_frame(*_warm_copy())
+    add_sources(*_warm_sources())
+    expose_window(*_warm_expose())
