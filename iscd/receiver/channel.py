@@ -30,7 +30,29 @@ from functools import cached_property
 
 import numpy as np
 
+from iscd.jit import njit
+
 KINDS = ("gauss", "t", "euclid")
+
+
+@njit(warm=lambda: (np.ones((1, 2, 3)), 4))
+def _fine_table(table: np.ndarray, fine: int) -> np.ndarray:
+    """Linear interpolation of ``table`` (C, N, M) at q = g / fine, g = 0 .. (M - 1) fine,
+    as float32 (C, N * G): :meth:`ChannelModel.interp` element by element."""
+    C, N, M = table.shape
+    G = (M - 1) * fine + 1
+    out = np.empty((C, N * G), np.float32)
+    for c in range(C):
+        for i in range(N):
+            for g in range(G):
+                q = g / fine
+                q0 = min(max(np.floor(q), 0.0), M - 2.0) if M >= 2 else 0.0
+                j = int(q0)
+                f = q - j
+                a = table[c, i, j]
+                b = table[c, i, j + 1] if M >= 2 else a
+                out[c, i * G + g] = np.float32(a + f * (b - a))
+    return out
 
 
 @dataclass(frozen=True)
@@ -81,14 +103,23 @@ class ChannelModel:
     FINE = 32
     """Sub-steps per level of the lookup tables of :meth:`lookup`."""
 
-    @cached_property
-    def _fine(self) -> tuple[np.ndarray, np.ndarray]:
+    def _fine_reference(self) -> tuple[np.ndarray, np.ndarray]:
+        """Pure-numpy reference of :attr:`_fine`."""
         C, N, M = self.mu.shape
         q = np.arange((M - 1) * self.FINE + 1) / self.FINE
         qq = np.broadcast_to(q, (N, q.size))
         mu, _ = self.interp(self.mu, qq, led_axis=0)
         var, _ = self.interp(self.var, qq, led_axis=0)
         return mu.reshape(C, -1).astype(np.float32), var.reshape(C, -1).astype(np.float32)
+
+    @cached_property
+    def _fine(self) -> tuple[np.ndarray, np.ndarray]:
+        """Centroids and variances (C, N * G) float32 at the G = (M - 1) * FINE + 1 fractional
+        levels q = g / FINE of every LED (compiled :func:`_fine_table`, bit-identical to
+        :meth:`_fine_reference`)."""
+        mu = np.ascontiguousarray(self.mu, dtype=np.float64)
+        var = np.ascontiguousarray(self.var, dtype=np.float64)
+        return _fine_table(mu, self.FINE), _fine_table(var, self.FINE)
 
     @cached_property
     def interp_error(self) -> np.ndarray:

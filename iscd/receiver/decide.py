@@ -25,6 +25,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from iscd.jit import njit
 from iscd.receiver.channel import ChannelModel
 from iscd.receiver.timing import SymbolClock, frame_map
 
@@ -97,9 +98,9 @@ class CleanCosts:
     valid_obs: np.ndarray  # (n_fr, N) cameras with a value
 
 
-def clean_costs(L: np.ndarray, clock: SymbolClock, e: float, k_a: int, k_b: int,
+def clean_costs_reference(L: np.ndarray, clock: SymbolClock, e: float, k_a: int, k_b: int,
                 model: ChannelModel) -> CleanCosts:
-    """Clean-frame costs of packet symbols ``k_a <= k < k_b`` from the buffer L (C, n, N)."""
+    """Pure-numpy reference of :func:`clean_costs` (the compiled kernel's specification)."""
     C, n, N = L.shape
     M = model.levels
     S = k_b - k_a
@@ -118,7 +119,7 @@ def clean_costs(L: np.ndarray, clock: SymbolClock, e: float, k_a: int, k_b: int,
     return CleanCosts(k_a, k_b, costs, n_obs, k, alpha, Lf, valid_obs)
 
 
-def decide_span(L: np.ndarray, clock: SymbolClock, e: float, k_a: int, k_b: int,
+def decide_span_reference(L: np.ndarray, clock: SymbolClock, e: float, k_a: int, k_b: int,
                 model: ChannelModel, ctx: np.ndarray | None = None, k_first: int = 0,
                 straddle: bool = True, timing_sigma: float = 0.02,
                 candidates: int = 4, pre: CleanCosts | None = None,
@@ -133,7 +134,7 @@ def decide_span(L: np.ndarray, clock: SymbolClock, e: float, k_a: int, k_b: int,
     plausible 0-based levels of the symbol right after the context (its straddling frame
     with the last context symbol then counts with the best of them).
     """
-    cc = pre if pre is not None else clean_costs(L, clock, e, k_a, k_b, model)
+    cc = pre if pre is not None else clean_costs_reference(L, clock, e, k_a, k_b, model)
     if not (straddle and ctx is not None):
         return _finish(k_a, cc.costs, cc.n_obs)
     M = model.levels
@@ -205,3 +206,329 @@ def _finish(k_a: int, costs: np.ndarray, n_obs: np.ndarray) -> SpanDecision:
     else:
         margin = np.full(levels.shape, np.inf)
     return SpanDecision(k_a=k_a, levels=levels, margin=margin, n_obs=n_obs)
+
+
+# ---- compiled kernels ------------------------------------------------------------------
+# :func:`clean_costs` and :func:`decide_span` below do what the ``*_reference`` functions
+# above do, in one compiled pass each instead of some hundred small numpy calls. Every
+# arithmetic step is the reference's, in the same precision (float32 costs, float64
+# margins) and order; the one difference is the float32 logarithm of a straddle's
+# variance (numpy's vectorized float32 log vs the correctly rounded one: <= 1 ulp), so
+# costs and margins agree to ~1e-6 relative and decisions are the same
+# (tests/test_rx_kernels.py).
+
+KIND_CODE = {"gauss": 0, "t": 1, "euclid": 2}
+"""Noise model -> the integer the kernels take."""
+
+
+def _warm_clean() -> tuple:
+    C, n, N, M = 2, 6, 2, 4
+    L = np.full((C, n, N), 10.0)
+    mu = np.ones((C, N, M), np.float32)
+    return (L, np.arange(n, dtype=np.int64) // 2, np.ones(n), 0, 3, mu, mu, mu, 1,
+            np.float32(0.1), np.float32(9.0))
+
+
+@njit(warm=_warm_clean)
+def _clean_kernel(Lf: np.ndarray, k: np.ndarray, alpha: np.ndarray, k_a: int, S: int,
+                  mu: np.ndarray, ivar: np.ndarray, logvar: np.ndarray, kind: int,
+                  inv_nu: np.float32, nu1: np.float32
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Clean-frame costs (S, N, M) float32, observation counts (S, N) and the cameras
+    with a value per frame (n_fr, N) of frames Lf (C, n_fr, N) (DN, NaN = missing) whose
+    symbol k (relative k - k_a in [0, S)) holds them whole (alpha = 1); mu, ivar, logvar
+    (C, N, M) float32 tables (:meth:`ChannelModel.level_cost`); kind 0 gauss, 1 t, 2 euclid;
+    inv_nu = 1 / nu, nu1 = nu + 1."""
+    C, nfr, N = Lf.shape
+    M = mu.shape[2]
+    costs = np.zeros((S, N, M), np.float32)
+    n_obs = np.zeros((S, N), np.int64)
+    valid = np.zeros((nfr, N), np.int64)
+    tmp = np.empty(M, np.float32)
+    for t in range(nfr):
+        for i in range(N):
+            cnt = 0
+            for c in range(C):
+                if np.isfinite(Lf[c, t, i]):
+                    cnt += 1
+            valid[t, i] = cnt
+        j = k[t] - k_a
+        if alpha[t] < 1.0 or j < 0 or j >= S:
+            continue
+        for i in range(N):
+            n_obs[j, i] += valid[t, i]
+            for c in range(C):
+                x = Lf[c, t, i]
+                bad = np.isnan(x)
+                x32 = np.float32(x)
+                for s in range(M):
+                    v = np.float32(0.0)
+                    if not bad:
+                        d = x32 - mu[c, i, s]
+                        v = d * d
+                        if kind == 1:
+                            v = v * ivar[c, i, s]
+                            v = v * inv_nu
+                            v = np.log1p(v)
+                            v = v * nu1
+                            v = v + logvar[c, i, s]
+                        elif kind == 0:
+                            v = v * ivar[c, i, s]
+                            v = v + logvar[c, i, s]
+                    if c == 0:
+                        tmp[s] = v
+                    else:
+                        tmp[s] += v
+            for s in range(M):
+                costs[j, i, s] += tmp[s]
+    return costs, n_obs, valid
+
+
+def _warm_straddle() -> tuple:
+    C, n, N, M, T = 2, 6, 2, 4, 2
+    L = np.full((C, n, N), 10.0)
+    G = (M - 1) * 32 + 1
+    fine = np.ones((C, N * G), np.float32)
+    err = np.zeros((C, N * (M - 1)), np.float32)
+    cand = np.zeros((3, N, T), np.int64)
+    return (L, np.arange(n, dtype=np.int64) // 2, np.full(n, 0.5), np.ones((n, N), np.int64),
+            np.zeros((3, N), np.int64), 0, 0, cand, np.zeros((3, N), np.bool_), False,
+            np.zeros(0, np.int64), fine, fine, err, np.ones((C, N), np.float32), True, M, 1,
+            np.float32(0.1), np.float32(9.0))
+
+
+@njit
+def _straddle_one(Lf: np.ndarray, t: int, i: int, a: np.float32, f32: np.float32, cf32: np.float32,
+                  fixed_first: bool, mu_t: np.ndarray, var_t: np.ndarray, err_t: np.ndarray,
+                  gain: np.ndarray, timing: bool, M: int, kind: int, inv_nu: np.float32,
+                  nu1: np.float32) -> np.float32:
+    """Cost (summed over cameras) of one straddling frame t, LED i: candidate level cf32
+    on one side, fixed level f32 on the other (:func:`_straddle_cost`, element by element)."""
+    C = Lf.shape[0]
+    G = (M - 1) * 32 + 1
+    one = np.float32(1.0)
+    if fixed_first:
+        q = a * f32 + (one - a) * cf32
+    else:
+        q = a * cf32 + (one - a) * f32
+    x = min(max(q, np.float32(0.0)), np.float32(M - 1))
+    x = x * np.float32(32.0)
+    x = x + np.float32(0.5)
+    idx = i * G + int(x)
+    seg = i * (M - 1) + int(min(max(q, np.float32(0.0)), np.float32(M - 2)))
+    total = np.float32(0.0)
+    for c in range(C):
+        obs = Lf[c, t, i]
+        if np.isnan(obs):
+            v = np.float32(0.0)
+        else:
+            m = mu_t[c, idx]
+            var = var_t[c, idx]
+            if timing:
+                gd = gain[c, i] * (f32 - cf32)
+                var = var + gd * gd
+                ee = err_t[c, seg]
+                var = var + ee * ee
+            d = np.float32(obs) - m
+            v = d * d
+            if kind != 2:
+                iv = one / var
+                lv = np.float32(np.log(np.float64(var)))
+                if kind == 1:
+                    v = v * iv
+                    v = v * inv_nu
+                    v = np.log1p(v)
+                    v = v * nu1
+                    v = v + lv
+                else:
+                    v = v * iv
+                    v = v + lv
+        if c == 0:
+            total = v
+        else:
+            total = total + v
+    return total
+
+
+@njit(warm=_warm_straddle)
+def _straddle_kernel(Lf: np.ndarray, k: np.ndarray, alpha: np.ndarray, valid: np.ndarray,
+                     ctx: np.ndarray, k_first: int, k_a: int, cand: np.ndarray,
+                     no_clean: np.ndarray, want_full: bool, edge: np.ndarray,
+                     mu_t: np.ndarray, var_t: np.ndarray, err_t: np.ndarray, gain: np.ndarray,
+                     timing: bool, M: int, kind: int, inv_nu: np.float32, nu1: np.float32
+                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Straddling-frame costs of the candidates cand (S, N, T) of symbols k_a .. k_a + S - 1
+    (:func:`decide_span_reference`'s three passes: candidate on the right, on the left of
+    a context symbol, and the edge after the context): extra costs (S, N, T) float32,
+    added observation counts (S, N) and, with ``want_full``, the costs of all M levels
+    (S, N, M) of symbols without a clean frame (``no_clean``). Each pass's costs are summed
+    per symbol first and then added, as the reference's ``_scatter_add`` does."""
+    C, nfr, N = Lf.shape
+    S, _, T = cand.shape
+    Sc = ctx.shape[0]
+    extra = np.zeros((S, N, T), np.float32)
+    tmp = np.zeros((S, N, T), np.float32)
+    dn = np.zeros((S, N), np.int64)
+    full = np.zeros((S, N, M), np.float32)
+    tmpf = np.zeros((S, N, M), np.float32)
+    for pss in range(3):
+        touched = False
+        for t in range(nfr):
+            al = alpha[t]
+            if not (al > 0.0 and al < 1.0):
+                continue
+            kt = k[t]
+            if pss == 0:  # candidate = right symbol k + 1, left one from the context
+                j = kt + 1 - k_a
+                jc = kt - k_first
+            elif pss == 1:  # candidate = left symbol k, right one from the context
+                j = kt - k_a
+                jc = kt + 1 - k_first
+            else:  # edge: the symbol after the context (edge levels), candidate = k
+                if edge.size == 0 or kt + 1 != k_first + Sc:
+                    continue
+                j = kt - k_a
+                jc = -1
+            if j < 0 or j >= S:
+                continue
+            if pss < 2 and (jc < 0 or jc >= Sc):
+                continue
+            a = np.float32(al)
+            touched = True
+            for i in range(N):
+                if pss < 2:
+                    fx = ctx[jc, i]
+                    if fx < 0:
+                        continue
+                    f32 = np.float32(fx)
+                    for u in range(T):
+                        tmp[j, i, u] += _straddle_one(Lf, t, i, a, f32, np.float32(cand[j, i, u]),
+                                                      pss == 0, mu_t, var_t, err_t, gain, timing,
+                                                      M, kind, inv_nu, nu1)
+                    dn[j, i] += valid[t, i]
+                    if want_full and no_clean[j, i]:
+                        for s in range(M):
+                            tmpf[j, i, s] += _straddle_one(Lf, t, i, a, f32, np.float32(s), pss == 0,
+                                                           mu_t, var_t, err_t, gain, timing, M,
+                                                           kind, inv_nu, nu1)
+                else:
+                    for u in range(T):
+                        best = np.float32(0.0)
+                        for w in range(edge.size):
+                            v = _straddle_one(Lf, t, i, a, np.float32(edge[w]),
+                                              np.float32(cand[j, i, u]), False, mu_t, var_t,
+                                              err_t, gain, timing, M, kind, inv_nu, nu1)
+                            best = v if w == 0 else min(best, v)
+                        tmp[j, i, u] += best
+                    dn[j, i] += valid[t, i]
+        if touched:
+            for j in range(S):
+                for i in range(N):
+                    for u in range(T):
+                        extra[j, i, u] += tmp[j, i, u]
+                        tmp[j, i, u] = 0.0
+                    if want_full and pss < 2:
+                        for s in range(M):
+                            full[j, i, s] += tmpf[j, i, s]
+                            tmpf[j, i, s] = 0.0
+    return extra, dn, full
+
+
+@njit(warm=lambda: (np.zeros((2, 2, 3), np.float32),))
+def _finish_kernel(costs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Argmin (first of equal minima) and margin (runner-up minus best, float64) over the
+    last axis of costs (S, N, T) float32 (:func:`_finish`)."""
+    S, N, T = costs.shape
+    lev = np.zeros((S, N), np.int64)
+    mar = np.full((S, N), np.inf)
+    for j in range(S):
+        for i in range(N):
+            b = 0
+            for u in range(1, T):
+                if costs[j, i, u] < costs[j, i, b]:
+                    b = u
+            lev[j, i] = b
+            if T > 1:
+                m2 = np.float32(np.inf)
+                first = True
+                for u in range(T):
+                    if u != b and (first or costs[j, i, u] < m2):
+                        m2 = costs[j, i, u]
+                        first = False
+                mar[j, i] = np.float64(m2 - costs[j, i, b])
+    return lev, mar
+
+
+def _kind_args(model: ChannelModel) -> tuple[int, np.float32, np.float32]:
+    return (KIND_CODE[model.kind], np.float32(1.0 / model.nu), np.float32(model.nu + 1.0))
+
+
+def clean_costs(L: np.ndarray, clock: SymbolClock, e: float, k_a: int, k_b: int,
+                model: ChannelModel) -> CleanCosts:
+    """Clean-frame costs of packet symbols ``k_a <= k < k_b`` from the buffer L (C, n, N)
+    (compiled; :func:`clean_costs_reference` is the specification)."""
+    C, n, N = L.shape
+    lo = int(max(0, np.floor(clock.boundary(k_a)) - 1))
+    hi = int(min(n, np.ceil(clock.boundary(k_b)) + 1))
+    frames = np.arange(lo, hi)
+    k, alpha = frame_map(frames, clock, e)
+    Lf = np.ascontiguousarray(L[:, lo:max(lo, hi), :], dtype=np.float64)
+    mu, ivar, logvar = model._tables
+    costs, n_obs, valid = _clean_kernel(Lf, k, alpha, k_a, k_b - k_a, mu, ivar, logvar,
+                                        *_kind_args(model))
+    return CleanCosts(k_a, k_b, costs, n_obs, k, alpha, Lf, valid)
+
+
+def decide_span(L: np.ndarray, clock: SymbolClock, e: float, k_a: int, k_b: int,
+                model: ChannelModel, ctx: np.ndarray | None = None, k_first: int = 0,
+                straddle: bool = True, timing_sigma: float = 0.02,
+                candidates: int = 4, pre: CleanCosts | None = None,
+                edge_levels: tuple[int, ...] = ()) -> SpanDecision:
+    """Decide packet symbols ``k_a <= k < k_b`` from the buffer L (C, n, N).
+
+    ctx: (S, N) 0-based levels of packet symbols ``k_first ..`` used as the neighbours of
+    straddling frames (-1 unknown); straddle=False uses clean frames only. With
+    straddling frames, only the ``candidates`` best levels of the clean frames compete
+    (0 = all M; symbols without a clean frame always get all M). ``pre``: the span's
+    :func:`clean_costs` when already computed (same clock and model). edge_levels: the
+    plausible 0-based levels of the symbol right after the context (its straddling frame
+    with the last context symbol then counts with the best of them).
+
+    Compiled (:func:`_clean_kernel`, :func:`_straddle_kernel`, :func:`_finish_kernel`);
+    :func:`decide_span_reference` is the specification.
+    """
+    cc = pre if pre is not None else clean_costs(L, clock, e, k_a, k_b, model)
+    if not (straddle and ctx is not None):
+        lev, mar = _finish_kernel(cc.costs)
+        return SpanDecision(k_a, lev, mar, cc.n_obs)
+    M = model.levels
+    S, N = cc.n_obs.shape
+    T = M if candidates <= 0 or candidates >= M else candidates
+    if T < M:  # numpy's selection, so that equal costs pick the same candidates
+        cand = np.ascontiguousarray(np.argpartition(cc.costs, T - 1, axis=-1)[..., :T])
+    else:
+        cand = np.ascontiguousarray(np.broadcast_to(np.arange(M), (S, N, M)))
+    no_clean = cc.n_obs == 0
+    want_full = bool(T < M and no_clean.any())
+    timing = model.kind != "euclid" and timing_sigma > 0
+    gain = ((model.mu[:, :, -1] - model.mu[:, :, 0]) / max(M - 1, 1)
+            * (timing_sigma / e)).astype(np.float32)
+    mu_t, var_t = model._fine
+    Lf = cc.Lf if cc.Lf.dtype == np.float64 and cc.Lf.flags.c_contiguous else \
+        np.ascontiguousarray(cc.Lf, dtype=np.float64)
+    valid = np.ascontiguousarray(cc.valid_obs, dtype=np.int64)
+    extra, dn, full = _straddle_kernel(Lf, np.ascontiguousarray(cc.k), np.ascontiguousarray(cc.alpha),
+                                       valid, np.ascontiguousarray(ctx, dtype=np.int64), int(k_first),
+                                       int(k_a), cand, no_clean, want_full,
+                                       np.asarray(edge_levels, dtype=np.int64), mu_t, var_t,
+                                       model._interp_error32, gain, timing, M, *_kind_args(model))
+    n_obs = cc.n_obs + dn
+    c_cand = np.take_along_axis(cc.costs, cand, axis=-1)
+    lev, mar = _finish_kernel(c_cand + extra)
+    lev = np.take_along_axis(cand, lev[..., None], axis=-1)[..., 0]
+    if want_full:
+        # symbols without a clean frame: decided over all M from the straddle costs
+        lf, mf = _finish_kernel(cc.costs + full)
+        lev = np.where(no_clean, lf, lev)
+        mar = np.where(no_clean, mf, mar)
+    return SpanDecision(k_a, lev, mar, n_obs)
