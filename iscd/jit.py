@@ -85,6 +85,12 @@ def njit(fn: F | None = None, *, warm: Callable[[], tuple] | None = None, **kw: 
     return deco(fn) if fn is not None else deco  # type: ignore[return-value]
 
 
+def register_warm(jf: Callable[..., Any], args: Callable[[], tuple]) -> None:
+    """Have :func:`warm_up` compile ``jf`` for the argument types ``args()`` returns (a
+    kernel used with several dtypes registers once per dtype)."""
+    _REGISTRY.append((jf, args))
+
+
 def warm_up() -> float:
     """Compile (or load from the cache) every kernel registered so far (a kernel registers
     when its module is imported: import what you will run first); returns the seconds taken."""

@@ -33,8 +33,10 @@ from calibration.io import StereoCalibration
 from iscd.airinterface import AirInterface
 from iscd.config import Config, build_section
 from iscd.demod_worker import DemodWorker
+from iscd.receiver.follow_kernel import follow_and_measure_compiled
 from iscd.receiver.luminance import follow_and_measure, grid_sample
-from iscd.receiver.detect import GridFit, detect_array, match_stereo, track_array
+from iscd.receiver.detect import GridFit, detect_array, light_map, match_stereo, track_box, track_on_light
+from iscd.receiver.track_kernel import LightAccumulator
 from iscd.receiver.packets import Packet, PacketAssembler
 from iscd.receiver.settings import receiver_config
 from iscd.ranging.kalman import RangeKalman
@@ -91,6 +93,15 @@ def _track_window(fit: GridFit, W: int, H: int) -> tuple[int, int, int, int]:
     return _clip(fit.bbox(2 * fit.pitch_px + 4), W, H)
 
 
+def _track_in(light: np.ndarray, window: tuple[int, int, int, int], fit: GridFit) -> GridFit:
+    """:func:`iscd.receiver.detect.track_array` of ``fit`` on the light map of the
+    tracking window (x0, y0, x1, y1) px."""
+    ax0, ay0 = window[0], window[1]
+    p = fit.shifted(-ax0, -ay0)
+    x0, y0, x1, y1 = track_box(p, light.shape)
+    return track_on_light(light[y0:y1, x0:x1], p, x0, y0).shifted(ax0, ay0)
+
+
 @dataclass
 class _Track:
     left: GridFit
@@ -121,13 +132,16 @@ class StreamDecoder:
 
     def __init__(self, cfg: Config, calibration: StereoCalibration | None = None, *, tx_index: int = 0,
                  settings: PipelineSettings | None = None, ranging: RangingSettings | None = None,
-                 async_demod: bool | str = False) -> None:
+                 async_demod: bool | str = False, compiled: bool = True) -> None:
         """``async_demod``: run the packet assembler elsewhere, so that demodulating a
         whole packet (0.1-0.2 s for an 8x8 array) does not delay the per-frame work;
         packets then come out of a later :meth:`push` (in order) or of :meth:`finish`.
         ``"process"`` (the daemon): a worker process (:mod:`iscd.demod_worker`; no GIL
         shared with the frame loop); ``True`` or ``"thread"``: a worker thread. Replay and
-        tests run synchronously."""
+        tests run synchronously. ``compiled``: the per-frame kernels compiled
+        (:mod:`iscd.receiver.follow_kernel`); ``False`` runs their numpy references (the
+        same records to float tolerance; for tests)."""
+        self.compiled = compiled
         if async_demod not in (False, True, "thread", "process"):
             raise ValueError(f"async_demod: expected False, True, 'thread' or 'process', got {async_demod!r}")
         self.cfg = cfg
@@ -165,7 +179,9 @@ class StreamDecoder:
         """(ids, t_s, lum_left, lum_right) of the last block decoded (for live views)."""
         self._blk_l: list[np.ndarray] = []
         self._blk_r: list[np.ndarray] = []
-        self._blk_ids: list[np.ndarray] = []
+        self._acc: tuple[LightAccumulator, LightAccumulator] | None = None
+        """the tracking interval's light maps, per camera (the compiled path)"""
+        self._ids_sum = 0.0
         self._followed: list[np.ndarray | None] = [None, None]
         """per camera, the LED centres (N, 2) px refined in the last decoded frame"""
         self._lit_light: np.ndarray | None = None
@@ -369,7 +385,8 @@ class StreamDecoder:
         self.track = None
         self._blk_l.clear()
         self._blk_r.clear()
-        self._blk_ids.clear()
+        self._acc = None
+        self._ids_sum = 0.0
         self._followed = [None, None]
         self._lit_light = None
         self._since_fit = 0
@@ -434,7 +451,8 @@ class StreamDecoder:
         growth = self._growth(starts)
         box = 2 * max(1, int(round(max(tr.roi_radius) * max(growth)))) + 1
         info: dict[str, np.ndarray] = {}
-        (c_l, c_r), (lum_l, lum_r) = follow_and_measure(
+        follow = follow_and_measure_compiled if self.compiled else follow_and_measure
+        (c_l, c_r), (lum_l, lum_r) = follow(
             [left, right], starts, box,
             [float(np.clip(sig * g, 0.6, max(sig, self.MAX_SIGMA_PX))) for sig, g in zip(tr.roi_sigma, growth)],
             use=grid_sample(self.rows, self.cols), lit_light=self._lit_light, info=info)
@@ -496,7 +514,7 @@ class StreamDecoder:
             return None
         W, H = self.cfg.camera.width, self.cfg.camera.height
         wl, wr = _track_window(tr.left, W, H), _track_window(tr.right, W, H)
-        if self._blk_l:
+        if self._acc is not None:
             wl, wr = _union(wl, self._win[0]), _union(wr, self._win[1])
         if self.ranger is not None:
             x0l, y0, x0r, w, h = self.ranger.patch_geometry(tr.left, tr.right)
@@ -554,32 +572,42 @@ class StreamDecoder:
         tr = self.track
         assert tr is not None
         H, W = left.shape[1:]
-        if not self._blk_l:
+        if self._acc is None:
             self._win = (_track_window(tr.left, W, H), _track_window(tr.right, W, H))
-        (ax0, ay0, ax1, ay1), (bx0, by0, bx1, by1) = self._win
-        # keep only the tracking windows (the caller may reuse its frame buffers)
-        self._blk_l.append(np.array(left[:, ay0:ay1, ax0:ax1]))
-        self._blk_r.append(np.array(right[:, by0:by1, bx0:bx1]))
-        self._blk_ids.append(np.asarray(frame_ids, dtype=np.float64))
+            self._acc = (LightAccumulator(self._win[0]), LightAccumulator(self._win[1]))
+        # fold the tracking windows into the interval's light maps (no frames kept: the
+        # caller may reuse its frame buffers)
+        if self.compiled:
+            self._acc[0].add(left)
+            self._acc[1].add(right)
+        else:
+            (ax0, ay0, ax1, ay1), (bx0, by0, bx1, by1) = self._win
+            self._blk_l.append(np.array(left[:, ay0:ay1, ax0:ax1]))
+            self._blk_r.append(np.array(right[:, by0:by1, bx0:bx1]))
+        self._ids_sum += float(np.sum(frame_ids, dtype=np.float64))
         self._since_fit += len(frame_ids)
         if self._since_fit < self.settings.track_every_frames:
             return
-        L = np.concatenate(self._blk_l)
-        R = np.concatenate(self._blk_r)
-        fit_frame = float(np.concatenate(self._blk_ids).mean())
+        fit_frame = self._ids_sum / self._since_fit
+        n_fit = self._since_fit
+        acc = self._acc
+        if self.compiled:
+            lights = (acc[0].light_map(), acc[1].light_map())
+        else:  # the numpy reference
+            lights = (light_map(np.concatenate(self._blk_l)), light_map(np.concatenate(self._blk_r)))
         self._blk_l.clear()
         self._blk_r.clear()
-        self._blk_ids.clear()
+        self._acc = None
+        self._ids_sum = 0.0
         self._since_fit = 0
         try:
-            nl = track_array(L, tr.left.shifted(-ax0, -ay0)).shifted(ax0, ay0)
-            nr = track_array(R, tr.right.shifted(-bx0, -by0)).shifted(bx0, by0)
+            nl = _track_in(lights[0], acc[0].window, tr.left)
+            nr = _track_in(lights[1], acc[1].window, tr.right)
         except ValueError:
             nl = nr = None  # type: ignore[assignment]
         if nl is not None and nr is not None:
             nl, nr = self._agree_with_followed(0, nl), self._agree_with_followed(1, nr)
         score = min(nl.score, nr.score) if nl is not None and nr is not None else 0.0
-        n_fit = L.shape[0]
         if score < self.settings.lost_score_ratio * tr.first_score:
             # too little modulated light to fit (a dark stretch: zero padding, idle
             # symbols, an occlusion): hold the last fit

@@ -312,13 +312,28 @@ def track_array(frames: np.ndarray, prev: GridFit, *, margin: float | None = Non
     vectorized interpolation; tracking is iterative, so each block moves the fit at most
     that far. Raises ValueError if the window has no activity.
     """
+    x0, y0, x1, y1 = track_box(prev, frames.shape[1:], margin=margin)
+    return track_on_light(light_map(frames[:, y0:y1, x0:x1]), prev, x0, y0)
+
+
+def track_box(prev: GridFit, shape: tuple[int, int], *, margin: float | None = None
+              ) -> tuple[int, int, int, int]:
+    """The window (x0, y0, x1, y1) px that :func:`track_array` reads around ``prev`` in
+    images of ``shape`` (H, W): ``margin`` px (default 2 pitches + 4 px) around the fit.
+    Raises ValueError if it is (nearly) outside the image."""
     m = margin if margin is not None else 2 * prev.pitch_px + 4
     x0, y0, x1, y1 = prev.bbox(m)
-    H, W = frames.shape[1:]
+    H, W = shape
     x0, y0, x1, y1 = max(0, x0), max(0, y0), min(W, x1), min(H, y1)
     if x1 - x0 < 2 or y1 - y0 < 2:
         raise ValueError("the tracked array left the image")
-    act = light_map(frames[:, y0:y1, x0:x1]).astype(np.float64)
+    return x0, y0, x1, y1
+
+
+def track_on_light(light: np.ndarray, prev: GridFit, x0: int, y0: int) -> GridFit:
+    """:func:`track_array` on the light map (:func:`light_map`) of its window, whose
+    top-left pixel is (x0, y0) px in the image."""
+    act = np.asarray(light, dtype=np.float64)
     act = np.clip(act - np.median(act), 0, None)
     if not act.any():
         raise ValueError("no modulated light in the tracking window")
