@@ -30,6 +30,7 @@ import math
 import threading
 import time
 from collections import deque
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -85,7 +86,7 @@ class MockRig:
         self.noise = noise
         self.pace = cfg.rig.pace
         self.buffer_frames = max(1, int(buffer_frames))
-        self.faults: list[FaultConfig] = list(cfg.rig.faults)
+        self.faults = cfg.rig.faults
         self._lock = threading.RLock()
         self._scene = None
         self._fps = cfg.camera.fps
@@ -109,7 +110,8 @@ class MockRig:
     # ----------------------------------------------------------------- scene and clock
     @property
     def scene(self):  # -> iscd.sim.Scene
-        """The simulated scene (built on first use; rebuilt when fps/exposure change)."""
+        """The simulated scene (built on first use, with its render kernels compiled or loaded
+        from the cache; rebuilt when fps/exposure change)."""
         with self._lock:
             if self._scene is None:
                 from iscd.sim import Scene
@@ -117,6 +119,7 @@ class MockRig:
                 cam = dataclasses.replace(self.cfg.camera, fps=self._fps, exposure_s=self._exposure_s)
                 self._scene = Scene(self.cfg.replace(camera=cam), self.level_source,  # type: ignore[arg-type]
                                     noise=self.noise)
+                self._scene.warm_up()  # compile the render kernels before any clock starts
             return self._scene
 
     @property
@@ -138,14 +141,30 @@ class MockRig:
         return self._cams[camera].stats
 
     # ----------------------------------------------------------------- faults
-    def _faults(self, c: _CamState, kind: str) -> list[FaultConfig]:
-        return [f for f in self.faults if f.kind == kind and f.camera == c.name]
+    @property
+    def faults(self) -> tuple[FaultConfig, ...]:
+        """The injected faults (assign a new sequence to change them)."""
+        return self._fault_list
+
+    @faults.setter
+    def faults(self, faults: Sequence[FaultConfig]) -> None:
+        self._fault_list = tuple(faults)
+        index: dict[tuple[str, str], list[FaultConfig]] = {}
+        for f in self._fault_list:
+            index.setdefault((f.camera, f.kind), []).append(f)
+        self._fault_index = {k: tuple(v) for k, v in index.items()}  # (camera, kind) -> faults
+        self._faulty = frozenset(f.camera for f in self._fault_list)
+
+    def _faults(self, c: _CamState, kind: str) -> tuple[FaultConfig, ...]:
+        return self._fault_index.get((c.name, kind), ())
 
     def _frames_in(self, ms: float) -> int:
         return max(1, math.ceil(ms * 1e-3 * self._fps - 1e-9))
 
     def _arrivals(self, c: _CamState, n: int) -> int:
         """How many copies of trigger ``n`` reach camera ``c`` (0, 1 or 2); may start a vanish."""
+        if c.lost_until_n is None and c.name not in self._faulty:
+            return 1
         for f in self._faults(c, "vanish"):
             if n == f.frame:
                 c.lost_until_n = n + self._frames_in(f.duration_ms)
@@ -166,7 +185,8 @@ class MockRig:
         return 1
 
     def _frame_id(self, c: _CamState, n: int) -> int:
-        return n + sum(f.offset for f in self._faults(c, "id_offset") if n >= f.frame)
+        offsets = self._faults(c, "id_offset")
+        return n + sum(f.offset for f in offsets if n >= f.frame) if offsets else n
 
     # ----------------------------------------------------------------- camera operations
     def _open(self, c: _CamState) -> None:
