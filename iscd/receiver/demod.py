@@ -29,6 +29,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from iscd.airinterface import HEADER_SYMBOLS, AirInterface
+from iscd.jit import njit
 from iscd.receiver.channel import (ChannelModel, ChannelTrack, IscdChannelSettings,
                                    estimate_dissertation, estimate_iscd)
 from iscd.receiver.decide import CleanCosts, clean_costs, decide_span
@@ -187,9 +188,84 @@ GAIN_SAMPLES = 1024
 """Most clean samples per camera :func:`_match_gain` fits (one number: plenty)."""
 
 
+def _warm_gain() -> tuple:
+    one = np.ones((2, 3), np.float32)
+    return (np.ones((4, 3)), one[0], one, GAINS.astype(np.float32), np.float32(5.0), one, one)
+
+
+@njit(warm=_warm_gain)
+def _gain_costs(yc: np.ndarray, base: np.ndarray, span: np.ndarray, gains: np.ndarray,
+                top: np.float32, var: np.ndarray, logvar: np.ndarray) -> np.ndarray:
+    """Summed best-level Gaussian costs (G,) float64 of the samples yc (n, N) DN (NaN =
+    missing: no cost) for each relative gain: centroids ``min(base + g span, top)`` with
+    base (N,), span, var, logvar (M, N) float32 (:func:`_match_gain_reference`, element by
+    element in float32; the sums in sample order, numpy's are pairwise: ~1e-15)."""
+    n, N = yc.shape
+    M = span.shape[0]
+    out = np.zeros(gains.size)
+    for g in range(gains.size):
+        gg = gains[g]
+        tot = 0.0
+        for t in range(n):
+            for i in range(N):
+                x = yc[t, i]
+                if not np.isfinite(x):
+                    continue
+                x32 = np.float32(x)
+                best = np.float32(0.0)
+                for s in range(M):
+                    m = min(base[i] + gg * span[s, i], top)
+                    d = x32 - m
+                    v = d * d / var[s, i] + logvar[s, i]
+                    best = v if s == 0 else min(best, v)
+                tot += np.float64(best)
+        out[g] = tot
+    return out
+
+
 def _match_gain(model: ChannelModel, L: np.ndarray, clock: SymbolClock, e: float, lev: np.ndarray,
-                k_a: int, k_b: int) -> ChannelModel:
+                k_a: int, k_b: int, tops: list[float] | None = None) -> ChannelModel:
     """``model`` with each camera's light scaled to fit the clean frames of the undecided
+    stretch [k_a, k_b): per camera the gain g (centroids ``mu_1 + g (mu_s - mu_1)``, capped at
+    the brightest value seen) whose best-level costs, summed over the stretch's symbols and
+    LEDs, are least. Decision-free in the sense that every level competes for every
+    sample: thousands of samples fix one number, so a stretch with some wrong decisions
+    still gives the right gain. Follows an LED that brightens as the car closes in.
+
+    tops: each camera's brightest value in L (DN; computed when not given). The costs come
+    from the compiled :func:`_gain_costs`; :func:`_match_gain_reference` is the specification.
+    """
+    y, _ = clean_samples(L, clock, e, lev[k_a:k_b], k_a)
+    if y.shape[1] == 0:
+        return model
+    if y.shape[1] * y.shape[2] > GAIN_SAMPLES:  # every k-th frame is enough
+        y = y[:, ::int(np.ceil(y.shape[1] * y.shape[2] / GAIN_SAMPLES))]
+    mu = model.mu.copy()
+    G32 = GAINS.astype(np.float32)
+    for c in range(model.n_cams):
+        yc = np.ascontiguousarray(y[c], dtype=np.float64)  # (n, N)
+        if not np.isfinite(yc).any():
+            continue
+        top = float(np.nanmax(L[c])) if tops is None else tops[c]
+        base = model.mu[c, :, 0].astype(np.float32)  # (N,)
+        span = np.ascontiguousarray((model.mu[c] - model.mu[c, :, :1]).T, dtype=np.float32)  # (M, N)
+        var = np.ascontiguousarray(model.var[c].T, dtype=np.float32)  # (M, N)
+        costs = _gain_costs(yc, base, span, G32, np.float32(top), var, np.log(var))
+        b = int(np.argmin(costs))
+        g = float(GAINS[b])
+        if 0 < b < GAINS.size - 1:  # parabola through the best and its neighbours (log gain)
+            den = costs[b - 1] - 2 * costs[b] + costs[b + 1]
+            if den > 0:
+                step = float(np.log(GAINS[1] / GAINS[0]))
+                g *= float(np.exp(np.clip(0.5 * (costs[b - 1] - costs[b + 1]) / den, -0.5, 0.5) * step))
+        mu[c] = np.minimum(model.mu[c, :, :1] + g * (model.mu[c] - model.mu[c, :, :1]),
+                           max(top, float(model.mu[c].max())))
+    return ChannelModel(mu=mu, var=model.var, kind=model.kind, nu=model.nu)
+
+
+def _match_gain_reference(model: ChannelModel, L: np.ndarray, clock: SymbolClock, e: float, lev: np.ndarray,
+                k_a: int, k_b: int) -> ChannelModel:
+    """Pure-numpy reference of :func:`_match_gain`: ``model`` with each camera's light scaled to fit the clean frames of the undecided
     stretch [k_a, k_b): per camera the gain g (centroids ``mu_1 + g (mu_s - mu_1)``, capped at
     the brightest value seen) whose best-level costs, summed over the stretch's symbols and
     LEDs, are least. Decision-free in the sense that every level competes for every
@@ -235,12 +311,14 @@ def _match_gain(model: ChannelModel, L: np.ndarray, clock: SymbolClock, e: float
 
 
 def _fit_segment(L: np.ndarray, clock: SymbolClock, e: float, lev: np.ndarray, a: int, b: int,
-                 W: int, M: int, st: IscdChannelSettings, cfg: ReceiverConfig) -> ChannelModel:
+                 W: int, M: int, st: IscdChannelSettings, cfg: ReceiverConfig,
+                 tops: list[float] | None = None) -> ChannelModel:
     """The channel of stretch [a, b): the model of the W symbols centred on it, its light
     matched to the stretch's own frames (:func:`_match_gain`: a window at the packet's
     ends is off-centre and lags)."""
     P = lev.shape[0]
-    return _match_gain(_fit(L, clock, e, lev, *_centred(a, b, W, P), M, st, cfg), L, clock, e, lev, a, b)
+    return _match_gain(_fit(L, clock, e, lev, *_centred(a, b, W, P), M, st, cfg), L, clock, e, lev, a, b,
+                       tops)
 
 
 def _track(segs: list[tuple[int, int]], models: list[ChannelModel]) -> ChannelTrack:
@@ -326,13 +404,15 @@ def _demodulate(L: np.ndarray, u_guess: float, air: AirInterface, e: float,
     step = min(chunk, 2 * _segment_symbols(W)) if tracked else chunk
     lev = np.full((P, N), -1, dtype=np.int64)
     lev[:n_known] = known
+    # each camera's brightest value in the buffer (the cap of _match_gain), once per packet
+    tops = [float(np.nanmax(L[c])) for c in range(C)] if tracked else None
     starts, models = [0], [model]
     next_clock = n_known + chunk
     for k_a in range(n_known, P, step):
         k_b = min(P, k_a + step)
         if tracked:
             model = _fit(L, clock, e, lev, max(0, k_a - W // 2), k_a, M, st, cfg)
-            model = _match_gain(model, L, clock, e, lev, k_a, k_b)
+            model = _match_gain(model, L, clock, e, lev, k_a, k_b, tops)
         d = decide_span(L, clock, e, k_a, k_b, model, lev, 0, False, ts)
         lev[k_a:k_b] = d.levels
         if tracked:
@@ -356,7 +436,7 @@ def _demodulate(L: np.ndarray, u_guess: float, air: AirInterface, e: float,
         segs = _segments(n_known, P, _segment_symbols(W) if tracked else P)
         models = [model]
         if tracked:
-            models = [_fit_segment(L, clock, e, lev, a, b, W, M, st, cfg) for a, b in segs]
+            models = [_fit_segment(L, clock, e, lev, a, b, W, M, st, cfg, tops) for a, b in segs]
         elif cfg.decision_directed:
             models = [_fit(L, clock, e, lev, 0, P, M, st, cfg)]
         if cfg.decision_directed:
@@ -374,7 +454,7 @@ def _demodulate(L: np.ndarray, u_guess: float, air: AirInterface, e: float,
                 for j, (a, b) in enumerate(segs):
                     lo, hi = _centred(a, b, W, P)
                     if changed.size and ((changed >= lo) & (changed < hi)).any():
-                        models[j] = _fit_segment(L, clock, e, lev, a, b, W, M, st, cfg)
+                        models[j] = _fit_segment(L, clock, e, lev, a, b, W, M, st, cfg, tops)
                         pre[j] = None
             parts = []
             for j, (a, b) in enumerate(segs):
