@@ -264,7 +264,7 @@ def _match_gain(model: ChannelModel, L: np.ndarray, clock: SymbolClock, e: float
 
 
 def _match_gain_reference(model: ChannelModel, L: np.ndarray, clock: SymbolClock, e: float, lev: np.ndarray,
-                k_a: int, k_b: int) -> ChannelModel:
+                k_a: int, k_b: int, tops: list[float] | None = None) -> ChannelModel:
     """Pure-numpy reference of :func:`_match_gain`: ``model`` with each camera's light scaled to fit the clean frames of the undecided
     stretch [k_a, k_b): per camera the gain g (centroids ``mu_1 + g (mu_s - mu_1)``, capped at
     the brightest value seen) whose best-level costs, summed over the stretch's symbols and
@@ -283,7 +283,7 @@ def _match_gain_reference(model: ChannelModel, L: np.ndarray, clock: SymbolClock
         ok = np.isfinite(yc)
         if not ok.any():
             continue
-        top = float(np.nanmax(L[c]))
+        top = float(np.nanmax(L[c])) if tops is None else tops[c]
         base = model.mu[c, :, 0].astype(np.float32)  # (N,)
         span = (model.mu[c] - model.mu[c, :, :1]).T.astype(np.float32)  # (M, N)
         # levels first, so that the best level is an elementwise minimum of M arrays
