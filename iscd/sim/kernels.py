@@ -41,12 +41,19 @@ def _warm_sources() -> tuple:
             np.ones((8, 1)), np.ones((2, 8)), 2)
 
 
+def _warm_window() -> tuple:
+    o, Y0, X0, acc, ay, ax, bg, prnu, by, bx, z, noise, sensor = _warm_expose()
+    _, clear, kern, ix, iy, w, c_amp, c_core, c_flux, gy, gxt, grid_q = _warm_sources()
+    return (o, Y0, X0, np.zeros((8, 8)), ay, ax, clear, kern, ix, iy, w, c_amp, c_core, c_flux,
+            gy, gxt, grid_q, bg, prnu, by, bx, z, noise, sensor)
+
+
 def _warm_expose() -> tuple:
     f32 = np.float32
     z = np.zeros((2, 2), np.float32)
     return (np.zeros((4, 4), np.uint8), 1, 1, np.zeros((4, 4)), 0, 0,
-            np.ones((6, 6), np.float32), np.ones((6, 6), np.float32), 1, 1, z, True,
-            f32(0.01), f32(0.06), f32(2.5), f32(255.499))
+            np.ones((6, 6), f32), np.ones((6, 6), f32), 1, 1, z, True,
+            np.array([0.01, 0.06, 2.5, 255.499], f32))
 
 
 # ---------------------------------------------------------------- background copy
@@ -77,6 +84,57 @@ def copy_frame_ref(out: np.ndarray, src: np.ndarray, oy: int, ox: int) -> None:
 # ---------------------------------------------------------------- light of the sources
 
 
+@njit
+def _add_cores(acc: np.ndarray, kern: np.ndarray, ix: np.ndarray, iy: np.ndarray,
+               w: np.ndarray, c_amp: float, c_core: float) -> None:
+    """acc[window of s] += float32(kern[s] * float32(w[s] c_amp c_core)) for every source
+    (the order and precision of ``np.bincount`` over the footprint)."""
+    n, k, _ = kern.shape
+    for s in range(n):  # (window views: indices provably >= 0, no wrap-around code)
+        a32 = np.float32(w[s] * c_amp * c_core)
+        win = acc[iy[s]:iy[s] + k, ix[s]:ix[s] + k]
+        ks = kern[s]
+        for r in range(k):
+            for q in range(k):
+                win[r, q] += np.float64(ks[r, q] * a32)
+
+
+@njit
+def _glare_t(w: np.ndarray, c_amp: float, c_flux: float, gxt: np.ndarray, grid_q: int,
+             m: int) -> np.ndarray:
+    """(m, w) flux @ gx^T: the glare of each source row along the canvas columns."""
+    W = gxt.shape[1]
+    t = np.zeros((m, W))
+    for r in range(m):
+        tr = t[r]
+        if grid_q > 0:
+            for c in range(grid_q):
+                f = w[r * grid_q + c] * c_amp * c_flux
+                gc = gxt[c]
+                for x in range(W):
+                    tr[x] += f * gc[x]
+        else:
+            f = w[r] * c_amp * c_flux
+            gc = gxt[r]
+            for x in range(W):
+                tr[x] = f * gc[x]
+    return t
+
+
+@njit
+def _glare_row(row: np.ndarray, gy: np.ndarray, y: int, t: np.ndarray) -> None:
+    """row[:] = (gy @ t)[y]: the glare of canvas row y (skips the exact zeros of gy beyond
+    8.9 sigma, see optics._gauss)."""
+    row[:] = 0.0
+    for r in range(t.shape[0]):
+        g = gy[y, r]
+        if g == 0.0:
+            continue
+        tr = t[r]
+        for x in range(row.size):
+            row[x] += g * tr[x]
+
+
 @njit(warm=_warm_sources)
 def add_sources(acc: np.ndarray, clear: bool, kern: np.ndarray, ix: np.ndarray,
                 iy: np.ndarray, w: np.ndarray, c_amp: float, c_core: float, c_flux: float,
@@ -91,46 +149,18 @@ def add_sources(acc: np.ndarray, clear: bool, kern: np.ndarray, ix: np.ndarray,
     source rows and columns (m = 0: no glare); grid_q > 0: the sources form a row-major
     (m, grid_q) grid (an LED array), else m = q = n (one row and column per source).
     """
-    n, k, _ = kern.shape
-    H, W = acc.shape
     if clear:
         acc[:, :] = 0.0
-    for s in range(n):  # (window views: indices provably >= 0, no wrap-around code)
-        a32 = np.float32(w[s] * c_amp * c_core)
-        win = acc[iy[s]:iy[s] + k, ix[s]:ix[s] + k]
-        ks = kern[s]
-        for r in range(k):
-            for q in range(k):
-                win[r, q] += np.float64(ks[r, q] * a32)
+    _add_cores(acc, kern, ix, iy, w, c_amp, c_core)
     m = gy.shape[1]
     if m == 0:
         return
-    t = np.zeros((m, W))  # flux (m, q) @ gx^T
-    for r in range(m):
-        tr = t[r]
-        if grid_q > 0:
-            for c in range(grid_q):
-                f = w[r * grid_q + c] * c_amp * c_flux
-                gc = gxt[c]
-                for x in range(W):
-                    tr[x] += f * gc[x]
-        else:
-            f = w[r] * c_amp * c_flux
-            gc = gxt[r]
-            for x in range(W):
-                tr[x] = f * gc[x]
-    row = np.empty(W)
-    for y in range(H):  # acc += gy @ t
-        row[:] = 0.0
-        for r in range(m):
-            g = gy[y, r]
-            if g == 0.0:  # beyond 8.9 sigma (exact zeros, see optics._gauss)
-                continue
-            tr = t[r]
-            for x in range(W):
-                row[x] += g * tr[x]
+    t = _glare_t(w, c_amp, c_flux, gxt, grid_q, m)
+    row = np.empty(acc.shape[1])
+    for y in range(acc.shape[0]):  # acc += gy @ t
+        _glare_row(row, gy, y, t)
         ay = acc[y]
-        for x in range(W):
+        for x in range(row.size):
             ay[x] += row[x]
 
 
@@ -165,18 +195,18 @@ def add_sources_ref(acc: np.ndarray, clear: bool, kern: np.ndarray, ix: np.ndarr
 @njit(warm=_warm_expose)
 def expose_window(out: np.ndarray, Y0: int, X0: int, acc: np.ndarray, ay: int, ax: int,
                   bg: np.ndarray, prnu: np.ndarray, by: int, bx: int, z: np.ndarray,
-                  noise: bool, gain: np.float32, read2: np.float32, offset: np.float32,
-                  top: np.float32) -> None:
+                  noise: bool, sensor: np.ndarray) -> None:
     """Read out the window out[Y0:Y0 + h, X0:X0 + w], (h, w) = z.shape (uint8).
 
     Photo-signal S = float32(acc[ay + i, ax + j]) + bg[by + i, bx + j] (DN); the sensor of
     :meth:`iscd.sim.sensor.SensorModel.expose` in the same float32 arithmetic:
-    S *= prnu; if noise: S += sqrt(max(gain S + read2, 0)) z (z: N(0, 1) draws, gain:
-    DN per electron, read2: read noise^2, DN^2); S += offset (dark + 0.5); clip to
-    [0, top]; truncate.
+    S *= prnu; if noise: S += sqrt(max(gain S + read2, 0)) z (z: N(0, 1) draws); S +=
+    offset; clip to [0, top]; truncate. sensor: float32 (gain DN per electron, read2 read
+    noise^2 DN^2, offset = dark + 0.5 DN, top DN), see :func:`sensor_constants`.
     """
     h, w = z.shape
     zero = np.float32(0.0)
+    gain, read2, offset, top = sensor[0], sensor[1], sensor[2], sensor[3]
     for i in range(h):  # row views: indices provably >= 0, so the loop vectorizes
         o = out[Y0 + i, X0:X0 + w]
         a = acc[ay + i, ax:ax + w]
@@ -192,12 +222,37 @@ def expose_window(out: np.ndarray, Y0: int, X0: int, acc: np.ndarray, ay: int, a
             o[j] = np.uint8(s)
 
 
+@njit(warm=_warm_window)
+def render_window(out: np.ndarray, Y0: int, X0: int, acc: np.ndarray, ay: int, ax: int,
+                  clear: bool, kern: np.ndarray, ix: np.ndarray, iy: np.ndarray,
+                  w: np.ndarray, c_amp: float, c_core: float, c_flux: float,
+                  gy: np.ndarray, gxt: np.ndarray, grid_q: int, bg: np.ndarray,
+                  prnu: np.ndarray, by: int, bx: int, z: np.ndarray, noise: bool,
+                  sensor: np.ndarray) -> None:
+    """:func:`add_sources` of one source set (the last of its window) and
+    :func:`expose_window`, fused: the set's glare is added row by row on the way to the
+    sensor (the same sums: acc + glare, then float32)."""
+    if clear:
+        acc[:, :] = 0.0
+    _add_cores(acc, kern, ix, iy, w, c_amp, c_core)
+    m = gy.shape[1]
+    if m > 0:
+        t = _glare_t(w, c_amp, c_flux, gxt, grid_q, m)
+        row = np.empty(acc.shape[1])
+        for y in range(ay, ay + z.shape[0]):  # only the rows read out
+            _glare_row(row, gy, y, t)
+            a = acc[y]
+            for x in range(row.size):
+                a[x] += row[x]
+    expose_window(out, Y0, X0, acc, ay, ax, bg, prnu, by, bx, z, noise, sensor)
+
+
 def expose_window_ref(out: np.ndarray, Y0: int, X0: int, acc: np.ndarray, ay: int, ax: int,
                       bg: np.ndarray, prnu: np.ndarray, by: int, bx: int, z: np.ndarray,
-                      noise: bool, gain: np.float32, read2: np.float32, offset: np.float32,
-                      top: np.float32) -> None:
+                      noise: bool, sensor: np.ndarray) -> None:
     """Reference of :func:`expose_window` (numpy, the arithmetic of ``SensorModel.expose``
     with the draws ``z`` given)."""
+    gain, read2, offset, top = sensor
     h, w = z.shape
     s = np.add(acc[ay:ay + h, ax:ax + w], bg[by:by + h, bx:bx + w], dtype=np.float32)
     s *= prnu[by:by + h, bx:bx + w]
@@ -213,9 +268,29 @@ def expose_window_ref(out: np.ndarray, Y0: int, X0: int, acc: np.ndarray, ay: in
     out[Y0:Y0 + h, X0:X0 + w] = s
 
 
+def render_window_ref(out: np.ndarray, Y0: int, X0: int, acc: np.ndarray, ay: int, ax: int,
+                      clear: bool, kern: np.ndarray, ix: np.ndarray, iy: np.ndarray,
+                      w: np.ndarray, c_amp: float, c_core: float, c_flux: float,
+                      gy: np.ndarray, gxt: np.ndarray, grid_q: int, bg: np.ndarray,
+                      prnu: np.ndarray, by: int, bx: int, z: np.ndarray, noise: bool,
+                      sensor: np.ndarray) -> None:
+    """Reference of :func:`render_window`."""
+    add_sources_ref(acc, clear, kern, ix, iy, w, c_amp, c_core, c_flux, gy, gxt, grid_q)
+    expose_window_ref(out, Y0, X0, acc, ay, ax, bg, prnu, by, bx, z, noise, sensor)
+
+
+def sensor_constants(gain_dn_per_e: float, read_dn: float, dark_dn: float, max_dn: int
+                     ) -> np.ndarray:
+    """The float32 constants of :meth:`iscd.sim.sensor.SensorModel.expose` for
+    :func:`expose_window`: (gain, read_dn^2, dark_dn + 0.5, max_dn + 0.5 - 1e-3)."""
+    return np.array([gain_dn_per_e, read_dn ** 2, dark_dn + 0.5, max_dn + 0.5 - 1e-3],
+                    np.float32)
+
+
 def warm() -> None:
     """Compile (or load from the cache) the kernels of this module, with the argument types
     the scene passes (call before a real-time clock starts)."""
     copy_frame(*_warm_copy())
     add_sources(*_warm_sources())
     expose_window(*_warm_expose())
+    render_window(*_warm_window())

@@ -96,6 +96,7 @@ class _GroupPlan:
     box: tuple[int, int, int, int]
     clip: tuple[int, int, int, int]  # X0, Y0, X1, Y1; empty when X0 >= X1 or Y0 >= Y1
     sets: list[_SetPlan] = field(default_factory=list)
+    empty: bool = False  # the window lies outside the image
     acc: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)))  # (h, w) float64 DN
     z: np.ndarray = field(default_factory=lambda: np.zeros((0, 0), np.float32))  # N(0,1) draws
 
@@ -181,11 +182,9 @@ class Scene:
         self.offsets = led_offsets(tx)
         self.grid = (tx.rows, tx.cols)
         self.sensor = SensorModel.from_config(cfg.sensor, 8, noise=noise)
-        sm = self.sensor  # the float32 constants of SensorModel.expose
-        self._k32 = np.float32(sm.gain_dn_per_e)
-        self._r2_32 = np.float32(sm.read_dn ** 2)
-        self._off32 = np.float32(sm.dark_dn + 0.5)
-        self._top32 = np.float32(sm.max_dn + 0.5 - 1e-3)
+        sm = self.sensor
+        self._sensor32 = kernels.sensor_constants(sm.gain_dn_per_e, sm.read_dn, sm.dark_dn,
+                                                  sm.max_dn)
         self.vibration = Vibration(sc.vibration_px, self.seed)
         self.margin = min(int(math.ceil(4 * sc.vibration_px)), 64)
         self.tables = TableCache()
@@ -358,24 +357,26 @@ class Scene:
                                 out: np.ndarray) -> None:
         """Camera ``c``'s frame ``n`` (chunk state ``st``, row ``i``) into ``out``: the bank
         frame, then every render window through :mod:`iscd.sim.kernels`."""
-        oy, ox = self._origin(st, i)
+        oy, ox = self._origin(st, i) if self.margin else (0, 0)
         kernels.copy_frame(out, c.bank[st["bank"][i, c.idx]], oy, ox)
         seed = self._noise_base + (n * 2 + c.idx) * 8
-        sm = self.sensor
+        noise = self.noise
         for gi, g in enumerate(self._plan(c, st, i)):
-            X0, Y0, X1, Y1 = g.clip
-            if X0 >= X1 or Y0 >= Y1:
+            if g.empty:
                 continue
-            for j, sp in enumerate(g.sets):
-                kernels.add_sources(g.acc, j == 0, sp.kern, sp.ix, sp.iy, st[sp.key][i, sp.cols],
-                                    sp.c_amp, sp.c_core, sp.c_flux, sp.gy, sp.gxt, sp.grid_q)
-            if self.noise:  # the draws of SensorModel.expose (same seed, same stream)
+            *first, sp = g.sets
+            for sq in first:
+                kernels.add_sources(g.acc, sq is g.sets[0], sq.kern, sq.ix, sq.iy,
+                                    st[sq.key][i, sq.cols], sq.c_amp, sq.c_core, sq.c_flux,
+                                    sq.gy, sq.gxt, sq.grid_q)
+            if noise:  # the draws of SensorModel.expose (same seed, same stream)
                 cv2.setRNGSeed((seed + gi) & 0x7FFFFFFF)
                 cv2.randn(g.z, 0.0, 1.0)
-            x0, y0 = g.box[0], g.box[1]
-            kernels.expose_window(out, Y0, X0, g.acc, Y0 - y0, X0 - x0, c.bg, c.prnu, oy + Y0,
-                                  ox + X0, g.z, sm.noise and self.noise, self._k32, self._r2_32,
-                                  self._off32, self._top32)
+            X0, Y0 = g.clip[0], g.clip[1]
+            kernels.render_window(out, Y0, X0, g.acc, Y0 - g.box[1], X0 - g.box[0], not first,
+                                  sp.kern, sp.ix, sp.iy, st[sp.key][i, sp.cols], sp.c_amp,
+                                  sp.c_core, sp.c_flux, sp.gy, sp.gxt, sp.grid_q, c.bg, c.prnu,
+                                  oy + Y0, ox + X0, g.z, noise, self._sensor32)
 
     def _plan(self, c: _Camera, st: dict[str, np.ndarray], i: int) -> list[_GroupPlan]:
         """The render windows of camera ``c`` in frame row ``i`` (cached while the LEDs keep
@@ -410,7 +411,8 @@ class Scene:
             box = _group_box(group)
             x0, y0, x1, y1 = box
             clip = (max(x0, 0), max(y0, 0), min(x1, self.width), min(y1, self.height))
-            g = _GroupPlan(box, clip, acc=np.zeros((y1 - y0, x1 - x0)),
+            g = _GroupPlan(box, clip, empty=clip[0] >= clip[2] or clip[1] >= clip[3],
+                           acc=np.zeros((y1 - y0, x1 - x0)),
                            z=np.zeros((max(clip[3] - clip[1], 0), max(clip[2] - clip[0], 0)),
                                       np.float32))
             for s in group:
