@@ -36,7 +36,7 @@ from iscd.demod_worker import DemodWorker
 from iscd.receiver.follow_kernel import follow_and_measure_compiled
 from iscd.receiver.luminance import follow_and_measure, grid_sample
 from iscd.receiver.detect import GridFit, detect_array, light_map, match_stereo, track_box, track_on_light
-from iscd.receiver.track_kernel import LightAccumulator
+from iscd.receiver.track_kernel import LightAccumulator, track_on_light_compiled
 from iscd.receiver.packets import Packet, PacketAssembler
 from iscd.receiver.settings import receiver_config
 from iscd.ranging.kalman import RangeKalman
@@ -93,13 +93,15 @@ def _track_window(fit: GridFit, W: int, H: int) -> tuple[int, int, int, int]:
     return _clip(fit.bbox(2 * fit.pitch_px + 4), W, H)
 
 
-def _track_in(light: np.ndarray, window: tuple[int, int, int, int], fit: GridFit) -> GridFit:
+def _track_in(light: np.ndarray, window: tuple[int, int, int, int], fit: GridFit,
+              compiled: bool = True) -> GridFit:
     """:func:`iscd.receiver.detect.track_array` of ``fit`` on the light map of the
     tracking window (x0, y0, x1, y1) px."""
     ax0, ay0 = window[0], window[1]
     p = fit.shifted(-ax0, -ay0)
     x0, y0, x1, y1 = track_box(p, light.shape)
-    return track_on_light(light[y0:y1, x0:x1], p, x0, y0).shifted(ax0, ay0)
+    track = track_on_light_compiled if compiled else track_on_light
+    return track(light[y0:y1, x0:x1], p, x0, y0).shifted(ax0, ay0)
 
 
 @dataclass
@@ -154,7 +156,7 @@ class StreamDecoder:
         self.settings = settings or build_section(PipelineSettings, dict(cfg.extra.get("tracking", {})), "tracking")
         rs = ranging or build_section(RangingSettings, dict(cfg.extra.get("ranging", {})), "ranging")
         self.cal = calibration or StereoCalibration.ideal(cfg.camera)
-        self.ranger = StereoRanger(self.cal, rs) if self.settings.ranging else None
+        self.ranger = StereoRanger(self.cal, rs, compiled=compiled) if self.settings.ranging else None
         self.led_ranger = (LedRanger(self.cal, method="iscd", patch_px=rs.patch_px)
                            if self.ranger is not None and rs.per_led else None)
         self.per_led_every = rs.per_led_every_frames
@@ -601,8 +603,8 @@ class StreamDecoder:
         self._ids_sum = 0.0
         self._since_fit = 0
         try:
-            nl = _track_in(lights[0], acc[0].window, tr.left)
-            nr = _track_in(lights[1], acc[1].window, tr.right)
+            nl = _track_in(lights[0], acc[0].window, tr.left, self.compiled)
+            nr = _track_in(lights[1], acc[1].window, tr.right, self.compiled)
         except ValueError:
             nl = nr = None  # type: ignore[assignment]
         if nl is not None and nr is not None:

@@ -41,6 +41,7 @@ import numpy as np
 from calibration.io import StereoCalibration, rectify_points
 from iscd.ranging.config import PROJECT_METHODS, RangingSettings
 from iscd.ranging.estimators import Estimator, get_estimator
+from iscd.ranging.project_kernel import patch_minimum, project_patches
 from iscd.ranging.projected import Plan, ProjectedShift, make_plan, ring_indices, robust_level
 from iscd.ranging.range import DEFAULT_MIN_QUALITY, range_from_disparity, range_sigma
 from iscd.receiver.detect import GridFit
@@ -93,8 +94,13 @@ class RunningMinimum:
     def update(self, patches: np.ndarray, x0: int, y0: int) -> np.ndarray:
         """Add a block of patches (n, h, w) cut at image position (x0, y0) and return the
         (h, w) minimum over it and the stored blocks (float32, grey levels)."""
-        n, h, w = patches.shape
-        cur = patches.min(axis=0).astype(np.float32)
+        n = patches.shape[0]
+        return self.update_min(patches.min(axis=0).astype(np.float32), x0, y0, n)
+
+    def update_min(self, cur: np.ndarray, x0: int, y0: int, n: int) -> np.ndarray:
+        """:meth:`update` given the block's own per-pixel minimum ``cur`` (h, w) of ``n``
+        frames (:func:`iscd.ranging.project_kernel.patch_minimum`)."""
+        h, w = cur.shape
         bg = cur.copy()
         for bx, by, bmin, _ in self._blocks:
             bh, bw = bmin.shape
@@ -164,7 +170,11 @@ class StereoRanger:
     background that does not overlap the new patch is ignored).
     """
 
-    def __init__(self, cal: StereoCalibration, settings: RangingSettings | None = None) -> None:
+    def __init__(self, cal: StereoCalibration, settings: RangingSettings | None = None, *,
+                 compiled: bool = True) -> None:
+        """``compiled``: the live case on the kernels of :mod:`iscd.ranging.project_kernel`
+        (``False``: the numpy reference throughout; the same ranges to float tolerance)."""
+        self.compiled = compiled
         self.cal = cal if cal.is_rectified else cal.with_rectification()
         self.settings = settings or RangingSettings()
         s = self.settings
@@ -288,6 +298,11 @@ class StereoRanger:
         the same pairs, ``fit_l``/``fit_r`` the transmitter's grid fits (raw image px)."""
         n = left.shape[0]
         g = self._geometry(fit_l, fit_r)
+        est_obj = self._estimator_for(fit_l.pitch_px, self.saturation_level(left))
+        if (self.compiled and self.identity and g.plan is not None and self.subtract_background
+                and isinstance(est_obj, ProjectedShift) and not est_obj.declips(g.plan)
+                and g.plan.weights_left is not None and left.dtype.kind in "ui"):
+            return self._measure_compiled(left, right, g, est_obj)
         pl = self._cut(left, "left", g.x0l, g.y0, g.w, g.h)
         pr = self._cut(right, "right", g.x0r, g.y0, g.w, g.h)
         bl = self.background["left"].update(pl, g.x0l, g.y0)
@@ -305,7 +320,6 @@ class StereoRanger:
         snr = np.minimum(
             (pl.reshape(n, -1) @ g.snr_left - bl.ravel() @ g.snr_left - ped_l * g.snr_left.sum()) / noise_l,
             (pr.reshape(n, -1) @ g.snr_right - br.ravel() @ g.snr_right - ped_r * g.snr_right.sum()) / noise_r)
-        est_obj = self._estimator_for(fit_l.pitch_px, self.saturation_level(left))
         if g.plan is not None:
             kw = {"background": (bl, br), "pedestal": (ped_l, ped_r)} if self.subtract_background else {}
             est = est_obj.estimate(pl, pr, plan=g.plan, **kw)
@@ -315,6 +329,26 @@ class StereoRanger:
             est = est_obj.estimate(pl - bl - ped_l[:, None, None], pr - br - ped_r[:, None, None])
         else:
             est = est_obj.estimate(pl, pr)
+        return self._result(g, est, snr)
+
+    def _measure_compiled(self, left: np.ndarray, right: np.ndarray, g: _Geometry,
+                          est_obj: ProjectedShift) -> RangeResult:
+        """:meth:`measure` for the live case (identity rectification, ``"iscd-fast"`` with
+        its row weights, no core refill) on the compiled kernels of
+        :mod:`iscd.ranging.project_kernel`: the same steps without (n, h, w) temporaries."""
+        n = left.shape[0]
+        bl = self.background["left"].update_min(patch_minimum(left, g.x0l, g.y0, g.h, g.w), g.x0l, g.y0, n)
+        br = self.background["right"].update_min(patch_minimum(right, g.x0r, g.y0, g.h, g.w), g.x0r, g.y0, n)
+        plan = g.plan
+        assert plan is not None and plan.weights_left is not None and plan.weights_right is not None
+        ped_l, mad_l, sig_l, prof_l = project_patches(left, g.x0l, g.y0, bl, g.ring, g.snr_left, plan.weights_left)
+        ped_r, mad_r, sig_r, prof_r = project_patches(right, g.x0r, g.y0, br, g.ring, g.snr_right, plan.weights_right)
+        noise_l = max(float(np.sort(mad_l)[n // 2]), _QUANT_NOISE_DN)
+        noise_r = max(float(np.sort(mad_r)[n // 2]), _QUANT_NOISE_DN)
+        snr = np.minimum(sig_l / noise_l, sig_r / noise_r)
+        return self._result(g, est_obj.from_profiles(prof_l, prof_r, plan), snr)
+
+    def _result(self, g: _Geometry, est, snr: np.ndarray) -> RangeResult:  # est: ShiftEstimate
         d = (g.x0l - g.x0r) + np.asarray(est.dx, dtype=np.float64)
         z = range_from_disparity(d, self.f_px, self.b_m)
         quality = np.asarray(est.quality, dtype=np.float64)

@@ -412,8 +412,6 @@ class ProjectedShift:
                  pedestal: tuple[ArrayLike, ArrayLike] | None = None, plan: Plan | None = None,
                  centres_left: ArrayLike | None = None, centres_right: ArrayLike | None = None,
                  pitch_px: float = 0.0, spot_px: float | None = None, **kw: Any):  # -> ShiftEstimate
-        from iscd.ranging.estimators import ShiftEstimate
-
         if isinstance(left, np.ndarray) and left.ndim == 3 and isinstance(right, np.ndarray) \
                 and left.shape == right.shape and left.dtype.kind == "f":
             lf, rt = left, right          # the live path: trusted float batches (no copy)
@@ -430,7 +428,8 @@ class ProjectedShift:
             if bl.dtype.kind != "f" or br.dtype.kind != "f":
                 bl, br = bl.astype(np.float64), br.astype(np.float64)
         sat_any = False
-        if self.declip or (self.declip is None and plan.leds in (1, None)):
+        any_l = any_r = None
+        if self.declips(plan):
             sat_l = lf >= self.saturation - 0.5
             sat_r = rt >= self.saturation - 0.5
             any_l, any_r = sat_l.any(axis=(1, 2)), sat_r.any(axis=(1, 2))
@@ -477,9 +476,24 @@ class ProjectedShift:
                 wl = wr = data_row_weights(l0, r0)
             prof_l = (wl @ l0).astype(np.float64)                          # (n, w)
             prof_r = (wr @ r0).astype(np.float64)  # type: ignore[operator]
+        return self.from_profiles(prof_l, prof_r, plan,
+                                  saturated=(any_l | any_r) if sat_any else None)
+
+    def declips(self, plan: Plan) -> bool:
+        """Whether :meth:`estimate` looks for clipped cores with this plan (``declip``, or
+        by default for one-LED patches and patches of unknown geometry)."""
+        return bool(self.declip or (self.declip is None and plan.leds in (1, None)))
+
+    def from_profiles(self, prof_l: NDArray[np.float64], prof_r: NDArray[np.float64], plan: Plan,
+                      saturated: NDArray[np.bool_] | None = None):  # -> ShiftEstimate
+        """The shift estimate from the row-weighted profiles (n, w) of both cameras (the
+        second half of :meth:`estimate`; ``saturated`` (n,): frames with a refilled core)."""
+        from iscd.ranging.estimators import ShiftEstimate
+
+        n = prof_l.shape[0]
         p = correlate_1d(prof_l, prof_r, self.beta, self.band_cutoff, plan.max_shift_px, self.iterations)
-        if sat_any:
-            floor = np.sqrt(self.sigma_floor_px ** 2 + (any_l | any_r) * self.sigma_saturated_px ** 2)
+        if saturated is not None:
+            floor = np.sqrt(self.sigma_floor_px ** 2 + saturated * self.sigma_saturated_px ** 2)
         else:
             floor = self.sigma_floor_px
         dead = ~(np.isfinite(p.height) & np.isfinite(p.dx))

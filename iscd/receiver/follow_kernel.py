@@ -9,7 +9,7 @@ with smooth weights, :func:`~iscd.receiver.luminance.gauss_in_patches`) -- in fu
 that read each LED's pixels straight out of the frames (no patch copies, no temporaries
 of the size of the block). It works in float64 where the reference works partly in
 float32: the two agree to ~1e-5 px in position and ~1e-5 relative in luminance
-(``tests/test_rx_kernels_follow.py``).
+(``tests/test_frame_kernels.py``).
 
 Conventions as in :mod:`iscd.receiver.luminance`: x right, y down, pixel centres at
 integers, positions in px, luminance in DN; a patch at the image edge is moved inside.
@@ -95,7 +95,7 @@ def _follow_kernel(L, R, starts: np.ndarray, half: int, w: float, iterations: in
     pmin = np.empty((FF, n))
     shown = np.empty((FF, n))
     lit = np.empty((FF, n), np.bool_)
-    bg = np.empty((K, K), np.int64)
+    bg = np.empty_like(L[0, :K, :K])  # the frames' dtype: branch-free integer minima vectorize
     for g in range(2):
         fr = L if g == 0 else R
         fixed = F > 1
@@ -106,33 +106,29 @@ def _follow_kernel(L, R, starts: np.ndarray, half: int, w: float, iterations: in
                     fixed = False
         for j in range(n):
             i = sel[j]
-            bg[:, :] = 1 << 40
             for f in range(F):  # integer arithmetic: exact, and it vectorizes
                 q = g * F + f
                 xa, ya = x0[q, i], y0[q, i]
-                m = 1 << 40
+                m = fr[f, ya, xa]
                 tot = 0
                 for a in range(K):
                     row = fr[f, ya + a, xa:xa + K]
                     ba = bg[a]
+                    if fixed and f == 0:
+                        ba[:] = row
+                    for b in range(K):
+                        tot += np.int64(row[b])
+                        m = min(m, row[b])
                     if fixed:
                         for b in range(K):
-                            v = np.int64(row[b])
-                            tot += v
-                            m = min(m, v)
-                            ba[b] = min(ba[b], v)
-                    else:
-                        for b in range(K):
-                            v = np.int64(row[b])
-                            tot += v
-                            m = min(m, v)
+                            ba[b] = min(ba[b], row[b])
                 pmin[q, j] = m
                 shown[q, j] = tot - K * K * m  # light above the patch minimum
             if fixed:  # light above each pixel's least value over the block
                 sb = 0
                 for a in range(K):
                     for b in range(K):
-                        sb += bg[a, b]
+                        sb += np.int64(bg[a, b])
                 for f in range(F):
                     q = g * F + f
                     shown[q, j] += K * K * pmin[q, j] - sb
