@@ -267,6 +267,11 @@ class MockRig:
                 raise CameraLost(f"mock {c.name} camera vanished")
             raise CameraError(f"mock {c.name} camera is not started")
         if not self.pace:
+            if not c.queue and not c.must_reopen and c.lost_until_n is None \
+                    and c.name not in self._faulty:  # the common case: the next trigger
+                n = c.cursor
+                c.cursor += 1
+                return n
             while not c.queue:
                 if c.must_reopen:
                     c.started = False
@@ -327,7 +332,7 @@ class MockRig:
                 if entry[0] is None and entry[1] is None:
                     del self._cache[n]
                 return img
-            scene = self.scene
+            scene = self._scene if self._scene is not None else self.scene
             H, W = scene.height, scene.width
             other = self._cams[1 - c.idx]
             want_other = other.started and n >= other.cursor - self.buffer_frames - 2
@@ -354,7 +359,7 @@ class MockRig:
                 n = self._next_index(c, timeout_s)
         img = self._image(c, n)
         r = c.settings.roi
-        if (r.x, r.y, r.width, r.height) != (0, 0, img.shape[1], img.shape[0]):
+        if r.x or r.y or r.width != img.shape[1] or r.height != img.shape[0]:
             img = img[r.y:r.y + r.height, r.x:r.x + r.width].copy()
         c.stats.delivered += 1
         return Frame(c.name, self._frame_id(c, n), self.trigger_time_ns(n), img)

@@ -219,6 +219,8 @@ def test_benchmark_quick_runs_and_prints_ratios(capsys):
     line = next(x for x in out.splitlines() if x.startswith("ratio vs real time"))
     assert float(line.rsplit(":", 1)[1]) > 0
     assert "mock / memcpy" in out and "mock / naive" in out
+    line = next(x for x in out.splitlines() if x.startswith("mock rig cost at 1000 fps:"))
+    assert 0 < float(line.split(":", 1)[1].split()[0]) < 10
 
 
 def test_two_reader_threads_paced():
