@@ -17,6 +17,15 @@ daemon does. Cases:
   luminance (``follow_and_measure``), in blocks of 16 pairs;
 - ``spot``: the crosstalk/saturation-aware luminance (``SpotLuminance``, fitted once).
 
+``--assembler [SCENE]`` instead times the packet assembler alone on a rendered scene
+(default: the daemon's 8x8 PWM-8 HDR scene at 30 m; pwm16: PWM-16 at 50 m; single: one
+LED at 40 m): the frames are rendered once (:mod:`iscd.sim`), their luminance extracted by
+the pipeline (:class:`iscd.pipeline.StreamDecoder`, whose pushes to the assembler are
+recorded), then only :meth:`PacketAssembler.push` is timed on that luminance in the
+daemon's blocks of 16 pairs: seconds per packet (the blocks that complete one), per block
+that completes none, and the assembler's share of a 1000 fps core; the baseline is the
+bare clean-frame decision of a packet's frames (as below), measured in the same process.
+
 Each line prints frames/s, the ratio to 1000 frames/s (>= 1 keeps up on one core) and the
 time per frame as a multiple of a baseline measured in the same process: the bare
 clean-frame decision of the same frames with the clock and centroids given (one
@@ -24,6 +33,7 @@ vectorized distance + argmin per frame: the floor of any demodulator). BLAS is l
 to one thread, as in the daemon.
 
     .venv/bin/python benchmarks/bench_receiver.py [--quick] [--packets N]
+    .venv/bin/python -m benchmarks.bench_receiver --assembler [default|pwm16|single] [--repeats R]
 """
 
 from __future__ import annotations
@@ -130,12 +140,102 @@ def bench(n_packets: int, repeats: int, n_image_frames: int) -> list[tuple[str, 
     return rows
 
 
+def _captured_luminance(scene: str, packets: int) -> tuple[list[tuple], object]:
+    """Render ``packets`` packets of ``scene``, run the pipeline on them and return the
+    luminance blocks it pushed into its packet assembler, and the assembler's arguments."""
+    from iscd.airinterface import AirInterface as Air
+    from iscd.config import default_config
+    from iscd.eval.sweeps import frames_for_packets
+    from iscd.pipeline import StreamDecoder
+    from iscd.sim.presets import override, single_led
+    from iscd.sim.scene import Scene
+
+    cfg = default_config()
+    if scene == "pwm16":
+        cfg = override(cfg, transmitter={"levels": 16}, scene={"distance_m": 50.0})
+    elif scene == "single":
+        cfg = single_led(cfg, 40.0)
+    sc = Scene(cfg)
+    n = frames_for_packets(sc, Air.from_config(cfg.transmitter), packets)
+    pushes: list[tuple] = []
+    made: list[tuple] = []
+    orig = PacketAssembler.push
+
+    def spy(self: PacketAssembler, *a: object) -> list:
+        if not made:
+            made.append((self.tx, self.fps, self.e / self.fps, self.cfg))
+        pushes.append(tuple(np.array(x) if x is not None else None for x in a))
+        return orig(self, *a)
+
+    PacketAssembler.push = spy  # type: ignore[method-assign]
+    try:
+        dec = StreamDecoder(cfg)
+        Lb = np.empty((16, sc.height, sc.width), np.uint8)
+        Rb = np.empty_like(Lb)
+        for s0 in range(0, n, 16):
+            ids = np.arange(s0, min(n, s0 + 16))
+            for i, k in enumerate(ids):
+                sc.render_pair_into(int(k), Lb[i], Rb[i])
+            dec.push(ids, ids / sc.fps, Lb[:ids.size], Rb[:ids.size])
+        dec.finish()
+    finally:
+        PacketAssembler.push = orig  # type: ignore[method-assign]
+    return pushes, made[0]
+
+
+def bench_assembler(scene: str, packets: int, repeats: int) -> dict[str, float]:
+    """Seconds per packet and per packet-less block of :meth:`PacketAssembler.push` on the
+    captured luminance of ``scene`` (best of ``repeats`` runs), and the baseline."""
+    from iscd.jit import warm_up
+
+    pushes, (tx, fps, exposure_s, cfg) = _captured_luminance(scene, packets)
+    warm_up()
+    best_pkt, best_blk, n_pkt = float("inf"), float("inf"), 0
+    for _ in range(repeats + 1):  # the first run also compiles what warm_up did not
+        asm = PacketAssembler(tx, fps, exposure_s, cfg)
+        t_pkt, t_blk, n_blk, n_pkt = 0.0, 0.0, 0, 0
+        for args in pushes:
+            t0 = time.perf_counter()
+            got = asm.push(*args)
+            dt = time.perf_counter() - t0
+            if got:
+                t_pkt += dt
+                n_pkt += len(got)
+            else:
+                t_blk += dt
+                n_blk += 1
+        if n_pkt:
+            best_pkt = min(best_pkt, t_pkt / n_pkt)
+        best_blk = min(best_blk, t_blk / max(n_blk, 1))
+    # baseline: the bare clean-frame decision of one packet's frames (both cameras, given
+    # centroids: one vectorized distance + argmin), as in the throughput cases above
+    L = np.stack([np.concatenate([a[2] for a in pushes]), np.concatenate([a[3] for a in pushes])])
+    n_fr = int(np.ceil(asm.packet_frames))
+    Lp = L[:, :n_fr]
+    mu = np.nanpercentile(Lp, np.linspace(2, 98, tx.levels), axis=1).transpose(1, 2, 0)  # (C, N, M)
+    t_base = best_time(lambda: np.nansum((Lp[..., None] - mu[:, None]) ** 2, axis=0).argmin(-1),
+                       10 * repeats)
+    period_s = asm.period_frames / fps
+    return {"packet_s": best_pkt, "block_s": best_blk, "packets": n_pkt, "baseline_s": t_base,
+            "core_share": (best_pkt + best_blk * (asm.period_frames / 16 - 1)) / period_s}
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--quick", action="store_true", help="one packet, one repeat (a smoke test)")
     ap.add_argument("--packets", type=int, default=3, help="packets per run (default 3)")
     ap.add_argument("--repeats", type=int, default=3, help="timed runs per case, best kept")
+    ap.add_argument("--assembler", nargs="?", const="default", choices=("default", "pwm16", "single"),
+                    help="time the packet assembler alone on a rendered scene's luminance")
     args = ap.parse_args(argv)
+    if args.assembler:
+        r = bench_assembler(args.assembler, max(args.packets, 2), 1 if args.quick else args.repeats)
+        print(f"packet assembler, scene {args.assembler}: {r['packets']} packets; "
+              f"{r['packet_s'] * 1e3:.1f} ms per packet ({r['packet_s'] / r['baseline_s']:.0f} x baseline), "
+              f"{r['block_s'] * 1e6:.0f} us per 16-pair block without a packet "
+              f"({r['block_s'] / r['baseline_s']:.2f} x baseline); {r['core_share']:.3f} of a core at 1000 fps; "
+              f"baseline (clean-frame argmin of a packet) {r['baseline_s'] * 1e3:.2f} ms")
+        return 0
     n_packets, repeats, n_img = (1, 1, 100) if args.quick else (args.packets, args.repeats, 500)
     print(f"receiver, 8x8 LEDs, PWM-16, f/4 + f/8, {n_packets} packet(s) of "
           f"{AirInterface(levels=16).packet_symbols} symbols, 2 frames/symbol")
