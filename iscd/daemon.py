@@ -34,7 +34,7 @@ from typing import Any
 
 import numpy as np
 
-from iscd.config import Config, build_section
+from iscd.config import Config, ConfigError, build_section
 
 log = logging.getLogger(__name__)
 
@@ -51,7 +51,10 @@ class DaemonSettings:
     rotate_mb: float = field(default=256.0, metadata={"lo": 0.001, "doc": "rotate the output file at this size, MiB"})
     socket: str = field(default="", metadata={"doc": "ZeroMQ PUB endpoint, e.g. tcp://127.0.0.1:5556 ('' = off)"})
     calibration: str = field(default="", metadata={"doc": "stereo calibration YAML ('' = ideal rig of [camera])"})
-    shed_ranging_fill: float = field(default=0.25, metadata={"lo": 0, "hi": 1, "doc": "skip ranging while the ring is fuller than this share (decoding first)"})
+    shed_led_fill: float = field(default=0.05, metadata={"lo": 0, "hi": 1, "doc": "overload level 1: shed per-LED ranges while the ring is fuller than this share (docs/realtime.md)"})
+    shed_ranging_fill: float = field(default=0.15, metadata={"lo": 0, "hi": 1, "doc": "overload level 2: range only every shed_ranging_every-th frame above this ring fill"})
+    shed_images_fill: float = field(default=0.35, metadata={"lo": 0, "hi": 1, "doc": "overload level 3: shed Rerun images above this ring fill (then the ring drops its oldest pairs)"})
+    shed_ranging_every: int = field(default=4, metadata={"lo": 2, "hi": 1000, "doc": "frames between ranged frames at overload level 2"})
     restart_backoff_s: float = field(default=1.0, metadata={"lo": 0, "doc": "wait before restarting a dead acquisition"})
 
 
@@ -63,6 +66,10 @@ class Daemon:
                  calibration: str | None = None, install_signals: bool = True) -> None:
         self.cfg = cfg
         self.settings: DaemonSettings = build_section(DaemonSettings, dict(cfg.extra.get("daemon", {})), "daemon")
+        st = self.settings
+        if not st.shed_led_fill <= st.shed_ranging_fill <= st.shed_images_fill:
+            raise ConfigError(f"daemon.shed_led_fill <= daemon.shed_ranging_fill <= daemon.shed_images_fill "
+                              f"expected, got {st.shed_led_fill}, {st.shed_ranging_fill}, {st.shed_images_fill}")
         self.out_path = out or self.settings.out or None
         self.duration_s = duration_s
         self.rerun_opts = rerun
@@ -117,6 +124,7 @@ class Daemon:
         from drivers.registry import make_stereo, settings_from_config
         from iscd.acquisition import AcquisitionProcess, AcquisitionStats
         from iscd.notify import Notifier
+        from iscd.overload import OverloadPolicy, OverloadSettings
         from iscd.pipeline import StreamDecoder
         from iscd.ringbuffer import StereoRing, capacity_for
         from iscd.stats import CpuMeter, LatencyWindow
@@ -138,6 +146,9 @@ class Daemon:
         if self.install_signals:
             for sig in (signal.SIGTERM, signal.SIGINT):
                 old_handlers[sig] = signal.signal(sig, self.request_stop)
+        overload = OverloadPolicy(OverloadSettings(
+            led_fill=st.shed_led_fill, ranging_fill=st.shed_ranging_fill, images_fill=st.shed_images_fill,
+            ranging_every=st.shed_ranging_every))
         lat = LatencyWindow()
         cpu = CpuMeter()
         B = st.block_max
@@ -148,6 +159,14 @@ class Daemon:
         arrival = np.zeros(B, np.int64)
         fps = cfg.camera.fps
         counters = {"pairs_decoded": 0, "pair_gaps": 0, "decode_errors": 0, "acquisition_restarts": 0, "output_errors": 0}
+        # the compiled kernels are loaded from the cache (or compiled) before the cameras
+        # start and before READY=1: the first frames are not spent compiling
+        from iscd.jit import CACHE_ENABLED, cache_dir, warm_up
+
+        notifier.status("loading compiled kernels")
+        t_warm = warm_up()
+        log.info("compiled kernels ready in %.2f s (%s)", t_warm,
+                 f"cache {cache_dir()}" if CACHE_ENABLED else "no cache: they compile at every start")
         t_start = time.monotonic()
         next_stats = t_start + st.stats_interval_s
         deadline = t_start + self.duration_s if self.duration_s else None
@@ -190,6 +209,7 @@ class Daemon:
                    "pairs_decoded": counters["pairs_decoded"],
                    "packets_ok": decoder.counters["packets_ok"], "packets_bad": decoder.counters["packets_bad"],
                    "ranges": decoder.counters["ranges"], "ranging_skipped": decoder.counters["ranging_skipped"],
+                   "led_ranges_shed": decoder.counters["led_ranges_shed"], **overload.counters,
                    "tracking": decoder.track is not None,
                    "latency_ms_p50": p50, "latency_ms_p99": p99,
                    "cpu_cores": share, "rss_mb": round(rss / 2**20, 1),
@@ -256,11 +276,11 @@ class Daemon:
                 prev = last_frame if last_frame >= 0 else int(ids[0]) - 1
                 steps = np.diff(np.concatenate([[prev], ids[:n]]))
                 counters["pair_gaps"] += int(np.clip(steps - 1, 0, None).sum())
-                # falling behind: shed ranging for this block so that no packet is lost
-                behind = ring.stats().queued > st.shed_ranging_fill * ring.capacity
+                # falling behind: shed work in the policy's order so that no packet is lost
+                svc = overload.service(ring.stats().queued / ring.capacity)
                 try:
                     records = decoder.push(ids[:n].copy(), t_s[:n].copy(), blk_l[:n], blk_r[:n],
-                                           ranging=not behind)
+                                           ranging_every=svc.ranging_every, per_led=svc.per_led)
                 except Exception:  # a decoder bug on odd frames must not stop the service
                     counters["decode_errors"] += 1
                     log.exception("decoding frames %d..%d failed; the decoder restarts acquisition",
@@ -273,11 +293,13 @@ class Daemon:
                 last_t_s = float(t_s[n - 1])
                 lat.add((done_ns - arrival[:n]) / 1e6)
                 emit(records)
-                if view is not None and decoder.last_luminance is not None:
+                if view is not None and decoder.last_luminance is not None and svc.images:
                     li, lt, ll, lr = decoder.last_luminance
                     view.log_luminance(li, lt, ll, lr)
                     decoder.last_luminance = None
-                if view is not None and view.want_image(last_frame):
+                if view is not None and view.want_image(last_frame) and not svc.images:
+                    overload.shed_images()
+                elif view is not None and view.want_image(last_frame):
                     tr = decoder.track
                     boxes_l = boxes_r = None
                     if tr is not None:

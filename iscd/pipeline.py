@@ -151,7 +151,10 @@ class StreamDecoder:
             ThreadPoolExecutor(max_workers=1, thread_name_prefix="iscd-demod")
             if async_demod in (True, "thread") else None)
         self._worker: DemodWorker | None = DemodWorker() if async_demod == "process" else None
-        self._pending: deque[Future] = deque()
+        self._pending: deque[tuple[Future, int]] = deque()
+        """asynchronous demodulation steps in order, each with the frames it pushes (a
+        track's header wait counts frames once they are demodulated: a worker that is
+        still starting must not condemn the transmitter)"""
         self.tx_index = tx_index
         self.settings = settings or build_section(PipelineSettings, dict(cfg.extra.get("tracking", {})), "tracking")
         rs = ranging or build_section(RangingSettings, dict(cfg.extra.get("ranging", {})), "ranging")
@@ -193,7 +196,8 @@ class StreamDecoder:
         self.counters: dict[str, int] = {"acquisitions": 0, "losses": 0, "rejected_candidates": 0,
                                          "packets_ok": 0, "packets_bad": 0, "ranges": 0,
                                          "frames_decoded": 0, "assembler_resets": 0,
-                                         "ranging_skipped": 0, "demod_worker_restarts": 0}
+                                         "ranging_skipped": 0, "led_ranges_shed": 0,
+                                         "demod_worker_restarts": 0}
 
     # ------------------------------------------------------------------ demodulation hook
     def _make_assembler(self) -> PacketAssembler:
@@ -220,33 +224,39 @@ class StreamDecoder:
         if self._worker is None:
             self.assembler = self._make_assembler()
         else:
-            self._pending.append(self._worker.submit("new", self.cfg.transmitter, self.fps,
-                                                     self.cfg.camera.exposure_s, self.rx_cfg))
+            self._pending.append((self._worker.submit("new", self.cfg.transmitter, self.fps,
+                                                      self.cfg.camera.exposure_s, self.rx_cfg), 0))
 
     def _demod(self, frame_ids: np.ndarray, t_s: np.ndarray, lum_l: np.ndarray, lum_r: np.ndarray) -> list[dict]:
+        n = len(frame_ids)
         if self._worker is not None:
-            self._pending.append(self._worker.submit("push", frame_ids, t_s, lum_l, lum_r))
+            self._pending.append((self._worker.submit("push", frame_ids, t_s, lum_l, lum_r), n))
             return []
         if self._pool is None:
+            if self.track is not None:
+                self.track.frames_since_header += n
             return self._records(self.assembler.push(frame_ids, t_s, lum_l, lum_r))
-        self._pending.append(self._pool.submit(self.assembler.push, frame_ids, t_s, lum_l, lum_r))
+        self._pending.append((self._pool.submit(self.assembler.push, frame_ids, t_s, lum_l, lum_r), n))
         return []
 
     def _reset_assembler(self) -> None:
         if self._worker is not None:
-            self._pending.append(self._worker.submit("reset"))
+            self._pending.append((self._worker.submit("reset"), 0))
         elif self._pool is None:
             self.assembler.reset()
         else:  # in order with the pushes already queued
-            self._pending.append(self._pool.submit(lambda a=self.assembler: a.reset() or []))
+            self._pending.append((self._pool.submit(lambda a=self.assembler: a.reset() or []), 0))
 
     def _collect(self, wait: bool = False) -> list[dict]:
         """Records of the finished asynchronous demodulation steps, in order."""
         out: list[dict] = []
-        while self._pending and (wait or self._pending[0].done()):
-            fut = self._pending.popleft()
+        while self._pending and (wait or self._pending[0][0].done()):
+            fut, nf = self._pending.popleft()
             try:
-                out += self._records(fut.result())
+                packets = fut.result()
+                if self.track is not None:
+                    self.track.frames_since_header += nf
+                out += self._records(packets)
             except BrokenProcessPool:
                 # the worker died (killed, out of memory): the packet in progress is lost;
                 # a new worker starts with a fresh assembler
@@ -262,13 +272,15 @@ class StreamDecoder:
 
     # ------------------------------------------------------------------ main entry
     def push(self, frame_ids: np.ndarray, t_s: np.ndarray, left: np.ndarray, right: np.ndarray,
-             *, ranging: bool = True) -> list[dict]:
+             *, ranging: bool = True, ranging_every: int = 1, per_led: bool = True) -> list[dict]:
         """Process a block of stereo frames; returns the records it produced.
 
         frame_ids: (n,) int (left-camera frame ids of the pairs); t_s: (n,) exposure start,
-        s; left/right: (n, H, W) images of the same pairs. ``ranging=False`` skips the
-        range measurement for this block (the daemon sheds it when it falls behind, so that
-        no packet is lost; counted in ``counters["ranging_skipped"]``).
+        s; left/right: (n, H, W) images of the same pairs. What the daemon sheds when it
+        falls behind (:mod:`iscd.overload`; packets are never shed): ``ranging=False``
+        skips the range measurement for this block, ``ranging_every=k`` ranges only the
+        frames whose id is a multiple of k (counted in ``counters["ranging_skipped"]``),
+        ``per_led=False`` skips the per-LED ranges (``counters["led_ranges_shed"]``).
         """
         n = len(frame_ids)
         if n == 0:
@@ -286,7 +298,6 @@ class StreamDecoder:
         frame_ids = np.asarray(frame_ids, dtype=np.int64)
         t_s = np.asarray(t_s, dtype=np.float64)
         self.counters["frames_decoded"] += n
-        tr.frames_since_header += n
         lum_l, lum_r = self._luminance(frame_ids, left, right)
         self.last_luminance = (frame_ids, t_s, lum_l, lum_r)
         # a long gap (a stalled camera, a burst of drops) restarts the packet search
@@ -298,25 +309,30 @@ class StreamDecoder:
                 self._reset_assembler()
                 self.counters["assembler_resets"] += 1
                 tr.since_frame = int(frame_ids[a])  # the header wait starts again
-                tr.frames_since_header = b - a
+                tr.frames_since_header = 0
             if b > a:
                 records += self._demod(frame_ids[a:b], t_s[a:b], lum_l[a:b], lum_r[a:b])
         self._last_id = int(frame_ids[-1])
-        if self.ranger is not None and not ranging:
+        ranged = np.arange(n) if ranging_every <= 1 else np.flatnonzero(frame_ids % int(ranging_every) == 0)
+        if self.ranger is not None and (not ranging or ranged.size == 0):
             self.counters["ranging_skipped"] += n
         elif self.ranger is not None:
-            res = self.ranger.measure(left, right, tr.left, tr.right)
-            for i in range(n):
-                if math.isfinite(res.z_m[i]):
+            self.counters["ranging_skipped"] += n - ranged.size
+            rl, rr = (left, right) if ranged.size == n else (left[ranged], right[ranged])
+            res = self.ranger.measure(rl, rr, tr.left, tr.right)
+            for k, i in enumerate(ranged):
+                if math.isfinite(res.z_m[k]):
                     records.append({"type": "range", "tx": self.tx_index, "frame": int(frame_ids[i]),
-                                    "t_s": float(t_s[i]), "z_m": float(res.z_m[i]),
-                                    "disparity_px": float(res.disparity_px[i]),
-                                    "sigma_m": float(res.sigma_m[i])})
+                                    "t_s": float(t_s[i]), "z_m": float(res.z_m[k]),
+                                    "disparity_px": float(res.disparity_px[k]),
+                                    "sigma_m": float(res.sigma_m[k])})
             self.counters["ranges"] += int(np.isfinite(res.z_m).sum())
             if self.kalman is not None:
-                records += self._filtered(frame_ids, t_s, res.z_m, res.sigma_m)
-            if self.led_ranger is not None:
+                records += self._filtered(frame_ids[ranged], t_s[ranged], res.z_m, res.sigma_m)
+            if self.led_ranger is not None and per_led:
                 records += self._per_led(frame_ids, t_s, left, right)
+            elif self.led_ranger is not None:
+                self.counters["led_ranges_shed"] += int(np.sum(frame_ids % self.per_led_every == 0))
         self._retrack(frame_ids, left, right)
         return self._collect() + records
 
@@ -359,7 +375,7 @@ class StreamDecoder:
     def finish(self) -> list[dict]:
         """End of stream: decode what the assembler still holds."""
         if self._worker is not None:
-            self._pending.append(self._worker.submit("flush"))
+            self._pending.append((self._worker.submit("flush"), 0))
             out = self._collect(wait=True)
             self._worker.shutdown()
             return out

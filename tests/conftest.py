@@ -35,3 +35,23 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
     for item in items:
         if "slow" in item.keywords:
             item.add_marker(skip)
+
+
+@pytest.fixture(scope="session")
+def rendered_default():
+    """(left, right) (256, 512, 512) uint8: the embedded default scene (8x8 HDR PWM-8 at
+    30 m, textured background, noise), frames 0-255, rendered once per test session."""
+    import numpy as np
+
+    from iscd.config import default_config
+    from iscd.sim.scene import Scene
+
+    sc = Scene(default_config())
+    n = 256
+    L = np.empty((n, sc.height, sc.width), np.uint8)
+    R = np.empty_like(L)
+    for i in range(n):
+        sc.render_pair_into(i, L[i], R[i])
+    L.setflags(write=False)
+    R.setflags(write=False)
+    return L, R

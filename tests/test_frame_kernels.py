@@ -1,0 +1,170 @@
+"""The compiled per-frame kernels against their numpy references, on rendered frames.
+
+Tolerances (float64 kernels against references that sum partly in float32):
+LED positions 1e-4 px, luminance 1e-5 relative, light maps 1e-4 DN, tracking fits 1e-9
+(the same arithmetic), ranging profiles 1e-5 relative and disparities 1e-5 px.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from iscd.config import default_config
+from iscd.receiver.detect import GridFit, detect_array, light_map, track_on_light
+from iscd.receiver.follow_kernel import follow_and_measure_compiled
+from iscd.receiver.luminance import follow_and_measure, grid_sample
+from iscd.receiver.track_kernel import LightAccumulator, track_on_light_compiled
+
+
+def _render(cfg, n: int) -> tuple[np.ndarray, np.ndarray]:
+    from iscd.sim.scene import Scene
+
+    sc = Scene(cfg)
+    L = np.empty((n, sc.height, sc.width), np.uint8)
+    R = np.empty_like(L)
+    for i in range(n):
+        sc.render_pair_into(i, L[i], R[i])
+    return L, R
+
+
+@pytest.fixture(scope="module")
+def fits(rendered_default):
+    L, R = rendered_default
+    fl = detect_array(L[:64], 8, 8)
+    fr = detect_array(R[:64], 8, 8)
+    assert fl is not None and fr is not None
+    return fl, fr
+
+
+def _compare_follow(frames, starts, box, sigmas, **kw):
+    i1, i2 = {}, {}
+    (a_l, a_r), (la, ra) = follow_and_measure(frames, starts, box, sigmas, info=i1, **kw)
+    (b_l, b_r), (lb, rb) = follow_and_measure_compiled(frames, starts, box, sigmas, info=i2, **kw)
+    for a, b in ((a_l, b_l), (a_r, b_r)):
+        assert np.abs(a - b).max() < 1e-4
+    for a, b in ((la, lb), (ra, rb)):
+        assert np.all(np.abs(a - b) <= 1e-5 * np.maximum(np.abs(a), 1.0))
+    np.testing.assert_allclose(i1["light"], i2["light"], rtol=1e-6)
+    return b_l
+
+
+@pytest.mark.parametrize("block", [slice(64, 80), slice(130, 146), slice(200, 232)])
+def test_following_and_luminance_match_the_reference(rendered_default, fits, block) -> None:
+    L, R = rendered_default
+    fl, fr = fits
+    rng = np.random.default_rng(block.start)
+    # start a fraction of a pixel off, so that the following has work to do
+    starts = [fl.centers + rng.normal(0, 0.4, 2), fr.centers + rng.normal(0, 0.4, 2)]
+    c = _compare_follow([L[block], R[block]], starts, 5, [1.4, 1.3], use=grid_sample(8, 8))
+    assert np.abs(c - fl.centers).max() < 1.5  # and it followed somewhere sensible
+
+
+def test_following_with_per_frame_starts_and_remembered_light(rendered_default, fits) -> None:
+    """(F, N, 2) starts that differ frame by frame (the background is then each patch's
+    least pixel) and a remembered lit light."""
+    L, R = rendered_default
+    fl, fr = fits
+    F = 16
+    drift = np.linspace(0, 1.2, F)[:, None, None] * np.array([1.0, -0.5])
+    starts = [fl.centers[None] + drift, fr.centers[None] + drift]
+    _compare_follow([L[96:112], R[96:112]], starts, 3, [0.9, 0.9], lit_light=np.array([9000.0, 4000.0]))
+    # all LEDs steer, no scale, no acceleration
+    _compare_follow([L[96:112], R[96:112]], starts, 5, [1.2, 1.2], iterations=2)
+
+
+def test_following_near_the_image_edge() -> None:
+    """Patches that would cross the image edge are moved inside it, in both."""
+    rng = np.random.default_rng(3)
+    fr = rng.integers(0, 60, (8, 40, 40)).astype(np.uint8)
+    fr[:, 1:4, 1:4] += 150
+    starts = [np.array([[2.0, 2.0], [37.5, 20.0]]), np.array([[2.2, 1.8], [38.0, 21.0]])]
+    _compare_follow([fr, fr[::-1].copy()], starts, 3, [1.0, 1.0])
+
+
+def test_sixteen_bit_frames(rendered_default, fits) -> None:
+    L, R = rendered_default
+    fl, fr = fits
+    L16 = L[64:80].astype(np.uint16) * 16
+    R16 = R[64:80].astype(np.uint16) * 16
+    _compare_follow([L16, R16], [fl.centers, fr.centers], 5, [1.4, 1.3], use=grid_sample(8, 8))
+
+
+def test_light_map_folded_block_by_block_equals_the_reference(rendered_default, fits) -> None:
+    L, _ = rendered_default
+    fl, _ = fits
+    x0, y0, x1, y1 = fl.bbox(2 * fl.pitch_px + 4)
+    acc = LightAccumulator((x0, y0, x1, y1))
+    for s in range(64, 128, 16):
+        acc.add(L[s:s + 16])
+    ref = light_map(L[64:128, y0:y1, x0:x1])
+    assert acc.frames == 64
+    assert np.abs(acc.light_map() - ref).max() < 1e-4
+
+
+def test_grid_tracking_matches_the_reference(rendered_default, fits) -> None:
+    L, _ = rendered_default
+    fl, _ = fits
+    x0, y0, x1, y1 = fl.bbox(2 * fl.pitch_px + 4)
+    light = light_map(L[64:96, y0:y1, x0:x1])
+    rng = np.random.default_rng(1)
+    for _ in range(10):
+        prev = GridFit(origin=(fl.origin[0] - x0 + rng.normal(0, 0.5), fl.origin[1] - y0 + rng.normal(0, 0.5)),
+                       pitch_px=fl.pitch_px * rng.uniform(0.97, 1.03), rows=8, cols=8, score=fl.score,
+                       spot_px=fl.spot_px)
+        a = track_on_light(light, prev, 0, 0)
+        b = track_on_light_compiled(light, prev, 0, 0)
+        assert abs(a.origin[0] - b.origin[0]) < 1e-9 and abs(a.origin[1] - b.origin[1]) < 1e-9
+        assert abs(a.pitch_px - b.pitch_px) < 1e-9 and abs(a.score - b.score) < 1e-9 * max(1.0, a.score)
+
+
+def test_ranging_projection_matches_the_reference(rendered_default) -> None:
+    from iscd.ranging.project_kernel import patch_minimum, project_patches
+    from iscd.ranging.projected import ring_indices, robust_level
+
+    L, _ = rendered_default
+    fr = L[64:80]
+    rng = np.random.default_rng(5)
+    # inside, and crossing the top-left and the bottom-right image edges
+    for x0, y0, h, w in ((200, 210, 60, 80), (-6, -4, 30, 40), (490, 495, 30, 40)):
+        pad = np.zeros((16, h, w), np.float32)
+        ya, yb, xa, xb = max(0, y0), min(512, y0 + h), max(0, x0), min(512, x0 + w)
+        pad[:, ya - y0:yb - y0, xa - x0:xb - x0] = fr[:, ya:yb, xa:xb]
+        bg = patch_minimum(fr, x0, y0, h, w)
+        np.testing.assert_array_equal(bg, pad.min(axis=0))
+        ring = ring_indices(h, w)
+        snr_w = rng.random(h * w)
+        row_w = rng.random(h)
+        ped, mad, sig, prof = project_patches(fr, x0, y0, bg, ring, snr_w, row_w)
+        rp, rm = robust_level(pad.reshape(16, -1)[:, ring] - bg.ravel()[ring], spread=True)
+        np.testing.assert_array_equal(ped, rp)
+        np.testing.assert_allclose(mad, rm, rtol=1e-6)  # the reference multiplies in float32
+        res = pad - bg - ped[:, None, None]
+        np.testing.assert_allclose(sig, res.reshape(16, -1) @ snr_w, rtol=1e-5, atol=1e-6)
+        np.testing.assert_allclose(prof, np.einsum("h,nhw->nw", row_w, res), rtol=1e-5, atol=1e-4)
+
+
+@pytest.mark.parametrize("scene", ["default", "pwm16_50m"])
+def test_the_decoder_gives_the_same_records_compiled_or_not(scene, rendered_default) -> None:
+    from iscd.pipeline import StreamDecoder
+    from iscd.sim.presets import override
+
+    cfg = default_config()
+    if scene == "default":
+        L, R = rendered_default
+    else:
+        cfg = override(cfg, transmitter={"levels": 16}, scene={"distance_m": 50.0})
+        L, R = _render(cfg, 192)
+    ids = np.arange(L.shape[0])
+    out = {}
+    for compiled in (False, True):
+        dec = StreamDecoder(cfg, compiled=compiled)
+        recs = []
+        for s in range(0, L.shape[0], 16):
+            recs += dec.push(ids[s:s + 16], ids[s:s + 16] / 1000.0, L[s:s + 16], R[s:s + 16])
+        out[compiled] = ({r["frame"]: r for r in recs if r["type"] == "range"}, dec.last_centres, dec.last_luminance)
+    (ra, ca, la), (rb, cb, lb) = out[False], out[True]
+    assert ra and set(ra) == set(rb)
+    assert max(abs(ra[f]["disparity_px"] - rb[f]["disparity_px"]) for f in ra) < 1e-5
+    assert np.abs(ca[0] - cb[0]).max() < 1e-4 and np.abs(ca[1] - cb[1]).max() < 1e-4
+    assert np.all(np.abs(la[2] - lb[2]) <= 1e-5 * np.maximum(np.abs(la[2]), 1.0))
