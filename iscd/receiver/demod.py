@@ -405,7 +405,8 @@ def _demodulate(L: np.ndarray, u_guess: float, air: AirInterface, e: float,
     lev = np.full((P, N), -1, dtype=np.int64)
     lev[:n_known] = known
     # each camera's brightest value in the buffer (the cap of _match_gain), once per packet
-    tops = [float(np.nanmax(L[c])) for c in range(C)] if tracked else None
+    tops = [float(np.nanmax(L[c])) if np.isfinite(L[c]).any() else float("nan")  # (an absent
+            for c in range(C)] if tracked else None  # camera: never used, no warning)
     starts, models = [0], [model]
     next_clock = n_known + chunk
     for k_a in range(n_known, P, step):
