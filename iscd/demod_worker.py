@@ -25,9 +25,15 @@ _assembler: PacketAssembler | None = None
 
 
 def _call(op: str, *args: Any) -> list[Packet]:
-    """Runs in the worker: ``new`` (make the assembler from its arguments), ``push``,
-    ``reset`` or ``flush`` on it; returns the packets completed."""
+    """Runs in the worker: ``warm`` (load the compiled kernels), ``new`` (make the
+    assembler from its arguments), ``push``, ``reset`` or ``flush`` on it; returns the
+    packets completed."""
     global _assembler
+    if op == "warm":  # load (or compile) the receiver's kernels before the first packet
+        from iscd.jit import warm_up
+
+        warm_up()
+        return []
     if op == "new":
         tx, fps, exposure_s, cfg = args
         _assembler = PacketAssembler(tx, fps=fps, exposure_s=exposure_s, cfg=cfg)

@@ -155,6 +155,8 @@ class StreamDecoder:
         """asynchronous demodulation steps in order, each with the frames it pushes (a
         track's header wait counts frames once they are demodulated: a worker that is
         still starting must not condemn the transmitter)"""
+        if self._worker is not None:  # the worker starts and loads its kernels right away
+            self._pending.append((self._worker.submit("warm"), 0))
         self.tx_index = tx_index
         self.settings = settings or build_section(PipelineSettings, dict(cfg.extra.get("tracking", {})), "tracking")
         rs = ranging or build_section(RangingSettings, dict(cfg.extra.get("ranging", {})), "ranging")
@@ -266,6 +268,7 @@ class StreamDecoder:
                 assert self._worker is not None
                 self._worker.shutdown(wait=False)
                 self._worker = DemodWorker()
+                self._pending.append((self._worker.submit("warm"), 0))
                 self._new_assembler()
                 break
         return out

@@ -24,6 +24,7 @@ All coordinates are in px, x right and y down, pixel centres at integers.
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
+from functools import cached_property
 
 import cv2
 import numpy as np
@@ -46,13 +47,16 @@ class GridFit:
     score: float
     spot_px: float = 3.0
 
-    @property
+    @cached_property
     def centers(self) -> np.ndarray:
-        """(N, 2) LED centres (x, y) in px, row-major LED order."""
+        """(N, 2) LED centres (x, y) in px, row-major LED order (read-only; computed once:
+        the fit is frozen)."""
         r, c = np.mgrid[0:self.rows, 0:self.cols]
         x = self.origin[0] + c.ravel() * self.pitch_px
         y = self.origin[1] + r.ravel() * self.pitch_px
-        return np.stack([x, y], axis=1).astype(np.float64)
+        out = np.stack([x, y], axis=1).astype(np.float64)
+        out.setflags(write=False)
+        return out
 
     @property
     def center(self) -> tuple[float, float]:

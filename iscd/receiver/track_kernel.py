@@ -127,19 +127,30 @@ def _smooth_light(light: np.ndarray, sigma: float, out: np.ndarray) -> bool:
             act[a, b] = v if v > 0 else 0.0
     k = _gauss_taps(sigma)
     r = (k.size - 1) // 2
-    tmp = np.empty((h, w))
+    # reflect-padded copies (scipy's 'reflect'), then plain separable loops
+    pad = np.empty((h + 2 * r, w))
+    for a in range(h + 2 * r):
+        pad[a] = act[_reflect(a - r, h)]
+    tmp = np.zeros((h, w + 2 * r))
     for a in range(h):  # axis 0
-        for b in range(w):
-            s = 0.0
-            for t in range(-r, r + 1):
-                s += k[t + r] * act[_reflect(a + t, h), b]
-            tmp[a, b] = s
+        ta = tmp[a, r:r + w]
+        for t in range(2 * r + 1):
+            kt = k[t]
+            pa = pad[a + t]
+            for b in range(w):
+                ta[b] += kt * pa[b]
+    for a in range(h):
+        for t in range(r):
+            tmp[a, t] = tmp[a, r + _reflect(t - r, w)]
+            tmp[a, r + w + t] = tmp[a, r + _reflect(w + t, w)]
     for a in range(h):  # axis 1
+        oa = out[a]
+        ta = tmp[a]
         for b in range(w):
             s = 0.0
-            for t in range(-r, r + 1):
-                s += k[t + r] * tmp[a, _reflect(b + t, w)]
-            out[a, b] = s
+            for t in range(2 * r + 1):
+                s += k[t] * ta[b + t]
+            oa[b] = s
     return anything
 
 
