@@ -97,6 +97,11 @@ class _GroupPlan:
     clip: tuple[int, int, int, int]  # X0, Y0, X1, Y1; empty when X0 >= X1 or Y0 >= Y1
     sets: list[_SetPlan] = field(default_factory=list)
     empty: bool = False  # the window lies outside the image
+    head: tuple[_SetPlan, ...] = ()  # all sets but the last (added before the read-out)
+    X0: int = 0  # image px of the read-out window (= clip[:2])
+    Y0: int = 0
+    ax: int = 0  # canvas px of the read-out window
+    ay: int = 0
     acc: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)))  # (h, w) float64 DN
     z: np.ndarray = field(default_factory=lambda: np.zeros((0, 0), np.float32))  # N(0,1) draws
 
@@ -115,6 +120,7 @@ class _Camera:
         self.jitter: Jitter
         self.fp_cache: dict[int, tuple[tuple, Footprint]] = {}
         self.plan_key: tuple | None = None  # (radius, u, v) of the cached render plan
+        self.plan_run = -1  # its pose run (first frame of a run of frames with that key)
         self.plan: list[_GroupPlan] = []
 
     def footprint(self, s: _Source, box: tuple[int, int, int, int]) -> Footprint:
@@ -299,6 +305,9 @@ class Scene:
                 self._chunks.pop(next(iter(self._chunks)))
             st = self.frame_state(np.arange(c * self.CHUNK, (c + 1) * self.CHUNK))
             st["radius"] = self.led_radius_fn(st["z_m"])
+            for side in ("left", "right"):
+                st["pose_" + side] = _pose_runs(st["u_" + side], st["v_" + side], st["radius"],
+                                                c * self.CHUNK)
             st["bank"] = _bank_sequence(self.seed, c, self.CHUNK, self.cams[0].bank.shape[0])
             if self.flicker:
                 st["flicker"] = np.stack([flicker_gain(d, st["t_s"], self.exposure_s, ph)
@@ -364,30 +373,33 @@ class Scene:
         for gi, g in enumerate(self._plan(c, st, i)):
             if g.empty:
                 continue
-            *first, sp = g.sets
-            for sq in first:
+            for sq in g.head:
                 kernels.add_sources(g.acc, sq is g.sets[0], sq.kern, sq.ix, sq.iy,
                                     st[sq.key][i, sq.cols], sq.c_amp, sq.c_core, sq.c_flux,
                                     sq.gy, sq.gxt, sq.grid_q)
             if noise:  # the draws of SensorModel.expose (same seed, same stream)
                 cv2.setRNGSeed((seed + gi) & 0x7FFFFFFF)
                 cv2.randn(g.z, 0.0, 1.0)
-            X0, Y0 = g.clip[0], g.clip[1]
-            kernels.render_window(out, Y0, X0, g.acc, Y0 - g.box[1], X0 - g.box[0], not first,
-                                  sp.kern, sp.ix, sp.iy, st[sp.key][i, sp.cols], sp.c_amp,
-                                  sp.c_core, sp.c_flux, sp.gy, sp.gxt, sp.grid_q, c.bg, c.prnu,
-                                  oy + Y0, ox + X0, g.z, noise, self._sensor32)
+            sp = g.sets[-1]
+            kernels.render_window(out, g.Y0, g.X0, g.acc, g.ay, g.ax, not g.head, sp.kern,
+                                  sp.ix, sp.iy, st[sp.key][i, sp.cols], sp.c_amp, sp.c_core,
+                                  sp.c_flux, sp.gy, sp.gxt, sp.grid_q, c.bg, c.prnu,
+                                  oy + g.Y0, ox + g.X0, g.z, noise, self._sensor32)
 
     def _plan(self, c: _Camera, st: dict[str, np.ndarray], i: int) -> list[_GroupPlan]:
         """The render windows of camera ``c`` in frame row ``i`` (cached while the LEDs keep
-        their positions and size)."""
+        their positions and size: within a chunk by the pose runs, across chunks by value)."""
         pre = "left" if c.idx == 0 else "right"
+        run = int(st["pose_" + pre][i])
+        if run == c.plan_run:
+            return c.plan
         u, v = st["u_" + pre][i], st["v_" + pre][i]
         radius = float(st["radius"][i])
         key = (radius, u.tobytes(), v.tobytes())
         if c.plan_key != key:
             c.plan = self._build_plan(c, u, v, radius)
             c.plan_key = key
+        c.plan_run = run
         return c.plan
 
     def _build_plan(self, c: _Camera, u: np.ndarray, v: np.ndarray, radius: float
@@ -418,6 +430,9 @@ class Scene:
             for s in group:
                 key, cols, c_amp, ssh = info[id(s)]
                 g.sets.append(_set_plan(c.footprint(s, box), key, cols, c_amp, ssh))
+            g.head = tuple(g.sets[:-1])
+            g.X0, g.Y0 = clip[0], clip[1]
+            g.ay, g.ax = clip[1] - y0, clip[0] - x0
             plans.append(g)
         return plans
 
@@ -537,6 +552,15 @@ def _bank_sequence(seed: int, chunk: int, n: int, bank_size: int) -> np.ndarray:
     rng = np.random.default_rng([seed, 0xBA5, chunk])
     steps = rng.integers(1, bank_size, size=(n, 2))
     return np.cumsum(steps, axis=0) % bank_size
+
+
+def _pose_runs(u: np.ndarray, v: np.ndarray, radius: np.ndarray, first: int) -> np.ndarray:
+    """(F,) per frame the first frame (``first`` + row) of its run of consecutive frames with
+    the same LED positions ``u``, ``v`` (F, N) px and radius (F,) px."""
+    same = np.r_[False, (np.all(u[1:] == u[:-1], axis=1) & np.all(v[1:] == v[:-1], axis=1)
+                         & (radius[1:] == radius[:-1]))]
+    rows = np.arange(u.shape[0])
+    return np.maximum.accumulate(np.where(same, 0, rows)) + first
 
 
 def _set_plan(fp: Footprint, key: str, cols: slice, c_amp: float, sh: _Shape) -> _SetPlan:
