@@ -251,3 +251,34 @@ def test_two_reader_threads_paced():
         assert by_id[fid][1] == ts
         el, er = scene.render_pair(fid)
         assert np.array_equal(img, el) and np.array_equal(by_id[fid][2], er)
+
+
+def test_render_kernels_are_warmed_before_the_trigger_clock_starts(monkeypatch):
+    # a paced rig must not spend its first frames compiling: the scene (and its kernels)
+    # is built in start(), before t0 is set
+    from iscd.sim import Scene
+
+    seen = []
+    orig = Scene.warm_up
+
+    def spy(self):
+        seen.append(rig._t0_ns)
+        return orig(self)
+
+    monkeypatch.setattr(Scene, "warm_up", spy)
+    cfg = override(default_config(), camera=SMALL, rig={"pace": True})
+    rig = MockRig(cfg)
+    rig.left.open()
+    rig.left.start()
+    assert seen == [None] and rig._t0_ns is not None
+    assert rig.left.read(timeout_s=1.0).frame_id == 0  # trigger 0 caught: nothing dropped
+    assert rig.left.stats.dropped_buffer == 0
+
+
+def test_faults_can_be_replaced_and_are_indexed_per_camera():
+    left, right = _rig(faults=[{"kind": "drop", "camera": "left", "frame": 2}])
+    rig = left.rig
+    assert [f.kind for f in rig.faults] == ["drop"]
+    assert rig._faults(rig._cams[0], "drop") and not rig._faults(rig._cams[1], "drop")
+    rig.faults = []
+    assert _ids(left, 4) == [0, 1, 2, 3]
