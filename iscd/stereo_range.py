@@ -346,7 +346,7 @@ class StereoRanger:
         noise_l = max(float(np.sort(mad_l)[n // 2]), _QUANT_NOISE_DN)
         noise_r = max(float(np.sort(mad_r)[n // 2]), _QUANT_NOISE_DN)
         snr = np.minimum(sig_l / noise_l, sig_r / noise_r)
-        return self._result(g, est_obj.from_profiles(prof_l, prof_r, plan), snr)
+        return self._result(g, est_obj.from_profiles(prof_l, prof_r, plan, compiled=True), snr)
 
     def _result(self, g: _Geometry, est, snr: np.ndarray) -> RangeResult:  # est: ShiftEstimate
         d = (g.x0l - g.x0r) + np.asarray(est.dx, dtype=np.float64)

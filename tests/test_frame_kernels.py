@@ -168,3 +168,24 @@ def test_the_decoder_gives_the_same_records_compiled_or_not(scene, rendered_defa
     assert max(abs(ra[f]["disparity_px"] - rb[f]["disparity_px"]) for f in ra) < 1e-5
     assert np.abs(ca[0] - cb[0]).max() < 1e-4 and np.abs(ca[1] - cb[1]).max() < 1e-4
     assert np.all(np.abs(la[2] - lb[2]) <= 1e-5 * np.maximum(np.abs(la[2]), 1.0))
+
+
+@pytest.mark.parametrize("w", [40, 63, 80])
+def test_correlation_peak_matches_the_reference(w: int) -> None:
+    from iscd.ranging.project_kernel import correlate_1d_compiled
+    from iscd.ranging.projected import correlate_1d
+
+    rng = np.random.default_rng(w)
+    x = np.arange(w)
+    base = np.exp(-0.5 * ((x - w / 2) / 2.0) ** 2) * 100
+    shifts = rng.uniform(-3, 3, 16)
+    left = np.stack([np.interp(x, x + s, base) for s in shifts]) + rng.normal(0, 1, (16, w))
+    right = base + rng.normal(0, 1, (16, w))
+    for ms in (None, 3.5):
+        for beta in (0.0, 0.5, 1.0):
+            a = correlate_1d(left, right, beta=beta, max_shift_px=ms)
+            b = correlate_1d_compiled(left, right, beta=beta, max_shift_px=ms)
+            assert np.abs(a.dx - b.dx).max() < 1e-9
+            assert np.abs(a.height - b.height).max() < 1e-9
+            assert np.allclose(a.sigma, b.sigma, rtol=1e-7, equal_nan=True)
+    assert np.abs(b.dx - shifts).max() < 0.3  # and it found the shifts (left - right, px)

@@ -142,3 +142,134 @@ def _warm_p(dtype: type) -> tuple:
 for _dt in (np.uint8, np.uint16):
     register_warm(_patch_minimum, lambda _dt=_dt: _warm(_dt))
     register_warm(_project, lambda _dt=_dt: _warm_p(_dt))
+
+
+# ---------------------------------------------------------------- the 1-D correlation peak
+@njit(fastmath=_FAST)
+def _correlate(left: np.ndarray, right: np.ndarray, cos_t: np.ndarray, sin_t: np.ndarray,
+               omega: np.ndarray, mult: np.ndarray, band: np.ndarray, w2: np.ndarray, w2m: np.ndarray,
+               beta: float, max_shift: float, iterations: int, tiny: float,
+               dx: np.ndarray, height: np.ndarray, sigma: np.ndarray) -> None:
+    n, w = left.shape
+    nk = omega.size
+    xr = np.empty(nk)
+    xi = np.empty(nk)
+    surf = np.empty(w)
+    for f in range(n):
+        # cross-power spectrum X = F_l conj(F_r), weighted |X|^-beta, band-limited
+        for k in range(nk):
+            lr = 0.0
+            li = 0.0
+            rr = 0.0
+            ri = 0.0
+            ck = cos_t[k]
+            sk = sin_t[k]
+            lf = left[f]
+            rf = right[f]
+            for j in range(w):
+                lr += lf[j] * ck[j]
+                li -= lf[j] * sk[j]
+                rr += rf[j] * ck[j]
+                ri -= rf[j] * sk[j]
+            a = lr * rr + li * ri
+            b = li * rr - lr * ri
+            if beta != 0.0:
+                g = (np.sqrt(a * a + b * b) + tiny) ** (-beta)
+                a *= g
+                b *= g
+            xr[k] = a * band[k]
+            xi[k] = b * band[k]
+        # its inverse transform (the correlation at integer lags) and the integer peak
+        best = -np.inf
+        i0 = 0
+        for j in range(w):
+            s = 0.0
+            for k in range(nk):
+                s += mult[k] * (xr[k] * cos_t[k, j] - xi[k] * sin_t[k, j])
+            surf[j] = s / w
+            lag = j if j < (w + 1) // 2 else j - w
+            if max_shift >= 0 and abs(lag) > max_shift:
+                continue
+            if surf[j] > best:
+                best = surf[j]
+                i0 = j
+        lo = surf[(i0 - 1) % w]
+        c0 = surf[i0]
+        hi = surf[(i0 + 1) % w]
+        den = lo - 2.0 * c0 + hi
+        off = 0.5 * (lo - hi) / den if den < -tiny else 0.0
+        pos = (i0 - w if i0 >= (w + 1) // 2 else i0) + min(max(off, -0.5), 0.5)
+        # Newton steps on the trigonometric interpolant
+        for _ in range(iterations):
+            a = 0.0
+            b = 0.0
+            for k in range(nk):
+                c = np.cos(omega[k] * pos)
+                s = np.sin(omega[k] * pos)
+                re = mult[k] * (xr[k] * c - xi[k] * s)
+                im = mult[k] * (xr[k] * s + xi[k] * c)
+                a += im * omega[k]
+                b += re * w2[k]
+            step = -a / b if b > tiny else 0.0
+            pos += min(max(step, -0.5), 0.5)
+        tot = 0.0
+        hr = 0.0
+        hess = 0.0
+        var = 0.0
+        for k in range(nk):
+            c = np.cos(omega[k] * pos)
+            s = np.sin(omega[k] * pos)
+            re = mult[k] * (xr[k] * c - xi[k] * s)
+            im = mult[k] * (xr[k] * s + xi[k] * c)
+            tot += mult[k] * np.sqrt(xr[k] * xr[k] + xi[k] * xi[k])
+            hr += re
+            hess += re * w2[k]
+            var += im * im * w2m[k]
+        dx[f] = pos
+        height[f] = hr / tot if tot != 0.0 else np.nan
+        sd = np.sqrt(2.0 * var)
+        sigma[f] = sd / hess if hess > tiny else (np.inf if sd > 0 else np.nan)
+
+
+_TABLES: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+
+
+def _tables(w: int, nk: int) -> tuple[np.ndarray, np.ndarray]:
+    """cos and sin of 2 pi j k / w, (nk, w) (cached per w)."""
+    t = _TABLES.get(w)
+    if t is None:
+        ang = 2.0 * np.pi * np.outer(np.arange(nk), np.arange(w)) / w
+        t = (np.cos(ang), np.sin(ang))
+        _TABLES[w] = t
+    return t
+
+
+def correlate_1d_compiled(left: np.ndarray, right: np.ndarray, beta: float = 0.5,
+                          band_cutoff: float | None = 0.12, max_shift_px: float | None = None,
+                          iterations: int = 2):  # -> Peak1D
+    """The compiled :func:`iscd.ranging.projected.correlate_1d` (same arguments and
+    result): the transforms as sums over cached cos/sin tables (w is a few tens of px),
+    the peak search and the Newton steps in the same loop, per profile pair (n, w)."""
+    from iscd.ranging.projected import _TINY, Peak1D, _spectral
+
+    lf = np.ascontiguousarray(left, dtype=np.float64)
+    rt = np.ascontiguousarray(right, dtype=np.float64)
+    n, w = lf.shape
+    omega, mult, band, w2, w2m = _spectral(int(w), band_cutoff)
+    cos_t, sin_t = _tables(int(w), omega.size)
+    dx, height, sigma = np.empty(n), np.empty(n), np.empty(n)
+    _correlate(lf, rt, cos_t, sin_t, omega, mult, band, w2, w2m, float(beta),
+               -1.0 if max_shift_px is None else float(max_shift_px), int(iterations), _TINY,
+               dx, height, sigma)
+    return Peak1D(dx=dx, height=height, sigma=sigma)
+
+
+def _warm_c() -> tuple:
+    w, nk = 8, 5
+    t = np.ones((nk, w))
+    v = np.ones(nk)
+    return (np.ones((2, w)), np.ones((2, w)), t, t, v, v, v, v, v, 0.5, 2.0, 2, 1e-12,
+            np.empty(2), np.empty(2), np.empty(2))
+
+
+register_warm(_correlate, _warm_c)

@@ -485,13 +485,20 @@ class ProjectedShift:
         return bool(self.declip or (self.declip is None and plan.leds in (1, None)))
 
     def from_profiles(self, prof_l: NDArray[np.float64], prof_r: NDArray[np.float64], plan: Plan,
-                      saturated: NDArray[np.bool_] | None = None):  # -> ShiftEstimate
+                      saturated: NDArray[np.bool_] | None = None, *, compiled: bool = False
+                      ):  # -> ShiftEstimate
         """The shift estimate from the row-weighted profiles (n, w) of both cameras (the
-        second half of :meth:`estimate`; ``saturated`` (n,): frames with a refilled core)."""
+        second half of :meth:`estimate`; ``saturated`` (n,): frames with a refilled core;
+        ``compiled``: :func:`iscd.ranging.project_kernel.correlate_1d_compiled`, the same
+        peak to ~1e-13 px)."""
         from iscd.ranging.estimators import ShiftEstimate
 
         n = prof_l.shape[0]
-        p = correlate_1d(prof_l, prof_r, self.beta, self.band_cutoff, plan.max_shift_px, self.iterations)
+        if compiled:
+            from iscd.ranging.project_kernel import correlate_1d_compiled as corr
+        else:
+            corr = correlate_1d
+        p = corr(prof_l, prof_r, self.beta, self.band_cutoff, plan.max_shift_px, self.iterations)
         if saturated is not None:
             floor = np.sqrt(self.sigma_floor_px ** 2 + saturated * self.sigma_saturated_px ** 2)
         else:
