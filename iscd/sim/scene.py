@@ -104,6 +104,10 @@ class _GroupPlan:
     Y0: int = 0
     ax: int = 0  # canvas px of the read-out window
     ay: int = 0
+    bg_at: tuple[int, int] | None = None  # (oy, ox) that bg and prnu were copied at
+    # the read-out window's background (DN) and PRNU, contiguous (cache-friendly)
+    bg: np.ndarray = field(default_factory=lambda: np.zeros((0, 0), np.float32))
+    prnu: np.ndarray = field(default_factory=lambda: np.zeros((0, 0), np.float32))
     acc: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)))  # (h, w) float64 DN
     z: np.ndarray = field(default_factory=lambda: np.zeros((0, 0), np.float32))  # N(0,1) draws
 
@@ -382,11 +386,17 @@ class Scene:
             if noise:  # the draws of SensorModel.expose (same seed, same stream)
                 cv2.setRNGSeed((seed + gi) & 0x7FFFFFFF)
                 cv2.randn(g.z, 0.0, 1.0)
+            if g.bg_at != (oy, ox):  # contiguous copies of the window's background and PRNU
+                h, w = g.z.shape
+                g.bg = np.ascontiguousarray(c.bg[oy + g.Y0:oy + g.Y0 + h, ox + g.X0:ox + g.X0 + w])
+                g.prnu = np.ascontiguousarray(c.prnu[oy + g.Y0:oy + g.Y0 + h,
+                                                     ox + g.X0:ox + g.X0 + w])
+                g.bg_at = (oy, ox)
             sp = g.sets[-1]
             kernels.render_window(out, g.Y0, g.X0, g.acc, g.ay, g.ax, not g.head, sp.kern,
                                   sp.ix, sp.iy, st[sp.key][i, sp.cols], sp.c_amp, sp.c_core,
-                                  sp.c_flux, sp.gy, sp.gxt, sp.grid_q, c.bg, c.prnu,
-                                  oy + g.Y0, ox + g.X0, g.z, noise, self._sensor32)
+                                  sp.c_flux, sp.gy, sp.gxt, sp.grid_q, g.bg, g.prnu, 0, 0, g.z,
+                                  noise, self._sensor32)
 
     def _plan(self, c: _Camera, st: dict[str, np.ndarray], i: int) -> list[_GroupPlan]:
         """The render windows of camera ``c`` in frame row ``i`` (cached while the LEDs keep
