@@ -145,6 +145,11 @@ class Camera(abc.ABC):
     def settings(self) -> CameraSettings | None:
         return getattr(self, "_settings", None)
 
+    def pair_source(self) -> "StereoPairSource | None":
+        """A :class:`StereoPairSource` that delivers this camera's frames together with its
+        partner's into caller buffers, or None (the default: frames one by one)."""
+        return None
+
     def __enter__(self) -> "Camera":
         self.open()
         return self
@@ -154,3 +159,28 @@ class Camera(abc.ABC):
             self.stop()
         finally:
             self.close()
+
+
+@dataclass(frozen=True)
+class PairMeta:
+    """What :meth:`StereoPairSource.read_pair_into` delivered: both frames' ids and
+    exposure-start timestamps (ns, device clock)."""
+
+    left_id: int
+    right_id: int
+    ts_left_ns: int
+    ts_right_ns: int
+
+
+class StereoPairSource(abc.ABC):
+    """A rig that delivers both frames of one trigger at once, straight into buffers the
+    caller owns (a hardware-synchronized stereo grabber; the mock rig). The acquisition
+    then writes each pair into its ring slot without pairing or copying
+    (:class:`iscd.acquisition.Acquisition`); cameras offer one through
+    ``Camera.pair_source()``, which returns None where they cannot."""
+
+    @abc.abstractmethod
+    def read_pair_into(self, left: np.ndarray, right: np.ndarray, timeout_s: float = 1.0) -> PairMeta:
+        """Fill ``left`` and ``right`` ((H, W), the cameras' dtype) with the next pair.
+        Raises :class:`CameraTimeout` if none came within ``timeout_s``, or
+        :class:`CameraError` / :class:`CameraLost` as :meth:`Camera.read` does."""

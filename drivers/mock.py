@@ -35,7 +35,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from drivers.base import Camera, CameraError, CameraLost, CameraSettings, CameraTimeout, Frame, Roi
+from drivers.base import (Camera, CameraError, CameraLost, CameraSettings, CameraTimeout, Frame, PairMeta,
+                          Roi, StereoPairSource)
 from iscd.config import Config, ConfigError, FaultConfig
 
 _START_DELAY_NS = 10_000_000
@@ -69,7 +70,7 @@ class _CamState:
     stats: CameraStats = field(default_factory=CameraStats)
 
 
-class MockRig:
+class MockRig(StereoPairSource):
     """The shared core of two mock cameras: scene, trigger clock, faults, frame cache.
 
     cfg: configuration (camera, scene, transmitter, ... and rig.pace / rig.faults).
@@ -95,6 +96,8 @@ class MockRig:
         self._soft_count = 0
         self._cache: dict[int, list] = {}
         self._cams = [_CamState("left", 0), _CamState("right", 1)]
+        self._pair_queue: deque | None = None
+        """triggers waiting for :meth:`read_pair_into` (None until it is first used)"""
         full = Roi(0, 0, cfg.camera.width, cfg.camera.height)
         for c in self._cams:
             c.settings = CameraSettings(fps=self._fps, exposure_s=self._exposure_s, roi=full)
@@ -254,6 +257,7 @@ class MockRig:
 
     def _stop(self, c: _CamState) -> None:
         with self._lock:
+            self._pair_queue = None
             c.started = False
             c.queue.clear()
 
@@ -365,6 +369,63 @@ class MockRig:
         return Frame(c.name, self._frame_id(c, n), self.trigger_time_ns(n), img)
 
 
+    # ----------------------------------------------------------------- pairs at once
+    def pair_capable(self) -> bool:
+        """Whether :meth:`read_pair_into` can serve: both cameras started, whole frames,
+        no injected faults (those are per camera: the frame-by-frame path simulates them)."""
+        full = (0, 0, self.cfg.camera.width, self.cfg.camera.height)
+        return (not self.faults and all(c.started and not c.must_reopen for c in self._cams)
+                and all((c.settings.roi.x, c.settings.roi.y, c.settings.roi.width,
+                         c.settings.roi.height) == full for c in self._cams))
+
+    def read_pair_into(self, left: np.ndarray, right: np.ndarray, timeout_s: float = 1.0) -> PairMeta:
+        """Both cameras' frames of the next trigger rendered straight into ``left`` and
+        ``right`` ((H, W) uint8): the same frames, ids, timestamps and (paced) buffer
+        overflows as reading the two cameras one by one, without the pairing and copies.
+        Only while :meth:`pair_capable`."""
+        if not self.pair_capable():
+            raise CameraError("mock rig: pairs at once need both cameras started, whole frames "
+                              "and no injected faults")
+        a, b = self._cams
+        if self._pair_queue is None:
+            self._pair_queue = deque()
+            a.cursor = b.cursor = max(a.cursor, b.cursor)
+        q = self._pair_queue
+        if not self.pace:
+            n = a.cursor
+        else:
+            deadline = time.monotonic_ns() + round(timeout_s * 1e9)
+            while True:
+                now = time.monotonic_ns()
+                done = self._triggers_done(now)
+                while a.cursor < done:  # arrivals since the last read (a full queue drops them)
+                    if len(q) < self.buffer_frames:
+                        q.append(a.cursor)
+                    else:
+                        a.stats.dropped_buffer += 1
+                        b.stats.dropped_buffer += 1
+                    a.cursor += 1
+                b.cursor = a.cursor
+                if q:
+                    break
+                next_ns = self.trigger_time_ns(a.cursor) + round(self._exposure_s * 1e9)
+                if next_ns > deadline:
+                    if deadline > now:
+                        time.sleep((deadline - now) / 1e9)
+                    raise CameraTimeout(f"mock rig: no pair within {timeout_s:g} s")
+                if next_ns > now:
+                    time.sleep((next_ns - now) / 1e9)
+            n = q.popleft()
+        if not self.pace:
+            a.cursor += 1
+            b.cursor = a.cursor
+        self.scene.render_pair_into(n, left, right)
+        a.stats.delivered += 1
+        b.stats.delivered += 1
+        t = self.trigger_time_ns(n)
+        return PairMeta(n, n, t, t)
+
+
 class MockCamera(Camera):
     """One camera of a :class:`MockRig` (``"left"`` or ``"right"``)."""
 
@@ -407,3 +468,8 @@ class MockCamera(Camera):
 
     def trigger(self) -> None:
         self.rig._trigger(self._c)
+
+    def pair_source(self) -> "MockRig | None":
+        """The rig, which renders both cameras' frames of a trigger at once into caller
+        buffers (:meth:`MockRig.read_pair_into`), while it can."""
+        return self.rig if self.rig.pair_capable() else None

@@ -16,7 +16,10 @@ threads of the calling process (tests, replay, single-core use)::
 
 Inside the worker each camera has its own reader thread (a stalled or reopening camera
 never blocks the other); frames go through one lock into the pairer and complete pairs
-are copied into the ring. A frame that must wait for its partner is copied first (drivers
+are copied into the ring. A rig that delivers both frames of a trigger at once
+(:class:`drivers.base.StereoPairSource`, the mock rig without injected faults) instead
+fills each ring slot itself from one thread: no pairing and no copies; on any camera
+error it falls back to the per-camera readers. A frame that must wait for its partner is copied first (drivers
 may reuse the buffer on the next read). Camera faults never end the worker:
 
 * :class:`CameraTimeout`: counted (``timeouts_<side>``), reading goes on;
@@ -45,7 +48,7 @@ from typing import Any
 
 import numpy as np
 
-from drivers.base import Camera, CameraError, CameraLost, CameraSettings, CameraTimeout, Frame
+from drivers.base import Camera, CameraError, CameraLost, CameraSettings, CameraTimeout, Frame, StereoPairSource
 from iscd.pairing import StereoPairer
 from iscd.ringbuffer import RingError, StereoRing
 
@@ -91,6 +94,9 @@ class AcquisitionOptions:
                              "for drivers that never reuse buffers)")
     stats_interval_s: float = _opt(0.005, "how often the counters are published, s", lo=0)
     finish_ring: bool = _opt(True, "mark the ring finished when the worker stops")
+    pairs_at_once: bool = _opt(True, "let a rig that delivers both frames of a trigger at once "
+                               "(drivers.base.StereoPairSource: the mock rig) fill the ring "
+                               "slots itself (no pairing, no copies)")
 
     def tolerance_ns(self, fps: float | None) -> int:
         """Timestamp tolerance in ns: the option, or a quarter frame period (250 µs at
@@ -199,6 +205,7 @@ class Acquisition:
         self._lock = threading.Lock()
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
+        self._readers: list[threading.Thread] = []
         self._last_publish = 0.0
         self._shape = (ring.height, ring.width)
         self._warned_bad = {side: False for side in _SIDES}
@@ -238,11 +245,14 @@ class Acquisition:
             with self._lock:
                 st.state = AcquisitionStats.RUNNING
                 self._publish(force=True)
-            readers = [threading.Thread(target=self._reader, args=(side, up[side]),
-                                        name=f"iscd-read-{side}", daemon=True)
-                       for side in _SIDES]
-            for t in readers:
-                t.start()
+            src = self._pair_source() if up["left"] and up["right"] else None
+            if src is not None:  # both frames of a trigger at once, straight into the ring
+                self._readers = [threading.Thread(target=self._pair_reader, args=(src,),
+                                                  name="iscd-read-pairs", daemon=True)]
+                self._readers[0].start()
+            else:
+                self._start_readers(up)
+            readers = self._readers
             deadline = None if duration_s is None else time.monotonic() + duration_s
             while not self._stop.is_set():
                 if ext is not None and ext.is_set():
@@ -253,7 +263,7 @@ class Acquisition:
                 with self._lock:
                     self._publish()
             self._stop.set()
-            for t in readers:
+            for t in list(self._readers):
                 t.join(self.options.read_timeout_s + 5.0)
                 if t.is_alive():
                     log.error("%s: a camera read did not return; abandoning its thread", t.name)
@@ -308,6 +318,60 @@ class Acquisition:
                 what()
             except Exception as e:  # noqa: BLE001
                 log.debug("%s camera: %s failed: %s", side, what.__name__, e)
+
+    def _start_readers(self, up: dict[str, bool]) -> None:
+        """One reader thread per camera (frames one by one, paired by the pairer)."""
+        ts = [threading.Thread(target=self._reader, args=(side, up[side]),
+                               name=f"iscd-read-{side}", daemon=True) for side in _SIDES]
+        self._readers += ts
+        for t in ts:
+            t.start()
+
+    def _pair_source(self) -> StereoPairSource | None:
+        """The cameras' :class:`StereoPairSource`, if both offer the same one and the ring
+        holds their frames' shape and dtype (else frames go one by one)."""
+        if not self.options.pairs_at_once:
+            return None
+        try:
+            src = self.cams["left"].pair_source()
+            other = self.cams["right"].pair_source()
+        except Exception as e:  # noqa: BLE001 - a driver bug: use the frame-by-frame path
+            log.debug("pair source unavailable: %s", e)
+            return None
+        return src if src is not None and src is other else None
+
+    def _pair_reader(self, src: StereoPairSource) -> None:
+        """Pairs at once: each ring slot is filled by the source itself (no pairing, no
+        copies). Timeouts are counted; any camera error falls back to the per-camera
+        readers, which handle losses and reopening."""
+        opt = self.options
+        ring, c = self.ring, self.pairer.counters
+        while not self._stop.is_set():
+            slot = ring.reserve()
+            try:
+                meta = src.read_pair_into(slot.left, slot.right, timeout_s=opt.read_timeout_s)
+            except CameraTimeout:
+                self._bump("timeouts_left")
+                self._bump("timeouts_right")
+                continue
+            except Exception as e:  # noqa: BLE001 - CameraError/Lost or a driver bug
+                ring.abort(slot)
+                log.info("pairs at once stopped (%s); reading the cameras one by one", e)
+                self._start_readers({"left": True, "right": True})
+                return
+            arrival = time.monotonic_ns()
+            with self._lock:
+                try:
+                    ring.commit(slot, frame_id=meta.left_id, ts_left_ns=meta.ts_left_ns,
+                                ts_right_ns=meta.ts_right_ns, left_id=meta.left_id,
+                                right_id=meta.right_id, arrival_ns=arrival)
+                    self._stats.pairs_written += 1
+                except RingError as e:
+                    self._stats.ring_errors += 1
+                    log.warning("cannot write pair %d to the ring: %s", meta.left_id, e)
+                c.frames_left += 1
+                c.frames_right += 1
+                self._publish()
 
     def _reader(self, side: str, running: bool) -> None:
         opt = self.options
