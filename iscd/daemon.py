@@ -224,10 +224,14 @@ class Daemon:
             return rec
 
         try:
-            while not self._stop:
+            draining = False
+            while True:
                 now = time.monotonic()
-                if deadline is not None and now >= deadline:
-                    break
+                if not draining and (self._stop or (deadline is not None and now >= deadline)):
+                    # stop the cameras first, then decode what the ring still holds: the
+                    # end of a run loses no pair and counts no drop that did not happen
+                    acq.stop()
+                    draining = True
                 if now >= next_stats:
                     rec = stats_record(False)
                     emit([rec])
@@ -237,7 +241,7 @@ class Daemon:
                     if next_stats < now:
                         next_stats = now + st.stats_interval_s
                 notifier.watchdog()
-                if not acq.is_alive():
+                if not draining and not acq.is_alive():
                     log.error("acquisition process died (exit code %s); restarting", acq.exitcode)
                     counters["acquisition_restarts"] += 1
                     time.sleep(st.restart_backoff_s)
@@ -270,7 +274,7 @@ class Daemon:
                     if time.monotonic() >= t_fill:
                         break
                 if n == 0:
-                    if ring.finished:
+                    if ring.finished or draining:
                         break
                     continue
                 prev = last_frame if last_frame >= 0 else int(ids[0]) - 1
