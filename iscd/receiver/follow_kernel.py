@@ -110,20 +110,20 @@ def _follow_kernel(L, R, starts: np.ndarray, half: int, w: float, iterations: in
                 q = g * F + f
                 xa, ya = x0[q, i], y0[q, i]
                 m = fr[f, ya, xa]
-                tot = 0
+                tot = np.int32(0)  # at most K^2 x 65535: fits
                 for a in range(K):
                     row = fr[f, ya + a, xa:xa + K]
                     ba = bg[a]
                     if fixed and f == 0:
                         ba[:] = row
                     for b in range(K):
-                        tot += np.int64(row[b])
+                        tot += np.int32(row[b])
                         m = min(m, row[b])
                     if fixed:
                         for b in range(K):
                             ba[b] = min(ba[b], row[b])
                 pmin[q, j] = m
-                shown[q, j] = tot - K * K * m  # light above the patch minimum
+                shown[q, j] = np.int64(tot) - K * K * np.int64(m)  # light above the patch minimum
             if fixed:  # light above each pixel's least value over the block
                 sb = 0
                 for a in range(K):
@@ -163,8 +163,9 @@ def _follow_kernel(L, R, starts: np.ndarray, half: int, w: float, iterations: in
                 b1 = min(max(int(math.ceil(cx + 0.5 * w + 0.5)) - xa, 0), K - 1) + 1
                 a0 = min(max(int(math.floor(cy - 0.5 * w - 0.5)) - ya, 0), K - 1)
                 a1 = min(max(int(math.ceil(cy + 0.5 * w + 0.5)) - ya, 0), K - 1) + 1
-                for k in range(K):
+                for k in range(b0, b1):
                     wx[k] = _box_cover(cx, float(xa + k), w)
+                for k in range(a0, a1):
                     wy[k] = _box_cover(cy, float(ya + k), w)
                 tot = 0.0
                 sx = 0.0
