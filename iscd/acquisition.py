@@ -541,6 +541,10 @@ class AcquisitionProcess:
     def pid(self) -> int | None:
         return self._proc.pid
 
+    def request_stop(self) -> None:
+        """Ask the worker to stop without waiting (it marks the ring finished when done)."""
+        self._stop.set()
+
     def stop(self, timeout_s: float = 10.0) -> AcquisitionStats:
         """Ask the worker to stop and wait; a worker that does not stop within
         ``timeout_s`` s is terminated (then killed). Returns the final counters."""

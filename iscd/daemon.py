@@ -230,8 +230,9 @@ class Daemon:
                 if not draining and (self._stop or (deadline is not None and now >= deadline)):
                     # stop the cameras first, then decode what the ring still holds: the
                     # end of a run loses no pair and counts no drop that did not happen
-                    acq.stop()
+                    acq.request_stop()  # joined in the finally clause
                     draining = True
+                    drain_until = now + 5.0  # a worker that never finishes the ring
                 if now >= next_stats:
                     rec = stats_record(False)
                     emit([rec])
@@ -252,6 +253,12 @@ class Daemon:
                 n = 0
                 windows = decoder.needed_windows() if hasattr(decoder, "needed_windows") else None
                 t_fill = time.monotonic() + st.block_wait_ms / 1000
+                if not draining:
+                    # sleep until the block is about due instead of waking for every pair
+                    # (a thousand wake-ups a second cost a tenth of a core)
+                    missing = B - ring.queued
+                    if missing > 1:
+                        time.sleep(min(st.block_wait_ms / 1000, (missing - 1) / fps))
                 while n < B:
                     timeout = max(0.0, t_fill - time.monotonic()) if n else 0.05
                     slot = ring.read(timeout_s=timeout)
@@ -274,7 +281,7 @@ class Daemon:
                     if time.monotonic() >= t_fill:
                         break
                 if n == 0:
-                    if ring.finished or draining:
+                    if ring.finished or (draining and (not acq.is_alive() or now > drain_until)):
                         break
                     continue
                 prev = last_frame if last_frame >= 0 else int(ids[0]) - 1

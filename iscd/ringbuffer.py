@@ -601,6 +601,14 @@ class StereoRing:
         return out
 
     @property
+    def queued(self) -> int:
+        """Pairs committed and not yet taken (a lock-free read of the counters: a hint for
+        how long to wait, not a promise)."""
+        self._check()
+        h = self._hdr
+        return int(h[_H_W] - h[_H_R])
+
+    @property
     def dropped_overflow(self) -> int:
         self._check()
         return int(self._hdr[_H_DROPPED])

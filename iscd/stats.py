@@ -73,6 +73,9 @@ class CpuMeter:
         share = 0.0
         rss_total = 0
         for pid in pids:
+            if not os.path.exists(f"/proc/{pid}/stat"):  # gone (stopped): no share, no negative jump
+                self._last.pop(pid, None)
+                continue
             cpu, rss = process_usage(pid)
             rss_total += rss
             prev = self._last.get(pid)
