@@ -164,6 +164,8 @@ class Daemon:
         from iscd.jit import CACHE_ENABLED, cache_dir, warm_up
 
         notifier.status("loading compiled kernels")
+        log.info("loading the compiled kernels (the first start after an install compiles them: "
+                 "about a minute on 2 cores; later starts load them in under a second)")
         t_warm = warm_up()
         log.info("compiled kernels ready in %.2f s (%s)", t_warm,
                  f"cache {cache_dir()}" if CACHE_ENABLED else "no cache: they compile at every start")
