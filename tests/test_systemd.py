@@ -73,7 +73,7 @@ def test_unit_essentials() -> None:
     devices = {v.split()[0] for v in s("DeviceAllow")}
     assert devices == {"char-video4linux", "char-usb_device", "char-ttyACM", "char-ttyUSB"}
     assert s("CapabilityBoundingSet") == [""] and s("NoNewPrivileges") == ["yes"]
-    assert s("ProtectSystem") == ["strict"] and s("MemoryDenyWriteExecute") == ["yes"]
+    assert s("ProtectSystem") == ["strict"] and s("MemoryDenyWriteExecute") == []
     assert set(s("RestrictAddressFamilies")[0].split()) == {"AF_UNIX", "AF_INET", "AF_INET6", "AF_NETLINK"}
     assert k["Install.WantedBy"] == ["multi-user.target"]
 
@@ -223,42 +223,14 @@ def test_example_config_is_valid() -> None:
     assert is_local_endpoint(ds.socket)
 
 
-_MDWE = r"""
-import ctypes, sys
-if __name__ == "__main__":
-    libc = ctypes.CDLL(None, use_errno=True)
-    if libc.prctl(65, 1, 0, 0, 0) != 0:           # PR_SET_MDWE, PR_MDWE_REFUSE_EXEC_GAIN
-        print("no PR_SET_MDWE", ctypes.get_errno()); sys.exit(77)
-    import mmap
-    try:
-        mmap.mmap(-1, 4096, prot=mmap.PROT_READ | mmap.PROT_WRITE | mmap.PROT_EXEC)
-        print("W+X mapping was allowed"); sys.exit(78)
-    except OSError:
-        pass
-    from iscd.cli import main
-    sys.exit(main(sys.argv[1:]))
-"""
-
-
-def test_daemon_runs_with_memory_deny_write_execute(tmp_path: Path) -> None:
-    """MemoryDenyWriteExecute=yes kills a process that maps W+X memory (a JIT). The kernel's
-    PR_SET_MDWE applies the same rule to a process and its children: `iscd run` on the mock
-    rig, with the JSON Lines and Rerun outputs, must work under it."""
-    try:
-        import iscd.commands.run  # noqa: F401
-    except ImportError:
-        pytest.skip("iscd run is not implemented yet")
-    script = tmp_path / "mdwe_run.py"
-    script.write_text(_MDWE)
-    out, rrd = tmp_path / "run.jsonl", tmp_path / "run.rrd"
-    proc = subprocess.run([sys.executable, str(script), "-q", "run", "--duration", "1",
-                           "--out", str(out), "--save", str(rrd)],
-                          capture_output=True, text=True, timeout=120, cwd=tmp_path)
-    if proc.returncode == 77:
-        pytest.skip(f"kernel without PR_SET_MDWE (Linux >= 6.3): {proc.stdout.strip()}")
-    assert proc.returncode != 78, "W+X mapping allowed: PR_SET_MDWE not in force"
-    assert proc.returncode == 0, proc.stdout + proc.stderr[-3000:]
-    recs = [json.loads(ln) for ln in out.read_text().splitlines()]
-    assert recs and recs[-1]["type"] == "stats"
-    assert rrd.stat().st_size > 0
+def test_unit_lets_the_compiled_kernels_load() -> None:
+    """The decoder's kernels are Numba (LLVM) machine code, mapped W+X also when loaded from
+    the cache: MemoryDenyWriteExecute=yes would kill `iscd run` at start, so the unit must
+    not set it (the exposure test above still holds the unit to <= 3.0), and it gives the
+    kernels a cache directory of their own."""
+    text = UNIT.read_text()
+    active = [ln.strip() for ln in text.splitlines() if ln.strip() and not ln.lstrip().startswith("#")]
+    assert not any(ln.startswith("MemoryDenyWriteExecute=") and ln.split("=", 1)[1] in ("yes", "true", "1")
+                   for ln in active)
+    assert "CacheDirectory=iscd" in active
 
