@@ -75,24 +75,7 @@ def test_decoder_ranges_every_kth_frame_when_told(rendered_default) -> None:
     assert shed.counters["frames_decoded"] == full.counters["frames_decoded"]
 
 
-LIGHT = """
-[transmitter]
-rows = 1
-cols = 1
-levels = 8
-training_symbols = 40
-data_symbols = 100
-[camera]
-baseline_m = 0.6
-f_number_left = 4
-f_number_right = 4
-[scene]
-distance_m = 30
-seed = 7
-[rig]
-backend = "mock"
-pace = true
-"""
+from test_daemon import LIGHT  # noqa: E402  (the daemon tests' light transmitter)
 
 
 def test_daemon_sheds_in_order_and_keeps_the_packets(tmp_path: Path, monkeypatch) -> None:
