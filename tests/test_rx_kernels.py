@@ -3,7 +3,9 @@
 Tolerances (what each kernel can differ by, and why):
 
 * ``ChannelModel._fine`` (lookup tables): bit-identical (same float64 arithmetic, cast).
-* ``clean_costs``: bit-identical costs (same float32 operations; libm log1pf both ways).
+* ``clean_costs``: bit-identical costs for the Gaussian and Euclidean models (same float32
+  operations); for the Student-t model the kernel's float32 log1p is correctly rounded and
+  numpy's (libm log1pf) may be 1 ulp off: costs agree to ~1e-7 relative.
 * ``decide_span`` with straddling frames: the straddle's float32 log-variance is correctly
   rounded in the kernel and numpy's vectorized log may be 1 ulp off, so costs and margins
   agree to ~1e-6 relative (asserted: |d margin| <= 1e-4 max(|margin|, 1)); the decisions
@@ -61,7 +63,10 @@ def test_decide_span_matches_reference(kind: str, nan_frac: float) -> None:
     n0, P = air.data_offset, air.packet_symbols
     a = clean_costs(L, clock, 1.0, n0, P, model)
     b = clean_costs_reference(L, clock, 1.0, n0, P, model)
-    np.testing.assert_array_equal(a.costs, b.costs)
+    if kind == "t":
+        np.testing.assert_allclose(a.costs, b.costs, rtol=1e-6, atol=1e-6)
+    else:
+        np.testing.assert_array_equal(a.costs, b.costs)
     np.testing.assert_array_equal(a.n_obs, b.n_obs)
     np.testing.assert_array_equal(a.valid_obs, b.valid_obs)
     ctx = truth.copy()

@@ -221,6 +221,51 @@ KIND_CODE = {"gauss": 0, "t": 1, "euclid": 2}
 """Noise model -> the integer the kernels take."""
 
 
+_LOG_C = (1.0, 1.0 / 3, 1.0 / 5, 1.0 / 7, 1.0 / 9, 1.0 / 11, 1.0 / 13, 1.0 / 15, 1.0 / 17,
+          1.0 / 19, 1.0 / 21)
+
+
+@njit(inline="always")
+def _log_inplace(x: np.ndarray, xi: np.ndarray, mb: np.ndarray, ex: np.ndarray, n: int) -> None:
+    """x[:n] = log(x[:n]) (float64, error ~2e-16 relative: a float32 cast of it is the
+    correctly rounded float32 logarithm), in branch-free loops that vectorize (libm's log
+    does not): x = 2^e m from the bits (xi: x viewed as int64; mb, ex: scratch of n int64
+    and int32), log m = 2 atanh((m - 1) / (m + 1)) by its series for m in [sqrt(1/2),
+    sqrt(2)). Zero, subnormal, infinite and NaN inputs go to libm afterwards."""
+    mf = mb.view(np.float64)
+    for k in range(n):
+        b = xi[k]
+        ex[k] = np.int32((b >> 52) & 0x7FF) - np.int32(1023)
+        mb[k] = (b & 0x000FFFFFFFFFFFFF) | 0x3FF0000000000000
+    bad = 0
+    for k in range(n):
+        m = mf[k]
+        big = m > 1.4142135623730951
+        m = m * 0.5 if big else m
+        e = np.float64(ex[k]) + (1.0 if big else 0.0)
+        s = (m - 1.0) / (m + 1.0)
+        z = s * s
+        p = _LOG_C[10]
+        p = p * z + _LOG_C[9]
+        p = p * z + _LOG_C[8]
+        p = p * z + _LOG_C[7]
+        p = p * z + _LOG_C[6]
+        p = p * z + _LOG_C[5]
+        p = p * z + _LOG_C[4]
+        p = p * z + _LOG_C[3]
+        p = p * z + _LOG_C[2]
+        p = p * z + _LOG_C[1]
+        p = p * z + _LOG_C[0]
+        bad += 1 if (ex[k] == -1023 or ex[k] == 1024) else 0
+        x[k] = e * 0.6931471805599453 + 2.0 * s * p
+    if bad:  # zero, subnormal, inf, NaN: libm (the input rebuilt from its bits)
+        for k in range(n):
+            if ex[k] == -1023 or ex[k] == 1024:
+                xi[k] = (np.int64(ex[k] + 1023) << 52) | (mb[k] & 0x000FFFFFFFFFFFFF)
+                x[k] = np.log(x[k])
+    return None
+
+
 def _warm_clean() -> tuple:
     C, n, N, M = 2, 6, 2, 4
     L = np.full((C, n, N), 10.0)
@@ -229,7 +274,7 @@ def _warm_clean() -> tuple:
             np.float32(0.1), np.float32(9.0))
 
 
-@njit(warm=_warm_clean)
+@njit(warm=_warm_clean, error_model="numpy")
 def _clean_kernel(Lf: np.ndarray, k: np.ndarray, alpha: np.ndarray, k_a: int, S: int,
                   mu: np.ndarray, ivar: np.ndarray, logvar: np.ndarray, kind: int,
                   inv_nu: np.float32, nu1: np.float32
@@ -238,13 +283,24 @@ def _clean_kernel(Lf: np.ndarray, k: np.ndarray, alpha: np.ndarray, k_a: int, S:
     with a value per frame (n_fr, N) of frames Lf (C, n_fr, N) (DN, NaN = missing) whose
     symbol k (relative k - k_a in [0, S)) holds them whole (alpha = 1); mu, ivar, logvar
     (C, N, M) float32 tables (:meth:`ChannelModel.level_cost`); kind 0 gauss, 1 t, 2 euclid;
-    inv_nu = 1 / nu, nu1 = nu + 1."""
+    inv_nu = 1 / nu, nu1 = nu + 1.
+
+    Per frame, the N x M costs of each camera in branch-free loops over contiguous
+    buffers (they vectorize); the Student-t log1p in float64 (:func:`_log_inplace`,
+    log1p(v) = log(1 + v) v / ((1 + v) - 1)): correctly rounded float32, where numpy's
+    float32 log1p may be 1 ulp off."""
     C, nfr, N = Lf.shape
     M = mu.shape[2]
+    NM = N * M
     costs = np.zeros((S, N, M), np.float32)
     n_obs = np.zeros((S, N), np.int64)
     valid = np.zeros((nfr, N), np.int64)
-    tmp = np.empty(M, np.float32)
+    v = np.empty((C, NM), np.float32)
+    w = np.empty(NM, np.float64)
+    lg = np.empty(NM, np.float64)
+    lgi = lg.view(np.int64)
+    mb = np.empty(NM, np.int64)
+    ex = np.empty(NM, np.int32)
     for t in range(nfr):
         for i in range(N):
             cnt = 0
@@ -257,30 +313,49 @@ def _clean_kernel(Lf: np.ndarray, k: np.ndarray, alpha: np.ndarray, k_a: int, S:
             continue
         for i in range(N):
             n_obs[j, i] += valid[t, i]
-            for c in range(C):
-                x = Lf[c, t, i]
-                bad = np.isnan(x)
-                x32 = np.float32(x)
+        for c in range(C):
+            L_c = Lf[c, t]
+            mu_c = mu[c].ravel()
+            iv_c = ivar[c].ravel()
+            lv_c = logvar[c].ravel()
+            v_c = v[c]
+            for i in range(N):
+                x32 = np.float32(L_c[i])
                 for s in range(M):
-                    v = np.float32(0.0)
-                    if not bad:
-                        d = x32 - mu[c, i, s]
-                        v = d * d
-                        if kind == 1:
-                            v = v * ivar[c, i, s]
-                            v = v * inv_nu
-                            v = np.log1p(v)
-                            v = v * nu1
-                            v = v + logvar[c, i, s]
-                        elif kind == 0:
-                            v = v * ivar[c, i, s]
-                            v = v + logvar[c, i, s]
-                    if c == 0:
-                        tmp[s] = v
-                    else:
-                        tmp[s] += v
-            for s in range(M):
-                costs[j, i, s] += tmp[s]
+                    d = x32 - mu_c[i * M + s]
+                    v_c[i * M + s] = d * d
+            if kind == 0:
+                for e_ in range(NM):
+                    r = v_c[e_] * iv_c[e_]
+                    v_c[e_] = r + lv_c[e_]
+            elif kind == 1:
+                for e_ in range(NM):
+                    r = v_c[e_] * iv_c[e_]
+                    r = r * inv_nu
+                    w[e_] = np.float64(r)
+                    lg[e_] = 1.0 + np.float64(r)
+                _log_inplace(lg, lgi, mb, ex, NM)
+                for e_ in range(NM):
+                    vv = w[e_]
+                    uu = 1.0 + vv
+                    r = lg[e_] * (vv / (uu - 1.0)) if uu != 1.0 else vv
+                    r = r if vv < np.inf else vv
+                    rr = np.float32(r) * nu1
+                    v_c[e_] = rr + lv_c[e_]
+            for i in range(N):
+                if np.isnan(L_c[i]):
+                    for s in range(M):
+                        v_c[i * M + s] = np.float32(0.0)
+        crow = costs[j].ravel()
+        if C == 1:
+            for e_ in range(NM):
+                crow[e_] += v[0, e_]
+        else:
+            for e_ in range(NM):
+                tot = v[0, e_]
+                for c in range(1, C):
+                    tot = tot + v[c, e_]
+                crow[e_] += tot
     return costs, n_obs, valid
 
 
@@ -350,7 +425,7 @@ def _straddle_one(Lf: np.ndarray, t: int, i: int, a: np.float32, f32: np.float32
     return total
 
 
-@njit(warm=_warm_straddle)
+@njit(warm=_warm_straddle, error_model="numpy")
 def _straddle_kernel(Lf: np.ndarray, k: np.ndarray, alpha: np.ndarray, valid: np.ndarray,
                      ctx: np.ndarray, k_first: int, k_a: int, cand: np.ndarray,
                      no_clean: np.ndarray, want_full: bool, edge: np.ndarray,
@@ -362,15 +437,39 @@ def _straddle_kernel(Lf: np.ndarray, k: np.ndarray, alpha: np.ndarray, valid: np
     a context symbol, and the edge after the context): extra costs (S, N, T) float32,
     added observation counts (S, N) and, with ``want_full``, the costs of all M levels
     (S, N, M) of symbols without a clean frame (``no_clean``). Each pass's costs are summed
-    per symbol first and then added, as the reference's ``_scatter_add`` does."""
+    per symbol first and then added, as the reference's ``_scatter_add`` does.
+
+    The candidates' costs of a frame (passes 1 and 2) are computed for all N x T at once:
+    a gather loop (table lookups, residuals, variances), then branch-free loops over the
+    contiguous buffers (reciprocal, the vectorized :func:`_log_inplace`, the noise model)
+    -- the same float32 operations in the same order as :func:`_straddle_one`, which the
+    rare full-M and edge costs still use."""
     C, nfr, N = Lf.shape
     S, _, T = cand.shape
     Sc = ctx.shape[0]
+    G = (M - 1) * 32 + 1
+    NT = N * T
+    CN = C * NT
+    one = np.float32(1.0)
     extra = np.zeros((S, N, T), np.float32)
     tmp = np.zeros((S, N, T), np.float32)
     dn = np.zeros((S, N), np.int64)
     full = np.zeros((S, N, M), np.float32)
     tmpf = np.zeros((S, N, M), np.float32)
+    d2 = np.empty(CN, np.float32)  # squared residuals, camera-major
+    vb = np.empty(CN, np.float32)  # variances
+    lg = np.empty(CN, np.float64)  # log variances (float64 until cast)
+    lgi = lg.view(np.int64)
+    w = np.empty(CN, np.float64)  # log1p scratch
+    lv32 = np.empty(CN, np.float32)
+    mb = np.empty(CN, np.int64)
+    ex = np.empty(CN, np.int32)
+    cost = np.empty(CN, np.float32)
+    qidx = np.empty(M * M, np.int64)
+    qseg = np.empty(M * M, np.int64)
+    pidx = np.empty(NT, np.int64)
+    pseg = np.empty(NT, np.int64)
+    pdl = np.empty(NT, np.float32)
     for pss in range(3):
         touched = False
         for t in range(nfr):
@@ -395,32 +494,116 @@ def _straddle_kernel(Lf: np.ndarray, k: np.ndarray, alpha: np.ndarray, valid: np
                 continue
             a = np.float32(al)
             touched = True
-            for i in range(N):
-                if pss < 2:
-                    fx = ctx[jc, i]
-                    if fx < 0:
-                        continue
-                    f32 = np.float32(fx)
-                    for u in range(T):
-                        tmp[j, i, u] += _straddle_one(Lf, t, i, a, f32, np.float32(cand[j, i, u]),
-                                                      pss == 0, mu_t, var_t, err_t, gain, timing,
-                                                      M, kind, inv_nu, nu1)
-                    dn[j, i] += valid[t, i]
-                    if want_full and no_clean[j, i]:
-                        for s in range(M):
-                            tmpf[j, i, s] += _straddle_one(Lf, t, i, a, f32, np.float32(s), pss == 0,
-                                                           mu_t, var_t, err_t, gain, timing, M,
-                                                           kind, inv_nu, nu1)
-                else:
+            if pss == 2:
+                for i in range(N):
                     for u in range(T):
                         best = np.float32(0.0)
-                        for w in range(edge.size):
-                            v = _straddle_one(Lf, t, i, a, np.float32(edge[w]),
+                        for ww in range(edge.size):
+                            v = _straddle_one(Lf, t, i, a, np.float32(edge[ww]),
                                               np.float32(cand[j, i, u]), False, mu_t, var_t,
                                               err_t, gain, timing, M, kind, inv_nu, nu1)
-                            best = v if w == 0 else min(best, v)
+                            best = v if ww == 0 else min(best, v)
                         tmp[j, i, u] += best
                     dn[j, i] += valid[t, i]
+                continue
+            ctxrow = ctx[jc]
+            crow = cand[j].ravel()
+            # q = a f + (1 - a) c (fixed first) or a c + (1 - a) f: the same two products
+            wf = a if pss == 0 else one - a
+            wc = one - a if pss == 0 else a
+            # table lookups of every (fixed, candidate) pair: q depends on the pair only
+            for f in range(M):
+                f32 = np.float32(f)
+                for cl in range(M):
+                    cf32 = np.float32(cl)
+                    q = wf * f32 + wc * cf32
+                    x = min(max(q, np.float32(0.0)), np.float32(M - 1))
+                    x = x * np.float32(32.0)
+                    x = x + np.float32(0.5)
+                    qidx[f * M + cl] = int(x)
+                    qseg[f * M + cl] = int(min(max(q, np.float32(0.0)), np.float32(M - 2)))
+            for i in range(N):
+                fx = ctxrow[i]
+                fi = fx if fx > 0 else 0
+                for u in range(T):
+                    pr = fi * M + crow[i * T + u]
+                    pidx[i * T + u] = i * G + qidx[pr]
+                    pseg[i * T + u] = i * (M - 1) + qseg[pr]
+                    pdl[i * T + u] = np.float32(fi) - np.float32(crow[i * T + u])
+            for c in range(C):
+                mu_c = mu_t[c]
+                var_c = var_t[c]
+                err_c = err_t[c]
+                gain_c = gain[c]
+                L_c = Lf[c, t]
+                d2_c = d2[c * NT:(c + 1) * NT]
+                vb_c = vb[c * NT:(c + 1) * NT]
+                for i in range(N):
+                    obs = np.float32(L_c[i])
+                    g_i = gain_c[i]
+                    for u in range(T):
+                        iu = i * T + u
+                        m = mu_c[pidx[iu]]
+                        var = var_c[pidx[iu]]
+                        if timing:
+                            gd = g_i * pdl[iu]
+                            var = var + gd * gd
+                            ee = err_c[pseg[iu]]
+                            var = var + ee * ee
+                        d = obs - m
+                        d2_c[iu] = d * d
+                        vb_c[iu] = var
+            if kind == 2:
+                for e_ in range(CN):
+                    cost[e_] = d2[e_]
+            else:
+                for e_ in range(CN):
+                    lg[e_] = np.float64(vb[e_])
+                _log_inplace(lg, lgi, mb, ex, CN)
+                if kind == 0:
+                    for e_ in range(CN):
+                        v = d2[e_] * (one / vb[e_])
+                        cost[e_] = v + np.float32(lg[e_])
+                else:
+                    for e_ in range(CN):
+                        lv32[e_] = np.float32(lg[e_])
+                        v = d2[e_] * (one / vb[e_])
+                        v = v * inv_nu
+                        w[e_] = np.float64(v)
+                    # log1p(v) = log(1 + v) v / ((1 + v) - 1) (Goldberg), in float64
+                    for e_ in range(CN):
+                        lg[e_] = 1.0 + w[e_]
+                    _log_inplace(lg, lgi, mb, ex, CN)
+                    for e_ in range(CN):
+                        vv = w[e_]
+                        uu = 1.0 + vv
+                        r = lg[e_] * (vv / (uu - 1.0)) if uu != 1.0 else vv
+                        r = r if vv < np.inf else vv
+                        v = np.float32(r) * nu1
+                        cost[e_] = v + lv32[e_]
+            trow = tmp[j].ravel()
+            for i in range(N):
+                keep = ctxrow[i] >= 0
+                for u in range(T):
+                    iu = i * T + u
+                    total = np.float32(0.0)
+                    for c in range(C):
+                        v = cost[c * NT + iu]
+                        v = np.float32(0.0) if np.isnan(Lf[c, t, i]) else v
+                        total = v if c == 0 else total + v
+                    trow[iu] += total if keep else np.float32(0.0)
+                if keep:
+                    dn[j, i] += valid[t, i]
+            if want_full:
+                for i in range(N):
+                    fx = ctxrow[i]
+                    if fx < 0 or not no_clean[j, i]:
+                        continue
+                    f32 = np.float32(fx)
+                    for s in range(M):
+                        tmpf[j, i, s] += _straddle_one(Lf, t, i, a, f32, np.float32(s), pss == 0,
+                                                       mu_t, var_t, err_t, gain, timing, M,
+                                                       kind, inv_nu, nu1)
         if touched:
             for j in range(S):
                 for i in range(N):
