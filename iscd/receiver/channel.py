@@ -482,19 +482,35 @@ def _iscd_camera(y: np.ndarray, lev: np.ndarray, M: int, led_prior: float, level
             r[t, i] = abs(y[t, i] - mu[i, lv])
             if np.isfinite(r[t, i]) and lev[t, i] >= 0:
                 cnt[lv] += 1
+    # residuals bucketed by level in one pass (counting sort), then the median of each
+    # bucket by selection: the same two middle values as a sort gives
+    start = np.zeros(M + 1, np.int64)
+    for l in range(M):
+        start[l + 1] = start[l] + cnt[l]
+    fill_at = start[:M].copy()
+    vals = np.empty(start[M])
+    for t in range(n_s):
+        for i in range(N):
+            lv = lev[t, i]
+            rv = r[t, i]
+            if lv >= 0 and np.isfinite(rv):
+                lv = min(lv, M - 1)
+                vals[fill_at[lv]] = rv
+                fill_at[lv] += 1
     med = np.full(M, np.nan)
     for l in range(M):
-        if cnt[l] == 0:
+        c_l = cnt[l]
+        if c_l == 0:
             continue
-        vals = np.empty(cnt[l])
-        j = 0
-        for t in range(n_s):
-            for i in range(N):
-                if lev[t, i] >= 0 and min(lev[t, i], M - 1) == l and np.isfinite(r[t, i]):
-                    vals[j] = r[t, i]
-                    j += 1
-        vals.sort()
-        med[l] = 0.5 * (vals[(cnt[l] - 1) // 2] + vals[cnt[l] // 2])
+        part = np.partition(vals[start[l]:start[l + 1]], c_l // 2)
+        hi = part[c_l // 2]
+        if c_l % 2 == 1:
+            lo = hi
+        else:
+            lo = part[0]
+            for q in range(1, c_l // 2):
+                lo = max(lo, part[q])
+        med[l] = 0.5 * (lo + hi)
     fin = np.isfinite(med)
     fill = np.nanmedian(med) if fin.any() else 1.0
     any_bad = False

@@ -193,32 +193,52 @@ def _warm_gain() -> tuple:
     return (np.ones((4, 3)), one[0], one, GAINS.astype(np.float32), np.float32(5.0), one, one)
 
 
-@njit(warm=_warm_gain)
+@njit(warm=_warm_gain, error_model="numpy")
 def _gain_costs(yc: np.ndarray, base: np.ndarray, span: np.ndarray, gains: np.ndarray,
                 top: np.float32, var: np.ndarray, logvar: np.ndarray) -> np.ndarray:
     """Summed best-level Gaussian costs (G,) float64 of the samples yc (n, N) DN (NaN =
     missing: no cost) for each relative gain: centroids ``min(base + g span, top)`` with
     base (N,), span, var, logvar (M, N) float32 (:func:`_match_gain_reference`, element by
-    element in float32; the sums in sample order, numpy's are pairwise: ~1e-15)."""
+    element in float32; the sums in sample order, numpy's are pairwise: ~1e-15).
+
+    Per gain, the centroids (M, N) once; per sample row, the best level of all N LEDs in
+    branch-free loops over the LED axis (they vectorize), then the sum in sample order."""
     n, N = yc.shape
     M = span.shape[0]
     out = np.zeros(gains.size)
+    mg = np.empty((M, N), np.float32)
+    best = np.empty(N, np.float32)
+    x32 = np.empty(N, np.float32)
     for g in range(gains.size):
         gg = gains[g]
+        for s in range(M):
+            srow = span[s]
+            mrow = mg[s]
+            for i in range(N):
+                a = base[i] + gg * srow[i]
+                mrow[i] = top if top < a else a
         tot = 0.0
         for t in range(n):
+            yrow = yc[t]
             for i in range(N):
-                x = yc[t, i]
-                if not np.isfinite(x):
-                    continue
-                x32 = np.float32(x)
-                best = np.float32(0.0)
-                for s in range(M):
-                    m = min(base[i] + gg * span[s, i], top)
-                    d = x32 - m
-                    v = d * d / var[s, i] + logvar[s, i]
-                    best = v if s == 0 else min(best, v)
-                tot += np.float64(best)
+                x32[i] = np.float32(yrow[i])
+            for s in range(M):
+                mrow = mg[s]
+                vrow = var[s]
+                lrow = logvar[s]
+                if s == 0:
+                    for i in range(N):
+                        d = x32[i] - mrow[i]
+                        best[i] = d * d / vrow[i] + lrow[i]
+                else:
+                    for i in range(N):
+                        d = x32[i] - mrow[i]
+                        v = d * d / vrow[i] + lrow[i]
+                        b = best[i]
+                        best[i] = v if v < b else b
+            for i in range(N):
+                if np.isfinite(yrow[i]):
+                    tot += np.float64(best[i])
         out[g] = tot
     return out
 
