@@ -35,7 +35,7 @@ from iscd.jit import njit
 KINDS = ("gauss", "t", "euclid")
 
 
-@njit(warm=lambda: (np.ones((1, 2, 3)), 4))
+@njit(warm=lambda: (np.ones((1, 2, 3)), 4), error_model="numpy")
 def _fine_table(table: np.ndarray, fine: int) -> np.ndarray:
     """Linear interpolation of ``table`` (C, N, M) at q = g / fine, g = 0 .. (M - 1) fine,
     as float32 (C, N * G): :meth:`ChannelModel.interp` element by element."""

@@ -470,6 +470,7 @@ def _straddle_kernel(Lf: np.ndarray, k: np.ndarray, alpha: np.ndarray, valid: np
     pidx = np.empty(NT, np.int64)
     pseg = np.empty(NT, np.int64)
     pdl = np.empty(NT, np.float32)
+    keep = np.empty(NT, np.bool_)
     for pss in range(3):
         touched = False
         for t in range(nfr):
@@ -583,17 +584,19 @@ def _straddle_kernel(Lf: np.ndarray, k: np.ndarray, alpha: np.ndarray, valid: np
                         cost[e_] = v + lv32[e_]
             trow = tmp[j].ravel()
             for i in range(N):
-                keep = ctxrow[i] >= 0
+                kp = ctxrow[i] >= 0
                 for u in range(T):
-                    iu = i * T + u
-                    total = np.float32(0.0)
-                    for c in range(C):
-                        v = cost[c * NT + iu]
-                        v = np.float32(0.0) if np.isnan(Lf[c, t, i]) else v
-                        total = v if c == 0 else total + v
-                    trow[iu] += total if keep else np.float32(0.0)
-                if keep:
+                    keep[i * T + u] = kp
+                if kp:
                     dn[j, i] += valid[t, i]
+            # a NaN observation (the only source of a NaN cost) costs nothing
+            for iu in range(NT):
+                v = cost[iu]
+                total = v if v == v else np.float32(0.0)
+                for c in range(1, C):
+                    v = cost[c * NT + iu]
+                    total = total + (v if v == v else np.float32(0.0))
+                trow[iu] += total if keep[iu] else np.float32(0.0)
             if want_full:
                 for i in range(N):
                     fx = ctxrow[i]

@@ -35,7 +35,7 @@ import numpy as np
 from numpy.lib.stride_tricks import sliding_window_view
 
 from iscd.airinterface import BARKER13, HEADER_SYMBOLS
-from iscd.jit import njit
+from iscd.jit import njit, register_warm
 from iscd.receiver.channel import ChannelModel, ChannelTrack
 
 HEADER_BITS = (BARKER13 > 0).astype(np.float64)
@@ -265,7 +265,7 @@ def _warm_clock() -> tuple:
             np.zeros(1, np.int64), tab, tab, np.zeros((1, C, N, M - 1)), 0.02, 3.0)
 
 
-@njit(warm=_warm_clock)
+@njit(warm=_warm_clock, error_model="numpy")
 def _clock_sums(L: np.ndarray, n_lo: int, n_hi: int, u0: float, p: float, e: float,
                 lev: np.ndarray, k_first: int, kc: float, starts: np.ndarray, mu_t: np.ndarray,
                 var_t: np.ndarray, err_t: np.ndarray, timing_sigma: float, huber: float
@@ -341,6 +341,15 @@ def _clock_sums(L: np.ndarray, n_lo: int, n_hi: int, u0: float, p: float, e: flo
                 b0 += wg * r
                 b1 += wg * r * dk
     return n_sel, h00, h01, h11, b0, b1, used
+
+
+def _warm_clock_c() -> tuple:
+    """:func:`_warm_clock` with a C-contiguous buffer (what the packet assembler passes)."""
+    args = _warm_clock()
+    return (np.ascontiguousarray(args[0]),) + args[1:]
+
+
+register_warm(_clock_sums, _warm_clock_c)
 
 
 def refine_clock(L: np.ndarray, clock: SymbolClock, e: float, lev: np.ndarray, k_first: int,
