@@ -79,6 +79,11 @@ def test_acquisition_fills_the_ring_with_whole_pairs_from_the_rig() -> None:
                 np.testing.assert_array_equal(slot.left, ref_l)
                 np.testing.assert_array_equal(slot.right, ref_r)
             slot.release()
-        assert got == list(range(got[0], got[0] + len(got)))  # consecutive: none lost
+        # in order, and every gap is a counted drop (a reader late on a busy machine loses
+        # frames as a camera with full buffers does: counted, never silently)
+        assert all(b > a for a, b in zip(got, got[1:]))
+        gaps = sum(b - a - 1 for a, b in zip(got, got[1:]))
+        assert gaps <= rig.stats(0).dropped_buffer
+        assert len(got) >= 100
     finally:
         ring.close()
