@@ -167,6 +167,8 @@ class Daemon:
         log.info("loading the compiled kernels (the first start after an install compiles them: "
                  "about a minute on 2 cores; later starts load them in under a second)")
         t_warm = warm_up()
+        if not decoder.wait_ready(timeout_s=300.0):
+            log.warning("the demodulation worker is not ready yet; starting anyway")
         log.info("compiled kernels ready in %.2f s (%s)", t_warm,
                  f"cache {cache_dir()}" if CACHE_ENABLED else "no cache: they compile at every start")
         t_start = time.monotonic()

@@ -98,3 +98,14 @@ def warm_up() -> float:
     for jf, args in list(_REGISTRY):
         jf(*args())
     return time.perf_counter() - t0
+
+
+def signatures() -> dict[str, int]:
+    """How many compiled signatures each registered kernel has (a kernel that gains one
+    while running compiled in the middle of it: ``tests/test_frame_kernels.py`` checks that
+    the live path needs none beyond :func:`warm_up`)."""
+    out: dict[str, int] = {}
+    for jf, _ in _REGISTRY:
+        name = f"{jf.py_func.__module__}.{jf.py_func.__qualname__}"
+        out[name] = len(jf.signatures)
+    return out

@@ -216,6 +216,18 @@ class StreamDecoder:
             out.append(_jsonable(pkt.record(self.tx_index)))
         return out
 
+    def wait_ready(self, timeout_s: float = 300.0) -> bool:
+        """Wait until the demodulation worker has started and loaded (or compiled) its
+        kernels, at most ``timeout_s`` s; True when it is ready (or there is none). The
+        daemon calls it before the cameras start."""
+        if self._worker is None or not self._pending:
+            return True
+        try:
+            self._pending[0][0].result(timeout=timeout_s)
+            return True
+        except Exception:  # noqa: BLE001 - a timeout or a dead worker: _collect handles it
+            return False
+
     @property
     def worker_pids(self) -> list[int]:
         """Process ids of the demodulation worker (``async_demod="process"``), else []."""

@@ -189,3 +189,27 @@ def test_correlation_peak_matches_the_reference(w: int) -> None:
             assert np.abs(a.height - b.height).max() < 1e-9
             assert np.allclose(a.sigma, b.sigma, rtol=1e-7, equal_nan=True)
     assert np.abs(b.dx - shifts).max() < 0.3  # and it found the shifts (left - right, px)
+
+
+def test_the_live_path_compiles_nothing_after_the_warm_up(rendered_default) -> None:
+    """After iscd.jit.warm_up() (what the daemon runs before the cameras start) decoding the
+    default scene as the daemon does -- writable block buffers, ranging every frame --
+    compiles no kernel again (a compile mid-stream stalls the frame loop for seconds on
+    the first start after an install)."""
+    from iscd import jit
+    from iscd.pipeline import StreamDecoder
+
+    L, R = rendered_default
+    dec = StreamDecoder(default_config())
+    jit.warm_up()
+    before = jit.signatures()
+    ids = np.arange(L.shape[0])
+    bl = np.empty((16,) + L.shape[1:], L.dtype)
+    br = np.empty_like(bl)
+    for s in range(0, L.shape[0], 16):
+        bl[:] = L[s:s + 16]
+        br[:] = R[s:s + 16]
+        dec.push(ids[s:s + 16], ids[s:s + 16] / 1000.0, bl, br)
+    assert dec.track is not None
+    after = jit.signatures()
+    assert {k: v for k, v in after.items() if v != before.get(k)} == {}

@@ -48,10 +48,15 @@ def _patch_minimum(fr, x0: int, y0: int, out: np.ndarray) -> None:
                 oa[b] = min(oa[b], row[b])
 
 
+def _w(a: np.ndarray, dtype: type) -> np.ndarray:
+    """``a`` as a writable C-contiguous array of ``dtype`` (copied only if it is not one)."""
+    return np.require(a, dtype=dtype, requirements=["C", "W"])
+
+
 def patch_minimum(frames: np.ndarray, x0: int, y0: int, h: int, w: int) -> np.ndarray:
     """(h, w) float32 per-pixel minimum over the block ``frames`` (n, H, W) of the patch
     whose top-left pixel is (x0, y0) px (0 outside the image)."""
-    fr = np.ascontiguousarray(frames)
+    fr = np.require(frames, requirements=["C", "W"])
     out = np.zeros((h, w), fr.dtype)
     _patch_minimum(fr, int(x0), int(y0), out)
     return out.astype(np.float32)
@@ -122,9 +127,11 @@ def project_patches(frames: np.ndarray, x0: int, y0: int, background: np.ndarray
     h, w = background.shape
     ped, mad, sig = np.empty(n), np.empty(n), np.empty(n)
     prof = np.empty((n, w))
-    _project(np.ascontiguousarray(frames), int(x0), int(y0), np.asarray(background, np.float32),
-             np.asarray(ring, np.int64), np.asarray(snr_weights, np.float64),
-             np.asarray(row_weights, np.float64), ped, mad, sig, prof)
+    # writable, contiguous arguments: a read-only array is another type to Numba (and would
+    # compile a second time at the first live call)
+    _project(np.require(frames, requirements=["C", "W"]), int(x0), int(y0), _w(background, np.float32),
+             _w(ring, np.int64), _w(snr_weights, np.float64), _w(row_weights, np.float64),
+             ped, mad, sig, prof)
     return ped, mad, sig, prof
 
 
@@ -252,12 +259,13 @@ def correlate_1d_compiled(left: np.ndarray, right: np.ndarray, beta: float = 0.5
     the peak search and the Newton steps in the same loop, per profile pair (n, w)."""
     from iscd.ranging.projected import _TINY, Peak1D, _spectral
 
-    lf = np.ascontiguousarray(left, dtype=np.float64)
-    rt = np.ascontiguousarray(right, dtype=np.float64)
+    lf = _w(left, np.float64)
+    rt = _w(right, np.float64)
     n, w = lf.shape
     omega, mult, band, w2, w2m = _spectral(int(w), band_cutoff)
     cos_t, sin_t = _tables(int(w), omega.size)
     dx, height, sigma = np.empty(n), np.empty(n), np.empty(n)
+    omega, mult, band, w2, w2m = (_w(a, np.float64) for a in (omega, mult, band, w2, w2m))
     _correlate(lf, rt, cos_t, sin_t, omega, mult, band, w2, w2m, float(beta),
                -1.0 if max_shift_px is None else float(max_shift_px), int(iterations), _TINY,
                dx, height, sigma)

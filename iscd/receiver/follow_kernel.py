@@ -321,7 +321,8 @@ def follow_and_measure_compiled(frames: list[np.ndarray], starts: list[np.ndarra
 
     if len(frames) != 2:
         raise ValueError(f"follow_and_measure_compiled takes two cameras, got {len(frames)}")
-    L, R = (np.ascontiguousarray(f) for f in frames)
+    # writable C-contiguous arguments (a read-only array is another type to Numba)
+    L, R = (np.require(f, requirements=["C", "W"]) for f in frames)
     if L.dtype != R.dtype:
         R = R.astype(L.dtype)
     F = L.shape[0]
@@ -338,8 +339,10 @@ def follow_and_measure_compiled(frames: list[np.ndarray], starts: list[np.ndarra
     c = np.empty_like(st)
     lum = np.empty((2 * F, N))
     light = np.empty(2)
+    sel = np.require(sel, requirements=["C", "W"])
+    ref = np.require(ref, requirements=["C", "W"])
     _follow_kernel(L, R, st, half, float(size), iterations, sel, ref, lit_share, max_px, scale,
-                   accelerate, np.asarray(sigmas, dtype=np.float64).reshape(2), c, lum, light)
+                   accelerate, np.array(sigmas, dtype=np.float64).reshape(2), c, lum, light)
     if info is not None:
         info["light"] = light
     return [c[:F], c[F:]], [lum[:F], lum[F:]]

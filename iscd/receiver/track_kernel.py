@@ -68,7 +68,7 @@ class LightAccumulator:
                 raise ValueError(f"window {self.window} outside frames of {fr.shape[2]}x{fr.shape[1]}")
             if self._min is None or self._min.dtype != fr.dtype:
                 self._min = np.full(self._sum.shape, np.iinfo(fr.dtype).max, fr.dtype)
-            _fold(fr if fr.flags.c_contiguous else np.ascontiguousarray(fr), x0, y0, self._sum, self._min)
+            _fold(np.require(fr, requirements=["C", "W"]), x0, y0, self._sum, self._min)
         self.frames += fr.shape[0]
 
     def light_map(self) -> np.ndarray:
@@ -193,7 +193,7 @@ def track_on_light_compiled(light: np.ndarray, prev: GridFit, x0: int, y0: int) 
     tolerance) for an array; one LED goes to the reference."""
     if prev.rows * prev.cols == 1:
         return track_on_light(light, prev, x0, y0)
-    lt = np.ascontiguousarray(light, dtype=np.float32)
+    lt = np.require(light, dtype=np.float32, requirements=["C", "W"])
     smooth = np.empty(lt.shape)
     if not _smooth_light(lt, 0.7, smooth):
         raise ValueError("no modulated light in the tracking window")
