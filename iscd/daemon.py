@@ -66,10 +66,16 @@ class Daemon:
                  calibration: str | None = None, install_signals: bool = True) -> None:
         self.cfg = cfg
         self.settings: DaemonSettings = build_section(DaemonSettings, dict(cfg.extra.get("daemon", {})), "daemon")
+        from iscd.overload import OverloadSettings
+
         st = self.settings
-        if not st.shed_led_fill <= st.shed_ranging_fill <= st.shed_images_fill:
+        try:
+            self.overload_settings = OverloadSettings(
+                led_fill=st.shed_led_fill, ranging_fill=st.shed_ranging_fill, images_fill=st.shed_images_fill,
+                ranging_every=st.shed_ranging_every)
+        except ValueError:
             raise ConfigError(f"daemon.shed_led_fill <= daemon.shed_ranging_fill <= daemon.shed_images_fill "
-                              f"expected, got {st.shed_led_fill}, {st.shed_ranging_fill}, {st.shed_images_fill}")
+                              f"expected, got {st.shed_led_fill}, {st.shed_ranging_fill}, {st.shed_images_fill}") from None
         self.out_path = out or self.settings.out or None
         self.duration_s = duration_s
         self.rerun_opts = rerun
@@ -124,7 +130,7 @@ class Daemon:
         from drivers.registry import make_stereo, settings_from_config
         from iscd.acquisition import AcquisitionProcess, AcquisitionStats
         from iscd.notify import Notifier
-        from iscd.overload import OverloadPolicy, OverloadSettings
+        from iscd.overload import OverloadPolicy
         from iscd.pipeline import StreamDecoder
         from iscd.ringbuffer import StereoRing, capacity_for
         from iscd.stats import CpuMeter, LatencyWindow
@@ -146,9 +152,7 @@ class Daemon:
         if self.install_signals:
             for sig in (signal.SIGTERM, signal.SIGINT):
                 old_handlers[sig] = signal.signal(sig, self.request_stop)
-        overload = OverloadPolicy(OverloadSettings(
-            led_fill=st.shed_led_fill, ranging_fill=st.shed_ranging_fill, images_fill=st.shed_images_fill,
-            ranging_every=st.shed_ranging_every))
+        overload = OverloadPolicy(self.overload_settings)
         lat = LatencyWindow()
         cpu = CpuMeter()
         B = st.block_max
@@ -161,7 +165,7 @@ class Daemon:
         counters = {"pairs_decoded": 0, "pair_gaps": 0, "decode_errors": 0, "acquisition_restarts": 0, "output_errors": 0}
         # the compiled kernels are loaded from the cache (or compiled) before the cameras
         # start and before READY=1: the first frames are not spent compiling
-        from iscd.jit import CACHE_ENABLED, cache_dir, warm_up
+        from iscd.jit import CACHE_DIR, warm_up
 
         notifier.status("loading compiled kernels")
         log.info("loading the compiled kernels (the first start after an install compiles them: "
@@ -170,7 +174,7 @@ class Daemon:
         if not decoder.wait_ready(timeout_s=300.0):
             log.warning("the demodulation worker is not ready yet; starting anyway")
         log.info("compiled kernels ready in %.2f s (%s)", t_warm,
-                 f"cache {cache_dir()}" if CACHE_ENABLED else "no cache: they compile at every start")
+                 f"cache {CACHE_DIR}" if CACHE_DIR is not None else "no cache: they compile at every start")
         t_start = time.monotonic()
         next_stats = t_start + st.stats_interval_s
         deadline = t_start + self.duration_s if self.duration_s else None

@@ -67,6 +67,8 @@ else:
 import numba  # noqa: E402  (after NUMBA_CACHE_DIR is set)
 
 CACHE_ENABLED = _CACHE is not None
+CACHE_DIR: Path | None = _CACHE
+"""The cache directory in use (None: no cache)."""
 
 _REGISTRY: list[tuple[Callable[..., Any], Callable[[], tuple]]] = []
 

@@ -213,3 +213,15 @@ def test_the_live_path_compiles_nothing_after_the_warm_up(rendered_default) -> N
     assert dec.track is not None
     after = jit.signatures()
     assert {k: v for k, v in after.items() if v != before.get(k)} == {}
+
+
+def test_frames_smaller_than_a_patch_take_the_reference_path() -> None:
+    """A camera ROI smaller than the following patch: the compiled entry point gives the
+    reference's result (edge pixels repeated) instead of failing."""
+    rng = np.random.default_rng(9)
+    fr = rng.integers(0, 200, (6, 9, 9)).astype(np.uint8)
+    starts = [np.array([[4.0, 4.0]]), np.array([[4.2, 3.9]])]
+    (a, _), (la, _) = follow_and_measure([fr, fr], starts, 5, [1.5, 1.5])
+    (b, _), (lb, _) = follow_and_measure_compiled([fr, fr], starts, 5, [1.5, 1.5])
+    np.testing.assert_array_equal(a, b)
+    np.testing.assert_array_equal(la, lb)

@@ -153,6 +153,14 @@ for _dt in (np.uint8, np.uint16):
 
 # ---------------------------------------------------------------- the 1-D correlation peak
 @njit(fastmath=_FAST)
+def _rotated(xr: float, xi: float, m: float, om: float, pos: float) -> tuple[float, float]:
+    """m * X exp(i om pos) as (real, imaginary): one term of the correlation at ``pos``."""
+    c = np.cos(om * pos)
+    s = np.sin(om * pos)
+    return m * (xr * c - xi * s), m * (xr * s + xi * c)
+
+
+@njit(fastmath=_FAST)
 def _correlate(left: np.ndarray, right: np.ndarray, cos_t: np.ndarray, sin_t: np.ndarray,
                omega: np.ndarray, mult: np.ndarray, band: np.ndarray, w2: np.ndarray, w2m: np.ndarray,
                beta: float, max_shift: float, iterations: int, tiny: float,
@@ -211,10 +219,7 @@ def _correlate(left: np.ndarray, right: np.ndarray, cos_t: np.ndarray, sin_t: np
             a = 0.0
             b = 0.0
             for k in range(nk):
-                c = np.cos(omega[k] * pos)
-                s = np.sin(omega[k] * pos)
-                re = mult[k] * (xr[k] * c - xi[k] * s)
-                im = mult[k] * (xr[k] * s + xi[k] * c)
+                re, im = _rotated(xr[k], xi[k], mult[k], omega[k], pos)
                 a += im * omega[k]
                 b += re * w2[k]
             step = -a / b if b > tiny else 0.0
@@ -224,10 +229,7 @@ def _correlate(left: np.ndarray, right: np.ndarray, cos_t: np.ndarray, sin_t: np
         hess = 0.0
         var = 0.0
         for k in range(nk):
-            c = np.cos(omega[k] * pos)
-            s = np.sin(omega[k] * pos)
-            re = mult[k] * (xr[k] * c - xi[k] * s)
-            im = mult[k] * (xr[k] * s + xi[k] * c)
+            re, im = _rotated(xr[k], xi[k], mult[k], omega[k], pos)
             tot += mult[k] * np.sqrt(xr[k] * xr[k] + xi[k] * xi[k])
             hr += re
             hess += re * w2[k]

@@ -328,8 +328,10 @@ def follow_and_measure_compiled(frames: list[np.ndarray], starts: list[np.ndarra
     F = L.shape[0]
     half = max(patch_half(size, max_px), int(np.ceil(3.5 * max(sigmas))) + 1)
     K = 2 * half + 1
-    if min(L.shape[1:] + R.shape[1:]) < K:
-        raise ValueError(f"frames smaller than a {K} px patch")
+    if min(L.shape[1:] + R.shape[1:]) < K:  # an image smaller than a patch: the reference
+        from iscd.receiver.luminance import follow_and_measure  # repeats its edge pixels
+
+        return follow_and_measure([L, R], starts, size, sigmas, use, iterations, lit_light, info)
     st = np.empty((2 * F,) + np.shape(starts[0])[-2:], np.float64)
     st[:F] = np.asarray(starts[0], dtype=np.float64)
     st[F:] = np.asarray(starts[1], dtype=np.float64)
