@@ -57,19 +57,24 @@ def test_a_late_reader_loses_the_newest_frames_as_a_full_camera_buffer_does() ->
     first = r.read_pair_into(L, R, timeout_s=1.0).left_id
     time.sleep(0.05)  # >= 50 triggers pass; the queue keeps the oldest buffer_frames
     ids = [r.read_pair_into(L, R, timeout_s=1.0).left_id for _ in range(r.buffer_frames)]
-    assert ids == list(range(first + 1, first + 1 + r.buffer_frames))
+    assert ids[0] > first and all(b > a for a, b in zip(ids, ids[1:]))  # oldest first
     assert r.stats(0).dropped_buffer > 0 and r.stats(0).dropped_buffer == r.stats(1).dropped_buffer
     nxt = r.read_pair_into(L, R, timeout_s=1.0).left_id
     assert nxt > ids[-1] + 1  # the dropped ones never come
+    # every trigger that never came was counted as a drop (on a busy machine some may have
+    # been dropped before the sleep already, or after it: counted all the same)
+    seen = [first, *ids, nxt]
+    gaps = sum(b - a - 1 for a, b in zip(seen, seen[1:]))
+    assert 0 < gaps <= r.stats(0).dropped_buffer
 
 
 def test_acquisition_fills_the_ring_with_whole_pairs_from_the_rig() -> None:
     cfg = override(default_config(), rig={"pace": True})
     rig = MockRig(cfg)
-    ring = StereoRing.create(height=512, width=512, capacity=256)
+    ring = StereoRing.create(height=512, width=512, capacity=1024)
     try:
         acq = Acquisition(rig.left, rig.right, ring, options=AcquisitionOptions(read_timeout_s=0.05))
-        st = acq.run(duration_s=0.3)
+        st = acq.run(duration_s=0.6)  # ~600 triggers: >= 100 pairs even on a busy machine
         assert st.pairs_written >= 100 and st.frames_left == st.frames_right == st.pairs_written
         got = []
         while (slot := ring.read()) is not None:
