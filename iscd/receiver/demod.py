@@ -25,6 +25,7 @@ training only (3.11 / 4.2) and the clean-frame Euclidean decision (3.12 / 4.3).
 from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
+from typing import Callable
 
 import numpy as np
 
@@ -346,8 +347,13 @@ def _track(segs: list[tuple[int, int]], models: list[ChannelModel]) -> ChannelTr
     header and training)."""
     return ChannelTrack((0,) + tuple(a for a, _ in segs[1:]), tuple(models))
 
+ChannelOf = Callable[[SymbolClock, int, int], ChannelModel]
+"""``channel(clock, a, b)``: a channel model for packet symbols [a, b) (an oracle's)."""
+
+
 def demodulate_packet(L: np.ndarray, u_guess: float, air: AirInterface, e: float,
                       p_nominal: float, p_prior: float, p_sigma: float, cfg: ReceiverConfig,
+                      *, clock: SymbolClock | None = None, channel: ChannelOf | None = None,
                       ) -> PacketResult | Rejection:
     """Demodulate the packet whose header starts near frame-unit time ``u_guess``.
 
@@ -361,11 +367,16 @@ def demodulate_packet(L: np.ndarray, u_guess: float, air: AirInterface, e: float
     decides which is delivered -- a valid CRC-32 from either is still only a 2^-31 chance
     for a wrong packet. When both fail, the one with the larger mean decision margin is
     reported.
+
+    Diagnosis hooks (:mod:`iscd.eval.oracle`; the receiver never passes them): ``clock``
+    fixes the symbol clock (no fine phase, no clock fits; ``header_r2`` is NaN);
+    ``channel`` replaces every channel estimate of the iscd rule (verification, tracking
+    and final pass) by ``channel(clock, a, b)`` for the stretch [a, b) of packet symbols.
     """
-    res = _demodulate(L, u_guess, air, e, p_nominal, p_prior, p_sigma, cfg)
+    res = _demodulate(L, u_guess, air, e, p_nominal, p_prior, p_sigma, cfg, clock, channel)
     if isinstance(res, PacketResult) and not res.crc_ok and res.channel == "tracked":
         alt = _demodulate(L, u_guess, air, e, p_nominal, p_prior, p_sigma,
-                          replace(cfg, channel_window_symbols=0))
+                          replace(cfg, channel_window_symbols=0), clock, channel)
         if isinstance(alt, PacketResult) and (alt.crc_ok or _mean_margin(alt) > _mean_margin(res)):
             return alt
     return res
@@ -378,6 +389,7 @@ def _mean_margin(res: PacketResult) -> float:
 
 def _demodulate(L: np.ndarray, u_guess: float, air: AirInterface, e: float,
                 p_nominal: float, p_prior: float, p_sigma: float, cfg: ReceiverConfig,
+                fixed_clock: SymbolClock | None = None, channel: ChannelOf | None = None,
                 ) -> PacketResult | Rejection:
     """One demodulation attempt (:func:`demodulate_packet`), channel as ``cfg`` says."""
     C, n, N = L.shape
@@ -389,12 +401,15 @@ def _demodulate(L: np.ndarray, u_guess: float, air: AirInterface, e: float,
     kind = cfg.noise_model
     ts = cfg.timing_sigma_frames
 
-    u0, r2 = fine_header(L, u_guess, p_prior, e)
-    clock = SymbolClock(u0, p_prior)
+    if fixed_clock is None:
+        u0, r2 = fine_header(L, u_guess, p_prior, e)
+        clock = SymbolClock(u0, p_prior)
+    else:
+        clock, u0, r2 = fixed_clock, fixed_clock.u0, float("nan")
     if clean_frame(np.array([P - 1]), clock, e)[0] + 1 > n:  # the last symbol's clean frame
         return Rejection(u0, "incomplete")
     y, lv = clean_samples(L, clock, e, known, 0)
-    model = estimate_iscd(y, lv, M, st, kind, cfg.t_nu)
+    model = estimate_iscd(y, lv, M, st, kind, cfg.t_nu) if channel is None else channel(clock, 0, n_known)
     rho_t = float("nan")
     if air.training_symbols >= 4:
         yt, lt = clean_samples(L, clock, e, known[HEADER_SYMBOLS:], HEADER_SYMBOLS)
@@ -410,9 +425,10 @@ def _demodulate(L: np.ndarray, u_guess: float, air: AirInterface, e: float,
         return Rejection(u0, f"header contrast {contrast:.1f} below {cfg.min_contrast}")
 
     # clock on the known symbols, then the channel again with the refined clock
-    clock, _ = refine_clock(L, clock, e, known, 0, model, p_prior, p_sigma, timing_sigma=ts)
+    if fixed_clock is None:
+        clock, _ = refine_clock(L, clock, e, known, 0, model, p_prior, p_sigma, timing_sigma=ts)
     y, lv = clean_samples(L, clock, e, known, 0)
-    model = estimate_iscd(y, lv, M, st, kind, cfg.t_nu)
+    model = estimate_iscd(y, lv, M, st, kind, cfg.t_nu) if channel is None else channel(clock, 0, n_known)
 
     # tracking pass: data decided in stretches; with a tracked channel each stretch first
     # with the channel of the latest window, then again with the window that includes its
@@ -431,7 +447,9 @@ def _demodulate(L: np.ndarray, u_guess: float, air: AirInterface, e: float,
     next_clock = n_known + chunk
     for k_a in range(n_known, P, step):
         k_b = min(P, k_a + step)
-        if tracked:
+        if tracked and channel is not None:
+            model = channel(clock, k_a, k_b)
+        elif tracked:
             model = _fit(L, clock, e, lev, max(0, k_a - W // 2), k_a, M, st, cfg)
             model = _match_gain(model, L, clock, e, lev, k_a, k_b, tops)
         d = decide_span(L, clock, e, k_a, k_b, model, lev, 0, False, ts)
@@ -439,7 +457,7 @@ def _demodulate(L: np.ndarray, u_guess: float, air: AirInterface, e: float,
         if tracked:
             starts.append(k_a)
             models.append(model)
-        if k_b >= next_clock or k_b == P:
+        if (k_b >= next_clock or k_b == P) and fixed_clock is None:
             next_clock += chunk
             clock, _ = refine_clock(L, clock, e, lev[:k_b], 0, ChannelTrack(tuple(starts), tuple(models)),
                                     p_prior, p_sigma, iters=2, timing_sigma=ts)
@@ -456,11 +474,13 @@ def _demodulate(L: np.ndarray, u_guess: float, air: AirInterface, e: float,
     else:
         segs = _segments(n_known, P, _segment_symbols(W) if tracked else P)
         models = [model]
-        if tracked:
+        if channel is not None:
+            models = [channel(clock, a, b) for a, b in segs]
+        elif tracked:
             models = [_fit_segment(L, clock, e, lev, a, b, W, M, st, cfg, tops) for a, b in segs]
         elif cfg.decision_directed:
             models = [_fit(L, clock, e, lev, 0, P, M, st, cfg)]
-        if cfg.decision_directed:
+        if cfg.decision_directed and fixed_clock is None:
             clock, _ = refine_clock(L, clock, e, lev, 0, _track(segs, models), p_prior, p_sigma,
                                     timing_sigma=ts)
         # after the packet: idle (level 1) if the packets have gaps, else the next header
@@ -469,7 +489,7 @@ def _demodulate(L: np.ndarray, u_guess: float, air: AirInterface, e: float,
         pre: list[CleanCosts | None] = [None] * len(segs)
         before = lev.copy()
         for it in range(cfg.ic_iterations if cfg.straddle else 1):
-            if it and tracked:  # the channel again where the decisions changed
+            if it and tracked and channel is None:  # the channel again where the decisions changed
                 changed = np.flatnonzero((lev != before).any(axis=1))
                 before = lev.copy()
                 for j, (a, b) in enumerate(segs):
