@@ -1,0 +1,513 @@
+"""Oracle decoding of a simulated recording: where the receiver's symbol errors come from.
+
+The receiver (:class:`iscd.pipeline.StreamDecoder`) runs on the rendered frames as in
+``iscd eval``; then every transmitted packet is decoded again with parts of the receiver
+replaced by the truth (:class:`iscd.sim.truth.Truth`), one stage after the other, so that
+the symbol error rate (SER) splits into what each stage costs:
+
+===========================  ===================================================================
+stage                        what changes against the row above
+===========================  ===================================================================
+``receiver``                 nothing: the packets the decoder emits
+``+true positions``          luminance measured at the true LED centres (truth ``u``/``v`` per
+                             frame) with the receiver's own Gaussian window (its sigma, block by
+                             block), on the frames the receiver decoded; then the receiver's
+                             :class:`~iscd.receiver.packets.PacketAssembler` as is
+                             -> what following the LEDs costs
+``+true timing``             and the true symbol clock of the packet (truth ``symbol_t_s``; no
+                             fine phase, no clock fit): :func:`demodulate_packet` ``clock=``
+                             -> what the symbol timing costs
+``+true channel``            and the channel from the truth: per stretch of 8 symbols the
+                             receiver's channel estimate (:func:`estimate_iscd`) from the clean
+                             frames of a short window centred on it labelled with the *true*
+                             levels (it follows the light as the spot grows):
+                             :func:`demodulate_packet` ``channel=`` -> what the channel
+                             estimate costs; what is left is decision / noise floor
+===========================  ===================================================================
+
+Reference rows (not in the split): ``+true channel (one per packet)`` (true levels, one
+channel for the whole packet, as the dissertation estimates it: shows how stale a channel
+gets as the car closes in); ``genie luminance`` (a background-subtracted sum of the pixels
+within the spot's radius ``R = f_px D / (2 Z)`` plus the PSF, at the true centres, the
+background per pixel from the nearest frames in which every LED is dark; true timing, the
+receiver's channel) and ``genie luminance +true channel``.
+
+Per packet and stage the errors are also counted in ``bins`` equal stretches along the
+data symbols (:func:`profile_bins`, in the air interface's data order: symbol time major),
+so errors that grow along a packet show.
+
+The split is over the packets every chain stage delivered a demodulation for (the
+"common" packets): ``SER(receiver) = following + timing + channel + floor`` exactly (each
+term a difference of SERs on the same symbols; a negative term means the truth made that
+stage worse, e.g. a true clock that the channel estimate was not fitted to).
+
+Units: positions px, times s (the symbol clock in frame units as in
+:mod:`iscd.receiver.timing`), luminance DN (genie: DN summed over the window's pixels).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field, replace
+from typing import Any, Callable, Sequence
+
+import numpy as np
+
+from iscd.airinterface import AirInterface
+from iscd.config import Config
+from iscd.eval.metrics import match_packets
+from iscd.eval.sweeps import (CommsResult, ReceiverMode, _blocks, _decoder_cfg, _num, _score,
+                              frames_for_packets)
+from iscd.pipeline import StreamDecoder
+from iscd.receiver.channel import ChannelModel, IscdChannelSettings, estimate_iscd
+from iscd.receiver.demod import PacketResult, clean_samples, demodulate_packet
+from iscd.receiver.luminance import gather_patches, gauss_mean
+from iscd.receiver.packets import PacketAssembler
+from iscd.receiver.settings import ReceiverConfig, receiver_config
+from iscd.receiver.timing import SymbolClock
+from iscd.sim.optics import PIXEL_VAR
+from iscd.sim.scene import Scene
+from iscd.sim.truth import Truth
+
+CHAIN = ("receiver", "+true positions", "+true timing", "+true channel")
+"""The stages of the split, each with one more part of the receiver replaced by the truth."""
+REFERENCE = ("+true channel (one per packet)", "genie luminance", "genie luminance +true channel")
+"""Reference decoders beside the chain (not in the split)."""
+STAGES = CHAIN + REFERENCE
+SPLIT = (("following", "receiver", "+true positions"), ("timing", "+true positions", "+true timing"),
+         ("channel", "+true timing", "+true channel"))
+"""(cost, stage without, stage with) of each replaced part."""
+FLOOR = "decision/noise"
+GENIE_WINDOW_SYMBOLS = 32
+"""Symbols of the true-level window of the ``+true channel`` estimate (8-symbol stretches)."""
+GENIE_STRETCH_WINDOW = 24
+"""``channel_window_symbols`` given to the demodulator with the true channel: its stretches
+are then a third of it, 8 symbols."""
+DARK_NEIGHBOURS = 4
+"""Dark frames (nearest in time) whose per-pixel median is the genie's background."""
+
+
+# ----------------------------------------------------------------------------- pure parts
+
+def profile_bins(F: int, N: int, bins: int) -> np.ndarray:
+    """Bin (0 .. bins - 1) of every data symbol of a packet, (F, N) int64: data symbol
+    ``j = t N + i`` (symbol time t, LED i; SPEC section 3) goes to bin ``j bins // (F N)``,
+    so every data symbol is in exactly one bin and the bins hold F N / bins symbols each
+    (+-1)."""
+    if F < 1 or N < 1 or bins < 1:
+        raise ValueError(f"profile_bins: F, N and bins must be >= 1, got {F}, {N}, {bins}")
+    j = np.arange(F * N, dtype=np.int64)
+    return (j * bins // (F * N)).reshape(F, N)
+
+
+def error_profile(sent: np.ndarray, got: np.ndarray, bins: int) -> tuple[np.ndarray, np.ndarray]:
+    """Symbol errors and symbols per bin along a packet's data, two (bins,) int64 arrays.
+
+    sent, got: (F, N) levels 1..M of the data symbols (:func:`profile_bins` says which
+    bin each symbol is in)."""
+    s, g = np.asarray(sent), np.asarray(got)
+    if s.shape != g.shape or s.ndim != 2:
+        raise ValueError(f"sent {s.shape} and got {g.shape}: expected the same (F, N) shape")
+    b = profile_bins(s.shape[0], s.shape[1], bins).ravel()
+    err = np.bincount(b, weights=(s != g).ravel(), minlength=bins).astype(np.int64)
+    return err, np.bincount(b, minlength=bins).astype(np.int64)
+
+
+def true_clock(symbol_t_s: np.ndarray, fps: float, frame0: int = 0) -> SymbolClock:
+    """The symbol clock (frame units, :mod:`iscd.receiver.timing`) of a packet from the
+    true start times (s, camera clock) of its symbols 0, 1, ...: the least-squares line
+    ``u0 + k p`` through ``t_k fps - frame0`` (exact for a constant clock drift; frame n
+    exposes from ``n / fps``). ``frame0``: the buffer's first frame."""
+    t = np.asarray(symbol_t_s, dtype=np.float64).reshape(-1)
+    if t.size < 2:
+        raise ValueError("true_clock: need the start times of at least two symbols")
+    k = np.arange(t.size, dtype=np.float64)
+    u = t * fps - frame0
+    p, u0 = np.polyfit(k, u, 1)
+    return SymbolClock(float(u0), float(p))
+
+
+def true_centres(truth: Truth, side: int) -> np.ndarray:
+    """(F, N, 2) true LED centres (x, y) px in every frame of ``truth``; side 0 = left."""
+    u, v = (truth.u_left, truth.v_left) if side == 0 else (truth.u_right, truth.v_right)
+    return np.stack([u, v], axis=-1)
+
+
+def spot_radius_px(cfg: Config, z_m: np.ndarray, side: int) -> np.ndarray:
+    """Genie window radius per frame, px: the LED disc ``R = f_px D / (2 Z)`` plus twice
+    the camera's blur (PSF, defocus of the right camera and the pixel), at most half the
+    LED pitch in the image (an array's neighbours), at least 1 px."""
+    f_px = cfg.camera.focal_px
+    z = np.asarray(z_m, dtype=np.float64)
+    op = cfg.optics
+    blur = math.sqrt(op.psf_sigma_px ** 2 + (op.right_defocus_px ** 2 if side == 1 else 0.0) + PIXEL_VAR)
+    r = f_px * cfg.transmitter.led_diameter_m / (2.0 * z) + 2.0 * blur
+    if cfg.transmitter.n_leds > 1:
+        r = np.minimum(r, 0.5 * f_px * cfg.transmitter.pitch_m / z)
+    return np.maximum(r, 1.0)
+
+
+def genie_sum(frames: np.ndarray, centres: np.ndarray, radius_px: np.ndarray, background: np.ndarray
+              ) -> np.ndarray:
+    """Background-subtracted sum of the pixels whose centres lie within ``radius_px`` of
+    each LED centre: (F, N) float64, DN summed over the window.
+
+    frames: (F, H, W) images; centres: (F, N, 2) px; radius_px: (F,) px; background:
+    (F, H, W) per-pixel background of each frame, DN (same pixel grid)."""
+    r = np.asarray(radius_px, dtype=np.float64).reshape(-1)
+    half = int(np.ceil(r.max())) + 1
+    p = gather_patches(frames, centres, half)
+    q = gather_patches(background, centres, half)
+    c = np.asarray(centres, dtype=np.float32)
+    dx = p.xs - c[..., 0:1]  # (F, N, K)
+    dy = p.ys - c[..., 1:2]
+    inside = (dy[..., :, None] ** 2 + dx[..., None, :] ** 2) <= (r.astype(np.float32)[:, None, None, None] ** 2)
+    return ((p.pix - q.pix) * inside).sum(axis=(-1, -2), dtype=np.float64)
+
+
+def nearest_dark(dark: np.ndarray, frames: np.ndarray, k: int = DARK_NEIGHBOURS) -> np.ndarray:
+    """(F, k') indices into ``dark`` (sorted frame numbers) of the k frames nearest in
+    time to each of ``frames`` (k' = min(k, dark.size))."""
+    d = np.asarray(dark, dtype=np.float64)
+    if d.size == 0:
+        raise ValueError("nearest_dark: no dark frames")
+    k = min(k, d.size)
+    return np.argsort(np.abs(np.asarray(frames, dtype=np.float64)[:, None] - d[None, :]), axis=1,
+                      kind="stable")[:, :k]
+
+
+def genie_channel(L: np.ndarray, e: float, levels: np.ndarray, M: int, cfg: ReceiverConfig,
+                  window: int | None = GENIE_WINDOW_SYMBOLS) -> Callable[[SymbolClock, int, int], ChannelModel]:
+    """A channel from the truth for :func:`demodulate_packet` ``channel=``: for packet
+    symbols [a, b), the receiver's estimate (:func:`estimate_iscd`, its settings) from the
+    clean frames of the ``window`` symbols centred on [a, b) labelled with the true
+    levels (``None``: the whole packet, one channel).
+
+    L: (C, n, N) buffer luminance; levels: (P, N) true 0-based levels of the packet's
+    symbols (header, training, data)."""
+    st = IscdChannelSettings(var_floor_dn=cfg.var_floor_dn)
+    lev = np.asarray(levels, dtype=np.int64)
+    P = lev.shape[0]
+
+    def channel(clock: SymbolClock, a: int, b: int) -> ChannelModel:
+        if window is None or window >= P:
+            lo, hi = 0, P
+        else:
+            W = max(int(window), b - a)
+            lo = int(np.clip(round((a + b - W) / 2), 0, P - W))
+            hi = lo + W
+        y, lv = clean_samples(L, clock, e, lev[lo:hi], lo)
+        return estimate_iscd(y, lv, M, st, cfg.noise_model, cfg.t_nu)
+    return channel
+
+
+# ----------------------------------------------------------------------------- results
+
+@dataclass
+class StageScore:
+    """One stage's decoding of one packet: ``found`` (the stage delivered a demodulation),
+    ``crc_ok``, symbol ``errors`` of ``symbols`` data symbols, and per bin along the data
+    ``profile_errors`` / ``profile_symbols`` (bins,)."""
+
+    found: bool
+    crc_ok: bool = False
+    errors: int = 0
+    symbols: int = 0
+    profile_errors: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    profile_symbols: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+
+    def as_dict(self) -> dict[str, Any]:
+        return {"found": self.found, "crc_ok": self.crc_ok, "errors": self.errors, "symbols": self.symbols,
+                "profile_errors": self.profile_errors.tolist()}
+
+
+@dataclass
+class PacketOracle:
+    """Every stage's decoding of transmitted packet ``index`` (``z_start_m`` /
+    ``z_end_m``: the distance at its first and last frame, m)."""
+
+    index: int
+    z_start_m: float
+    z_end_m: float
+    stages: dict[str, StageScore] = field(default_factory=dict)
+
+    def as_dict(self) -> dict[str, Any]:
+        return {"index": self.index, "z_start_m": self.z_start_m, "z_end_m": self.z_end_m,
+                "stages": {k: v.as_dict() for k, v in self.stages.items()}}
+
+
+@dataclass
+class OracleResult:
+    """The oracle decodings of one simulated recording (module docstring).
+
+    ``receiver`` is the receiver scored as ``iscd eval`` scores it (packets found,
+    delivered, SER); ``packets`` the per-packet stage scores of the whole transmitted
+    packets; ``bins`` the profile bins; ``notes`` what was not possible."""
+
+    receiver: CommsResult
+    packets: list[PacketOracle]
+    bins: int
+    stages: tuple[str, ...] = STAGES
+    notes: list[str] = field(default_factory=list)
+
+    def common(self) -> list[PacketOracle]:
+        """The packets that every stage of the chain demodulated (the split's packets)."""
+        return [p for p in self.packets if all(p.stages.get(s, StageScore(False)).found for s in CHAIN)]
+
+    def _sel(self, stage: str, packets: Sequence[PacketOracle] | None) -> list[StageScore]:
+        pk = self.common() if packets is None else packets
+        return [p.stages[stage] for p in pk if stage in p.stages and p.stages[stage].found]
+
+    def ser(self, stage: str, packets: Sequence[PacketOracle] | None = None) -> float:
+        """SER of ``stage`` over ``packets`` (default :meth:`common`) it demodulated; NaN
+        without any."""
+        sc = self._sel(stage, packets)
+        n = sum(s.symbols for s in sc)
+        return sum(s.errors for s in sc) / n if n else float("nan")
+
+    def counts(self, stage: str, packets: Sequence[PacketOracle] | None = None) -> tuple[int, int]:
+        """(errors, symbols) of ``stage`` over ``packets`` (default :meth:`common`)."""
+        sc = self._sel(stage, packets)
+        return sum(s.errors for s in sc), sum(s.symbols for s in sc)
+
+    def profile(self, stage: str, packets: Sequence[PacketOracle] | None = None) -> np.ndarray:
+        """(bins,) SER per stretch along the data (NaN where nothing was demodulated)."""
+        sc = self._sel(stage, packets)
+        if not sc:
+            return np.full(self.bins, np.nan)
+        e = np.sum([s.profile_errors for s in sc], axis=0)
+        n = np.sum([s.profile_symbols for s in sc], axis=0)
+        return np.where(n > 0, e / np.maximum(n, 1), np.nan)
+
+    def split(self) -> dict[str, float]:
+        """What each replaced part costs in SER on the common packets: ``following``,
+        ``timing``, ``channel`` (differences of consecutive chain stages) and the
+        ``decision/noise`` floor (the last stage's SER); they sum to ``receiver``."""
+        out = {"receiver": self.ser("receiver")}
+        for name, a, b in SPLIT:
+            out[name] = self.ser(a) - self.ser(b)
+        out[FLOOR] = self.ser(CHAIN[-1])
+        return out
+
+    def as_dict(self) -> dict[str, Any]:
+        common = self.common()
+        return {"receiver": self.receiver.as_dict(), "bins": self.bins, "notes": self.notes,
+                "common_packets": [p.index for p in common],
+                "ser": {s: _num(self.ser(s)) for s in self.stages},
+                "ser_found": {s: _num(self.ser(s, self.packets)) for s in self.stages},
+                "found": {s: sum(p.stages[s].found for p in self.packets if s in p.stages) for s in self.stages},
+                "crc_ok": {s: sum(p.stages[s].crc_ok for p in self.packets if s in p.stages) for s in self.stages},
+                "split": {k: _num(v) for k, v in self.split().items()},
+                "profile": {s: [_num(x) for x in self.profile(s)] for s in self.stages},
+                "packets": [p.as_dict() for p in self.packets]}
+
+
+# ----------------------------------------------------------------------------- the run
+
+class _RecordingDecoder(StreamDecoder):
+    """The pipeline's decoder, unchanged, that also hands each decoded block's frames,
+    luminance and Gaussian window (px, per camera, as :meth:`_luminance` computed it) to
+    ``hook(ids, left, right, lum_l, lum_r, sigmas)``."""
+
+    def __init__(self, cfg: Config, hook: Callable[..., None]) -> None:
+        self._hook = hook
+        self._last_growth: list[float] = [1.0, 1.0]
+        super().__init__(cfg)
+
+    def _growth(self, starts: list[np.ndarray]) -> list[float]:
+        g = super()._growth(starts)
+        self._last_growth = list(g)
+        return g
+
+    def _luminance(self, frame_ids: np.ndarray, left: np.ndarray, right: np.ndarray
+                   ) -> tuple[np.ndarray, np.ndarray]:
+        lum_l, lum_r = super()._luminance(frame_ids, left, right)
+        tr = self.track
+        assert tr is not None
+        # the window of StreamDecoder._luminance
+        sig = [float(np.clip(s * g, 0.6, max(s, self.MAX_SIGMA_PX))) for s, g in zip(tr.roi_sigma, self._last_growth)]
+        self._hook(np.asarray(frame_ids, dtype=np.int64), left, right, lum_l, lum_r, sig)
+        return lum_l, lum_r
+
+
+def _score_levels(sent: np.ndarray, got: np.ndarray, crc_ok: bool, bins: int) -> StageScore:
+    e, n = error_profile(sent, got, bins)
+    return StageScore(True, bool(crc_ok), int(e.sum()), int(n.sum()), e, n)
+
+
+def _assembler_scores(packets: list[Any], truth: Truth, air: AirInterface, tol_s: float,
+                      want: dict[int, int], bins: int) -> dict[int, StageScore]:
+    """Stage scores per transmitted packet index of decoded packets (``t_s``, ``levels``
+    (F, N) or flat, ``crc_ok``), matched to the truth's packets as the eval scores them;
+    ``want``: packet index -> row of the truth's packet arrays."""
+    F, N = air.data_symbols, air.n_leds
+    out: dict[int, StageScore] = {}
+    t = [float(getattr(p, "t_s", None) if not isinstance(p, dict) else p["t_s"]) for p in packets]
+    match = match_packets(t, truth.packet_t_s, tol_s)
+    for p, j in zip(packets, match):
+        if j < 0:
+            continue
+        idx = int(truth.packet_index[j])
+        if idx not in want or idx in out:
+            continue
+        start = int(truth.packet_start_symbol[j]) + air.data_offset
+        sent = truth.levels_of(start, start + F)
+        lev = p["levels"] if isinstance(p, dict) else p.levels
+        crc = p["crc_ok"] if isinstance(p, dict) else p.crc_ok
+        out[idx] = _score_levels(sent, np.asarray(lev, dtype=np.int64).reshape(F, N), crc, bins)
+    return out
+
+
+def run_oracle(cfg: Config, packets: int = 2, *, mode: ReceiverMode | None = None, block: int = 32,
+               bins: int = 8, genie: bool = True, genie_window: int = GENIE_WINDOW_SYMBOLS,
+               progress: Callable[[int], None] | None = None) -> OracleResult:
+    """Render ``packets`` whole packets of ``cfg``'s scene (as :func:`iscd.eval.sweeps.run_comms`),
+    decode them with the receiver (``mode``, default both cameras with the project's rule)
+    and again with the oracle stages (module docstring); ``bins`` stretches per packet in
+    the error profiles; ``genie``: also the genie-luminance reference rows (renders the
+    recording's all-dark frames once more for the background); ``genie_window``: symbols
+    of the true-level channel window. ``progress(n)`` after every block."""
+    if packets < 1:
+        raise ValueError(f"packets: expected >= 1, got {packets}")
+    mode = mode or ReceiverMode("both", "both")
+    dcfg = _decoder_cfg(cfg, mode)
+    rx = receiver_config(dcfg)
+    cams = rx.camera_indices
+    scene = Scene(cfg)
+    air = AirInterface.from_config(cfg.transmitter)
+    tx = cfg.transmitter
+    n_frames = frames_for_packets(scene, air, packets)
+    truth = scene.truth(np.arange(n_frames))
+    N, F, M = tx.n_leds, air.data_symbols, tx.levels
+    fps, e = cfg.camera.fps, cfg.camera.exposure_s * cfg.camera.fps
+    notes: list[str] = []
+
+    # luminance per camera and frame: the receiver's, at the true centres, the genie's
+    L_rx = np.full((2, n_frames, N), np.nan)
+    L_tp = np.full((2, n_frames, N), np.nan)
+    L_g = np.full((2, n_frames, N), np.nan)
+    centres = [true_centres(truth, 0), true_centres(truth, 1)]
+    decoded: list[np.ndarray] = []
+
+    def hook(ids: np.ndarray, left: np.ndarray, right: np.ndarray, lum_l: np.ndarray, lum_r: np.ndarray,
+             sig: list[float]) -> None:
+        rows = ids  # truth rows: frames 0 .. n_frames - 1
+        decoded.append(ids)
+        for c, (img, lum) in enumerate(((left, lum_l), (right, lum_r))):
+            L_rx[c, rows] = lum
+            L_tp[c, rows] = gauss_mean(img, centres[c][rows], sig[c], radius=int(np.ceil(3.5 * sig[c])) + 1)
+
+    # genie background: the frames in which every LED is dark, cropped around the array
+    dark = np.flatnonzero(truth.on_fraction.max(axis=1) <= 0.0) if genie else np.zeros(0, np.int64)
+    if genie and dark.size == 0:
+        notes.append("genie luminance: no all-dark frame to take the background from")
+        genie = False
+    radius = [spot_radius_px(cfg, truth.z_m, c) for c in (0, 1)]
+    H, W = scene.height, scene.width
+    boxes, dark_crops = [], [[], []]
+    if genie:
+        for c in (0, 1):
+            m = float(np.ceil(radius[c].max())) + 4
+            xy = centres[c].reshape(-1, 2)
+            x0, y0 = int(max(0, np.floor(xy[:, 0].min() - m))), int(max(0, np.floor(xy[:, 1].min() - m)))
+            x1, y1 = int(min(W, np.ceil(xy[:, 0].max() + m) + 1)), int(min(H, np.ceil(xy[:, 1].max() + m) + 1))
+            boxes.append((x0, y0, x1, y1))
+        dl = np.empty((H, W), np.uint8)
+        dr = np.empty_like(dl)
+        for k in dark:
+            scene.render_pair_into(int(k), dl, dr)
+            for c, img in enumerate((dl, dr)):
+                x0, y0, x1, y1 = boxes[c]
+                dark_crops[c].append(img[y0:y1, x0:x1].copy())
+    crops = [np.stack(dc) if dc else None for dc in dark_crops]
+
+    dec = _RecordingDecoder(dcfg, hook)
+    records: list[dict] = []
+    Lb = np.empty((block, H, W), np.uint8)
+    Rb = np.empty_like(Lb)
+    for ids in _blocks(n_frames, block):
+        n = ids.size
+        for i, k in enumerate(ids):
+            scene.render_pair_into(int(k), Lb[i], Rb[i])
+        if genie:
+            near = nearest_dark(dark, ids)  # (n, k)
+            for c, img in enumerate((Lb[:n], Rb[:n])):
+                x0, y0, x1, y1 = boxes[c]
+                sub = img[:, y0:y1, x0:x1]
+                bg = np.median(crops[c][near].astype(np.float32), axis=1)  # (n, h, w)
+                cc = centres[c][ids] - np.array([x0, y0], np.float64)
+                L_g[c, ids] = genie_sum(sub, cc, radius[c][ids], bg)
+        records += [r for r in dec.push(ids, ids / scene.fps, Lb[:n], Rb[:n]) if r["type"] == "packet"]
+        if progress is not None:
+            progress(n)
+    records += [r for r in dec.finish() if r["type"] == "packet"]
+    dec.close()
+
+    tol = 0.5 / tx.symbol_rate_hz
+    packet_s = air.period_symbols / tx.symbol_rate_hz
+    res = CommsResult(mode=mode, levels=M, n_leds=N, data_symbols=F, packet_s=packet_s,
+                      payload_bytes=air.payload_bytes, packets_sent=packets)
+    _score(res, records, truth, air, packets, tol)
+
+    want = {int(truth.packet_index[j]): j for j in range(truth.packet_index.size)
+            if int(truth.packet_index[j]) < packets}
+    scores: dict[str, dict[int, StageScore]] = {
+        "receiver": _assembler_scores(records, truth, air, tol, want, bins)}
+
+    # +true positions: the receiver's assembler on the true-position luminance of the same frames
+    asm = PacketAssembler(tx, fps=fps, exposure_s=cfg.camera.exposure_s, cfg=rx)
+    got: list[Any] = []
+    if decoded:
+        ids_all = np.concatenate(decoded)
+        _, first = np.unique(ids_all, return_index=True)  # a frame decoded twice counts once
+        ids_all = ids_all[np.sort(first)]
+        for s in range(0, ids_all.size, block):
+            i = ids_all[s:s + block]
+            got += asm.push(i, i / fps, L_tp[0, i], L_tp[1, i])
+        got += asm.flush()
+    scores["+true positions"] = _assembler_scores(got, truth, air, tol, want, bins)
+
+    # per packet with the true clock: demodulate_packet with truth substituted
+    Ptot = air.packet_symbols
+    p_nom = fps / tx.symbol_rate_hz
+    p_sig = rx.drift_max_ppm * 1e-6 * p_nom
+    rx_genie = replace(rx, channel_window_symbols=GENIE_STRETCH_WINDOW)
+    rx_static = replace(rx, channel_window_symbols=0)
+    for name in CHAIN[2:] + REFERENCE:
+        scores[name] = {}
+    for idx, j in want.items():
+        k0 = int(truth.packet_start_symbol[j])
+        t_sym = truth.symbol_t_s[k0 - truth.symbol_index[0]: k0 - truth.symbol_index[0] + Ptot + 1]
+        clk = true_clock(t_sym, fps)
+        lo = max(0, int(np.floor(clk.u0)) - 8)
+        hi = min(n_frames, int(np.ceil(clk.boundary(Ptot))) + 8)
+        clock = SymbolClock(clk.u0 - lo, clk.p)
+        true_lev = truth.levels_of(k0, k0 + Ptot).astype(np.int64) - 1
+        sent = true_lev[air.data_offset:] + 1
+        runs: list[tuple[str, np.ndarray, ReceiverConfig, Any]] = [
+            ("+true timing", L_tp, rx, None),
+            ("+true channel", L_tp, rx_genie, genie_window),
+            ("+true channel (one per packet)", L_tp, rx_static, "packet")]
+        if genie:
+            runs += [("genie luminance", L_g, rx, None), ("genie luminance +true channel", L_g, rx_genie, genie_window)]
+        for name, Lsrc, rcfg, chan in runs:
+            buf = np.ascontiguousarray(Lsrc[list(cams), lo:hi])
+            ch = None
+            if chan is not None:
+                ch = genie_channel(buf, e, true_lev, M, rx, None if chan == "packet" else int(chan))
+            r = demodulate_packet(buf, clock.u0, air, e, p_nom, clock.p, p_sig, rcfg, clock=clock, channel=ch)
+            if isinstance(r, PacketResult):
+                scores[name][idx] = _score_levels(sent, r.levels.astype(np.int64), r.crc_ok, bins)
+    if not genie:
+        notes.append("genie luminance rows not computed")
+    out: list[PacketOracle] = []
+    for idx, j in sorted(want.items()):
+        fr = np.flatnonzero((truth.symbol_mid >= truth.packet_start_symbol[j]) &
+                            (truth.symbol_mid < truth.packet_start_symbol[j] + Ptot))
+        po = PacketOracle(idx, float(truth.z_m[fr[0]]) if fr.size else float("nan"),
+                          float(truth.z_m[fr[-1]]) if fr.size else float("nan"))
+        for name in STAGES:
+            if name in scores:
+                po.stages[name] = scores[name].get(idx, StageScore(False))
+        out.append(po)
+    return OracleResult(res, out, bins, STAGES if genie else STAGES[:-2], notes)
