@@ -99,6 +99,10 @@ class SensorConfig:
     read_noise_e: float = _f(20.0, lo=0, doc="read noise RMS, electrons")
     prnu: float = _f(0.01, lo=0, hi=0.5, doc="pixel response non-uniformity, relative RMS")
     dark_dn: float = _f(2.0, lo=0, doc="black level, grey levels")
+    blooming: float = _f(0.0, lo=0, hi=1, doc="share of the charge above full well (255 DN) "
+                         "of a saturated pixel that spills along its column (0 = off)")
+    bloom_length_px: float = _f(2.0, lo=0, lo_open=True, hi=16,
+                                doc="decay length of the blooming spill along the column, px")
 
 
 @dataclass(frozen=True)
@@ -108,7 +112,16 @@ class OpticsConfig:
     psf_sigma_px: float = _f(0.6, lo=0, doc="Gaussian PSF sigma, px")
     right_defocus_px: float = _f(0.0, lo=0, doc="extra blur sigma of the right camera, px")
     glare_fraction: float = _f(0.04, lo=0, hi=1, doc="share of a spot's light in the glare halo")
-    glare_sigma_px: float = _f(2.5, lo=0, lo_open=True, doc="glare halo sigma, px")
+    glare_sigma_px: float = _f(2.5, lo=0, lo_open=True,
+                               doc="glare halo sigma (gaussian) or core radius r0 (power), px")
+    psf_model: str = _f("gaussian", choices=("gaussian", "moffat"),
+                        doc="lens PSF shape: gaussian, or moffat (same FWHM, heavier wings)")
+    psf_beta: float = _f(2.5, lo=1.2, hi=20, doc="moffat PSF exponent beta (smaller = heavier wings)")
+    glare_model: str = _f("gaussian", choices=("gaussian", "power"),
+                          doc="glare halo shape: gaussian, or power law (1 + r^2/r0^2)^-gamma")
+    glare_power: float = _f(2.0, lo=1.2, hi=10, doc="power-law glare exponent gamma")
+    diffuser_falloff: float = _f(0.0, lo=0, hi=0.9, doc="LED disk brightness drop centre to "
+                                 "edge, b = 1 - k (rho/R)^2 (0 = uniform disk)")
 
 
 @dataclass(frozen=True)
@@ -131,16 +144,36 @@ class SceneConfig:
     lateral_m: float = _f(0.0, doc="transmitter centre, lateral offset from the left camera axis, m")
     vertical_m: float = _f(0.0, doc="transmitter centre, vertical offset (down positive), m")
     speed_mps: float = _f(0.0, doc="closing speed, m/s (11.1 = 40 km/h)")
+    lateral_speed_mps: float = _f(0.0, doc="lateral speed of the transmitter relative to the rig "
+                                  "(right positive), m/s")
     min_distance_m: float = _f(2.0, lo=0, lo_open=True, doc="the approach stops here, m")
     vibration_px: float = _f(0.0, lo=0, doc="rig vibration, RMS image shift common to both cameras, px")
+    vibration_model: str = _f("smooth", choices=("smooth", "bumps", "engine"),
+                              doc="rig vibration: smooth random (1-40 Hz), road bumps (damped "
+                              "pitch ringing), engine (20-40 Hz tone + harmonic)")
+    bump_rate_hz: float = _f(2.5, lo=0, lo_open=True, hi=50, doc="bumps: mean bumps per second")
+    bump_freq_hz: float = _f(10.0, lo=0.5, hi=100, doc="bumps: mean ringing frequency after a bump, Hz")
+    bump_damping: float = _f(0.15, lo=0.02, hi=0.9, doc="bumps: damping ratio of the ringing")
+    engine_hz: float = _f(30.0, lo=1, hi=200, doc="engine: mean fundamental frequency, Hz")
+    engine_wander_hz: float = _f(3.0, lo=0, doc="engine: peak slow wander of the fundamental, Hz")
+    engine_harmonic: float = _f(0.4, lo=0, hi=2, doc="engine: 2nd harmonic amplitude / fundamental")
     jitter_px: float = _f(0.0, lo=0, doc="air jitter, independent RMS shift per camera, px")
     led_drift_ppm: float = _f(100.0, doc="LED clock rate error against the cameras, ppm")
     led_phase_s: float = _f(-1.0, doc="LED symbol clock offset at t = 0, s; < 0 = random")
     background: str = _f("texture", choices=("texture", "flat", "none"), doc="daylight background")
     background_dn: float = _f(40.0, lo=0, doc="mean background grey level at f/4")
+    background_contrast: float = _f(0.35, lo=0, hi=2, doc="texture: relative RMS contrast")
     background_distance_m: float = _f(150.0, lo=0, lo_open=True, doc="background distance, m")
     distractors: list[DistractorConfig] = _f([], doc="steady lights")
     seed: int = _f(1, doc="random seed of the scene (noise, texture, phases, payloads)")
+    randomized_seed: int = _f(-1, doc="informational: the iscd.sim.randomize seed that drew "
+                              "this config (-1 = not randomized)")
+
+    def __post_init__(self) -> None:
+        if self.engine_wander_hz >= self.engine_hz:
+            raise ConfigError(
+                f"scene.engine_wander_hz: {self.engine_wander_hz:g} Hz must be below "
+                f"scene.engine_hz = {self.engine_hz:g} Hz (the frequency must stay > 0)")
 
 
 @dataclass(frozen=True)

@@ -43,9 +43,11 @@ def texture(shape: tuple[int, int], mean_dn: float, rng: np.random.Generator,
 
 
 def background_pair(kind: str, shape: tuple[int, int], mean_dn: float, disparity_px: float,
-                    rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+                    rng: np.random.Generator, contrast: float = 0.35
+                    ) -> tuple[np.ndarray, np.ndarray]:
     """(left, right) noise-free backgrounds (float32 DN, before aperture scaling) of
-    ``shape``; the right one is the left scene shifted by ``disparity_px`` (cubic)."""
+    ``shape``; the right one is the left scene shifted by ``disparity_px`` (cubic);
+    ``contrast``: the texture's relative RMS contrast."""
     h, w = shape
     if kind == "none":
         z = np.zeros(shape, np.float32)
@@ -54,7 +56,7 @@ def background_pair(kind: str, shape: tuple[int, int], mean_dn: float, disparity
         f = np.full(shape, mean_dn, np.float32)
         return f, f.copy()
     pad = int(np.ceil(abs(disparity_px))) + 4
-    big = texture((h, w + 2 * pad), mean_dn, rng)
+    big = texture((h, w + 2 * pad), mean_dn, rng, contrast=contrast)
     left = np.ascontiguousarray(big[:, pad:pad + w])
     m = np.array([[1.0, 0.0, pad + disparity_px], [0.0, 1.0, 0.0]])
     right = cv2.warpAffine(big, m, (w, h), flags=cv2.INTER_CUBIC | cv2.WARP_INVERSE_MAP,

@@ -1,5 +1,10 @@
 """Stereo pinhole geometry, transmitter motion, rig vibration and air jitter.
 
+Rig vibration models (``scene.vibration_model``, all scaled to ``scene.vibration_px``,
+deterministic in (seed, t) and random access): :class:`Vibration` (``smooth``),
+:class:`BumpVibration` (``bumps``) and :class:`EngineVibration` (``engine``);
+:func:`make_vibration` picks one from the config.
+
 Left camera at the origin, right camera at x = +baseline_m, both looking down +z; image
 x right, y down; principal point at the image centre (cx, cy) = (W/2 - 0.5, H/2 - 0.5) in
 pixel-centre coordinates (pixel (0, 0) is centred at (0, 0)). A point (X, Y, Z) images at
@@ -11,6 +16,7 @@ with f_px = f / rho (dissertation eq. 2.2: Z = f b / (rho d), d = u_L - u_R).
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
@@ -83,6 +89,13 @@ def led_offsets(tx: TransmitterConfig) -> np.ndarray:
                      (r - (tx.rows - 1) / 2) * tx.pitch_m], axis=1)
 
 
+def lateral(t_s: np.ndarray, scene: SceneConfig) -> np.ndarray:
+    """X(t) = lateral_m + lateral_speed_mps t, m (t in s, camera clock): the transmitter's
+    lateral offset (right positive); it keeps moving when the approach has stopped."""
+    t = np.asarray(t_s, dtype=np.float64)
+    return scene.lateral_m + scene.lateral_speed_mps * t
+
+
 def distance(t_s: np.ndarray, scene: SceneConfig) -> np.ndarray:
     """Z(t) = max(distance_m - speed_mps t, min_distance_m), m (t in s, camera clock)."""
     z = scene.distance_m - scene.speed_mps * np.asarray(t_s, dtype=np.float64)
@@ -147,3 +160,145 @@ class Jitter:
             m = b == blk
             out[m] = self._block(int(blk))[off[m]]
         return out
+
+
+class BumpVibration:
+    """Road bumps: short pitch impulses, each followed by a damped ringing of the rig.
+
+    Bump k (k >= 0) hits at t_k = (k + U_k) / rate (one per 1/rate s on average, U_k
+    uniform in [0, 1): random times, never two in one slot) and rings as
+
+        y_k(t) = A_k h_k(t - t_k),   h_k(tau) = e^{-zeta w_k tau} sin(w_d tau) / sqrt(E_k)
+                                                                          (tau >= 0)
+
+    with w_k = 2 pi f_k, f_k log-uniform in [f/1.5, 1.5 f] (``bump_freq_hz`` f),
+    w_d = w_k sqrt(1 - zeta^2), E_k = int h^2 = w_d^2 / (4 a (a^2 + w_d^2)), a = zeta w_k
+    (unit energy, s), A_k = random sign times uniform [0.5, 1.5]; the response is cut where
+    the envelope is below 1e-4 (exactly 0 after). Mostly vertical: x_k = c_k y_k with c_k
+    uniform in [-0.3, 0.3]. By Campbell's theorem the mean square of y is
+    rate E[A^2] = rate 13/12, so the amplitudes are scaled to give RMS ``rms_px`` in y
+    (x: about 0.17 of it). Deterministic in (seed, t), random access: the bump parameters
+    come in blocks of 256 bumps seeded by (seed, block).
+    """
+
+    BLOCK = 256
+
+    def __init__(self, rms_px: float, seed: int, rate_hz: float = 2.5, freq_hz: float = 10.0,
+                 damping: float = 0.15) -> None:
+        self.rms_px = float(rms_px)
+        self.seed = seed & 0xFFFFFFFF
+        self.rate = float(rate_hz)
+        self.freq = float(freq_hz)
+        self.zeta = float(damping)
+        self.scale = self.rms_px / math.sqrt(self.rate * 13.0 / 12.0)
+        a_min = self.zeta * 2 * math.pi * self.freq / 1.5
+        self.t_cut = math.log(1e4) / a_min  # s: the longest ringing
+        self._cache: dict[int, np.ndarray] = {}
+
+    def _block(self, b: int) -> np.ndarray:
+        """(BLOCK, 6) per bump: t_k, a, w_d, amplitude / sqrt(E), x coupling, t_cut."""
+        blk = self._cache.get(b)
+        if blk is None:
+            rng = np.random.default_rng([self.seed, 0xB0B, b])
+            n = self.BLOCK
+            k = b * n + np.arange(n)
+            t = (k + rng.uniform(0.0, 1.0, n)) / self.rate
+            f = self.freq * np.exp(rng.uniform(-np.log(1.5), np.log(1.5), n))
+            w = 2 * np.pi * f
+            a = self.zeta * w
+            wd = w * math.sqrt(1.0 - self.zeta ** 2)
+            energy = wd ** 2 / (4 * a * (a * a + wd * wd))
+            amp = rng.choice([-1.0, 1.0], n) * rng.uniform(0.5, 1.5, n) * self.scale
+            cx = rng.uniform(-0.3, 0.3, n)
+            blk = np.stack([t, a, wd, amp / np.sqrt(energy), cx, np.log(1e4) / a], axis=1)
+            if len(self._cache) > 16:
+                self._cache.clear()
+            self._cache[b] = blk
+        return blk
+
+    def __call__(self, t_s: np.ndarray) -> np.ndarray:
+        """(F, 2) shift (dx, dy) in px at times t_s (s, >= 0)."""
+        t = np.asarray(t_s, dtype=np.float64).reshape(-1)
+        out = np.zeros((t.size, 2))
+        if self.rms_px == 0 or t.size == 0:
+            return out
+        k_lo = max(int(math.floor((t.min() - self.t_cut) * self.rate)) - 1, 0)
+        k_hi = max(int(math.floor(t.max() * self.rate)) + 1, 0)
+        blk = np.concatenate([self._block(b) for b in range(k_lo // self.BLOCK,
+                                                             k_hi // self.BLOCK + 1)])
+        tk = blk[:, 0]
+        blk = blk[(tk <= t.max()) & (tk + blk[:, 5] > t.min())]
+        # one bump at a time, in bump order: a frame's sum does not depend on the query
+        # (bumps out of reach add exact zeros), so frames are random access
+        for tk, a, wd, amp, cx, tc in blk:
+            tau = t - tk
+            m = (tau >= 0) & (tau < tc)
+            y = amp * np.exp(-a * tau[m]) * np.sin(wd * tau[m])
+            out[m, 1] += y
+            out[m, 0] += cx * y
+        return out
+
+
+class EngineVibration:
+    """Engine vibration: a narrow-band tone with its 2nd harmonic, slowly wandering.
+
+    The fundamental's frequency f0(t) = f_e + W w(t) with w(t) = sum_i c_i sin(2 pi nu_i t
+    + theta_i), sum |c_i| = 1 (so |w| <= 1), nu_i log-uniform in 0.05-0.5 Hz; its phase
+    phi(t) = 2 pi int_0^t f0 is integrated exactly. Per axis
+
+        y(t) = a1 [sin(phi + psi_1) + h sin(2 phi + psi_2)],   a1 = rms sqrt(2 / (1 + h^2))
+
+    (``engine_hz`` f_e, ``engine_wander_hz`` W, ``engine_harmonic`` h), RMS ``rms_px`` in y;
+    x is the same with its own phases and half the amplitude. Deterministic in (seed, t).
+    """
+
+    def __init__(self, rms_px: float, seed: int, freq_hz: float = 30.0,
+                 wander_hz: float = 3.0, harmonic: float = 0.4) -> None:
+        rng = np.random.default_rng([seed & 0xFFFFFFFF, 0xE4E])
+        self.rms_px = float(rms_px)
+        self.f0 = float(freq_hz)
+        self.wander = float(wander_hz)
+        self.h = float(harmonic)
+        c = rng.uniform(0.2, 1.0, 3)
+        self.c = c / c.sum()
+        self.nu = np.exp(rng.uniform(np.log(0.05), np.log(0.5), 3))
+        self.theta = rng.uniform(0, 2 * np.pi, 3)
+        self.psi = rng.uniform(0, 2 * np.pi, (2, 2))  # (axis x/y, harmonic 1/2)
+        self.a1 = self.rms_px * math.sqrt(2.0 / (1.0 + self.h ** 2)) * np.array([0.5, 1.0])
+
+    def phase(self, t_s: np.ndarray) -> np.ndarray:
+        """phi(t) = 2 pi (f_e t + W sum_i c_i (cos theta_i - cos(2 pi nu_i t + theta_i))
+        / (2 pi nu_i)), rad."""
+        t = np.asarray(t_s, dtype=np.float64).reshape(-1, 1)
+        w = self.nu * 2 * np.pi
+        integ = (self.c * (np.cos(self.theta) - np.cos(w * t + self.theta)) / w).sum(axis=1)
+        return 2 * np.pi * (self.f0 * t[:, 0] + self.wander * integ)
+
+    def __call__(self, t_s: np.ndarray) -> np.ndarray:
+        """(F, 2) shift (dx, dy) in px at times t_s (s)."""
+        t = np.asarray(t_s, dtype=np.float64).reshape(-1)
+        if self.rms_px == 0:
+            return np.zeros((t.size, 2))
+        ph = self.phase(t)[:, None]
+        return self.a1 * (np.sin(ph + self.psi[:, 0]) + self.h * np.sin(2 * ph + self.psi[:, 1]))
+
+
+def make_vibration(scene: SceneConfig, seed: int
+                   ) -> Vibration | BumpVibration | EngineVibration:
+    """The rig vibration of ``scene.vibration_model`` with RMS ``scene.vibration_px``."""
+    rms = scene.vibration_px
+    if scene.vibration_model == "bumps":
+        return BumpVibration(rms, seed, scene.bump_rate_hz, scene.bump_freq_hz,
+                             scene.bump_damping)
+    if scene.vibration_model == "engine":
+        return EngineVibration(rms, seed, scene.engine_hz, scene.engine_wander_hz,
+                               scene.engine_harmonic)
+    return Vibration(rms, seed)
+
+
+def vibration_margin(scene: SceneConfig) -> int:
+    """Padding (px) of the pre-rendered background for the whole-pixel vibration shift:
+    4 x RMS for ``smooth`` (as before), 8 x RMS for the impulsive ``bumps``, the peak
+    2 x RMS for ``engine``; at most 64."""
+    factor = {"smooth": 4.0, "bumps": 8.0, "engine": 2.0}[scene.vibration_model]
+    return min(int(math.ceil(factor * scene.vibration_px)), 64)

@@ -279,6 +279,51 @@ def render_window_ref(out: np.ndarray, Y0: int, X0: int, acc: np.ndarray, ay: in
     expose_window_ref(out, Y0, X0, acc, ay, ax, bg, prnu, by, bx, z, noise, sensor)
 
 
+def warm_bloom_args() -> tuple:
+    """Example arguments of :func:`bloom_columns` (compiled by ``Scene.warm_up`` only when
+    the scene blooms, so the default scene's warm-up is unchanged)."""
+    return (np.zeros((6, 4)), 255.0, 0.5, np.array([0.2, 0.05]))
+
+
+@njit
+def bloom_columns(acc: np.ndarray, cap: float, spill: float, coef: np.ndarray) -> None:
+    """Blooming of the light canvas ``acc`` ((h, w) float64 DN) in place: a pixel above
+    ``cap`` DN (full well) loses ``spill`` of its excess e and each pixel d rows above and
+    below it in its column gains coef[d - 1] e (:func:`iscd.sim.sensor.bloom_coefficients`;
+    spill = 2 sum coef). Same float64 operations, per pixel in the same order, as
+    :func:`bloom_columns_ref`."""
+    h, w = acc.shape
+    ex = np.zeros((h, w))
+    for y in range(h):
+        for x in range(w):
+            e = acc[y, x] - cap
+            if e > 0.0:
+                ex[y, x] = e
+    for y in range(h):
+        for x in range(w):
+            acc[y, x] -= spill * ex[y, x]
+    for j in range(coef.size):
+        d = j + 1
+        c = coef[j]
+        for y in range(h - d):  # from the pixel d rows below
+            for x in range(w):
+                acc[y, x] += c * ex[y + d, x]
+        for y in range(d, h):  # from the pixel d rows above
+            for x in range(w):
+                acc[y, x] += c * ex[y - d, x]
+
+
+def bloom_columns_ref(acc: np.ndarray, cap: float, spill: float, coef: np.ndarray) -> None:
+    """Reference of :func:`bloom_columns` (numpy)."""
+    ex = np.maximum(acc - cap, 0.0)
+    acc -= spill * ex
+    for j in range(coef.size):
+        d = j + 1
+        c = coef[j]
+        acc[:-d] += c * ex[d:]
+        acc[d:] += c * ex[:-d]
+
+
 def sensor_constants(gain_dn_per_e: float, read_dn: float, dark_dn: float, max_dn: int
                      ) -> np.ndarray:
     """The float32 constants of :meth:`iscd.sim.sensor.SensorModel.expose` for

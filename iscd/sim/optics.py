@@ -18,6 +18,20 @@ An LED of diameter D at distance Z is a disk of radius R = f_px D / (2 Z) px. It
 The core P is evaluated from a precomputed table indexed by r^2 at the pixel centres of a
 small window around each source; the windows are summed with ``np.bincount`` (crosstalk of
 neighbouring LEDs comes out naturally). Everything here is in px and DN, pure numpy.
+
+Other spot models (``optics.psf_model``, ``optics.diffuser_falloff``, ``optics.glare_model``)
+stay sums of the same exact pieces, so they tabulate the same way and render through the
+same compiled kernels:
+
+* a Moffat PSF (1 + r^2/alpha^2)^-beta is a scale mixture of Gaussians (precision
+  ~ Gamma(beta - 1, scale 2/alpha^2)); it is discretized into ``MOFFAT_COMPONENTS``
+  equal-weight Gaussians at the quantile mid-points (:func:`moffat_components`);
+* a diffuser disk brighter in the centre, b(rho) = 1 - k (rho/R)^2, is a stack of nested
+  uniform disks (:func:`diffuser_disks`), normalized to the uniform disk's flux;
+* so the core is P(r) = sum_d sum_c w_d w_c ncx2.cdf((c_d R)^2/s_c^2, 2, r^2/s_c^2)
+  (:class:`SpotProfile`, :func:`profile_at`);
+* a power-law glare halo (1 + r^2/r0^2)^-gamma is again a Gaussian scale mixture, rendered
+  as ``GLARE_COMPONENTS`` separable Gaussians (:func:`glare_components`).
 """
 
 from __future__ import annotations
@@ -27,7 +41,7 @@ from collections import OrderedDict
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.special import chndtr
+from scipy.special import chndtr, gammaincinv
 
 PIXEL_VAR = 1.0 / 12.0
 """Variance (px^2) of a 1-px box: the pixel-area integration as extra Gaussian blur."""
@@ -40,6 +54,90 @@ def disk_blur_profile(r: np.ndarray, radius_px: float, sigma_px: float) -> np.nd
     """
     s2 = sigma_px * sigma_px
     return chndtr(radius_px * radius_px / s2, 2.0, np.asarray(r, dtype=np.float64) ** 2 / s2)
+
+
+MOFFAT_COMPONENTS = 8
+"""Gaussians in the discretized Moffat PSF."""
+DIFFUSER_DISKS = 4
+"""Nested uniform disks of a non-uniform diffuser."""
+GLARE_COMPONENTS = 4
+"""Gaussians in the discretized power-law glare halo."""
+
+
+@dataclass(frozen=True)
+class SpotProfile:
+    """A radially symmetric spot model: a stack of nested uniform disks (weights w_d,
+    radii c_d R) blurred by a mixture of Gaussians (weights w_c, sigmas s_c in px, pixel
+    and defocus blur included). Hashable (a table-cache key). The default, one disk and one
+    Gaussian, is the disk (*) Gaussian of :func:`disk_blur_profile`."""
+
+    psf: tuple[tuple[float, float], ...]  # (w_c, s_c px)
+    disks: tuple[tuple[float, float], ...] = ((1.0, 1.0),)  # (w_d, c_d)
+
+    @property
+    def is_gaussian_disk(self) -> bool:
+        return len(self.psf) == 1 and self.psf[0][0] == 1.0 and self.disks == ((1.0, 1.0),)
+
+    @property
+    def sigma_min(self) -> float:
+        return min(sc for _, sc in self.psf)
+
+    @property
+    def sigma_max(self) -> float:
+        return max(sc for _, sc in self.psf)
+
+
+def gaussian_profile(sigma_px: float) -> SpotProfile:
+    """The default spot: a uniform disk blurred by one Gaussian of sigma ``sigma_px``."""
+    return SpotProfile(((1.0, float(sigma_px)),))
+
+
+def moffat_components(fwhm_sigma_px: float, beta: float, extra_var_px2: float,
+                      n: int = MOFFAT_COMPONENTS) -> tuple[tuple[float, float], ...]:
+    """A Moffat PSF (1 + r^2/alpha^2)^-beta with the FWHM of a Gaussian of sigma
+    ``fwhm_sigma_px`` (alpha = sigma sqrt(2 ln 2) / sqrt(2^(1/beta) - 1)) as ``n``
+    equal-weight Gaussians: precisions tau_j = Gamma(beta - 1, 2/alpha^2) quantiles at
+    (j + 0.5)/n, variances 1/tau_j + ``extra_var_px2`` (pixel, defocus). ((w, sigma), ...)."""
+    alpha = fwhm_sigma_px * math.sqrt(2 * math.log(2)) / math.sqrt(2 ** (1 / beta) - 1)
+    p = (np.arange(n) + 0.5) / n
+    tau = gammaincinv(beta - 1.0, p) * (2.0 / alpha ** 2)
+    return tuple((1.0 / n, float(math.sqrt(1.0 / t + extra_var_px2))) for t in tau)
+
+
+def diffuser_disks(falloff: float, n: int = DIFFUSER_DISKS) -> tuple[tuple[float, float], ...]:
+    """b(rho) = 1 - k (rho/R)^2 as ``n`` nested uniform disks (radii j/n R, the brightness
+    of each annulus at its mid-radius), weights normalized so that the flux is the uniform
+    disk's (mean surface brightness 1, centre 1/(1 - k/2)). ((w_d, c_d), ...)."""
+    if falloff <= 0:
+        return ((1.0, 1.0),)
+    c = (np.arange(n) + 1.0) / n
+    b = 1.0 - falloff * ((np.arange(n) + 0.5) / n) ** 2  # annulus j brightness
+    w = b - np.r_[b[1:], 0.0]  # nested disk j carries b_j - b_{j+1}
+    w /= float((w * c * c).sum())
+    return tuple((float(wi), float(ci)) for wi, ci in zip(w, c))
+
+
+def profile_at(r: np.ndarray, radius_px: float, prof: SpotProfile) -> np.ndarray:
+    """P(r) of ``prof`` for a disk of radius R px (1 in a resolved uniform disk)."""
+    if prof.is_gaussian_disk:
+        return disk_blur_profile(r, radius_px, prof.psf[0][1])
+    out = np.zeros(np.shape(r))
+    for wd, cd in prof.disks:
+        for wc, sc in prof.psf:
+            out += (wd * wc) * disk_blur_profile(r, cd * radius_px, sc)
+    return out
+
+
+def glare_components(r0_px: float, gamma: float, n: int = GLARE_COMPONENTS,
+                     max_sigma_px: float | None = None) -> tuple[tuple[float, float], ...]:
+    """A power-law halo (1 + r^2/r0^2)^-gamma (gamma > 1) as ``n`` equal-weight Gaussians
+    (precision quantiles of Gamma(gamma - 1, 2/r0^2)); sigmas capped at ``max_sigma_px``
+    (default 4 r0: the farthest wing is pulled in so the render window stays small).
+    ((w, sigma px), ...): add the disk's and the pixel's variance per component."""
+    cap = 4.0 * r0_px if max_sigma_px is None else max_sigma_px
+    p = (np.arange(n) + 0.5) / n
+    tau = gammaincinv(gamma - 1.0, p) * (2.0 / r0_px ** 2)
+    return tuple((1.0 / n, float(min(math.sqrt(1.0 / t), cap))) for t in tau)
 
 
 REL_CUT = 2e-5
@@ -64,8 +162,12 @@ class SpotTable:
 
 
 def make_table(radius_px: float, sigma_px: float, rel_cut: float = REL_CUT,
-               n_entries: int = 8192) -> SpotTable:
-    """Tabulate P for disk radius R (px) and blur s (px), cut where P < rel_cut."""
+               n_entries: int = 8192, profile: SpotProfile | None = None) -> SpotTable:
+    """Tabulate P for disk radius R (px) and blur s (px), cut where P < rel_cut; with
+    ``profile`` (not the plain Gaussian disk), P of that spot model (``sigma_px`` is then
+    only recorded)."""
+    if profile is not None and not profile.is_gaussian_disk:
+        return _make_profile_table(radius_px, profile, rel_cut, n_entries)
     s = max(sigma_px, 1e-3)
     reach = int(math.ceil(radius_px + 6.5 * s)) + 2
     step = 2.0 * reach * reach / (n_entries - 1)
@@ -82,6 +184,27 @@ def make_table(radius_px: float, sigma_px: float, rel_cut: float = REL_CUT,
     return SpotTable(radius_px, s, r_cut, half, step, tab.astype(np.float32))
 
 
+def _make_profile_table(radius_px: float, prof: SpotProfile, rel_cut: float,
+                        n_entries: int) -> SpotTable:
+    """:func:`make_table` of a mixture profile (the same binning and cut)."""
+    s_lo, s_hi = max(prof.sigma_min, 1e-3), max(prof.sigma_max, 1e-3)
+    reach = int(math.ceil(radius_px + 6.5 * s_hi)) + 2
+    step = 2.0 * reach * reach / (n_entries - 1)
+    r_tab = np.sqrt((np.arange(n_entries) + 0.5) * step)
+    r_end = min(float(r_tab[-1]), radius_px + 7.0 * s_hi)
+    r_grid = np.linspace(0.0, r_end, max(256, min(int(40 * r_end / s_lo) + 2, 20000)))
+    tab = np.interp(r_tab, r_grid, profile_at(r_grid, radius_px, prof), right=0.0)
+    above = np.nonzero(tab >= rel_cut)[0]
+    r_cut = max(float(r_tab[above[-1]]) if above.size else 0.5, 0.5)
+    tab[r_tab > r_cut] = 0.0
+    half = int(math.ceil(r_cut))
+    return SpotTable(radius_px, prof.sigma_min, r_cut, half, step, tab.astype(np.float32))
+
+
+ZERO_TABLE = SpotTable(0.0, 0.0, 0.0, 0, 1.0, np.zeros(1, np.float32))
+"""A table of no core light (1x1 window of 0): for glare-only source sets."""
+
+
 class TableCache:
     """Spot tables keyed by (radius bucket, sigma): radii are quantized to ``rel_step``
     relative steps (geometric grid, error <= rel_step/2); callers scale the amplitude by
@@ -90,14 +213,19 @@ class TableCache:
     def __init__(self, rel_step: float = 0.01, size: int = 512) -> None:
         self.log_step = math.log1p(rel_step)
         self.size = size
-        self._d: OrderedDict[tuple[int, float], SpotTable] = OrderedDict()
+        self._d: OrderedDict[tuple, SpotTable] = OrderedDict()
 
-    def get(self, radius_px: float, sigma_px: float) -> SpotTable:
+    def get(self, radius_px: float, sigma_px: float,
+            profile: SpotProfile | None = None) -> SpotTable:
+        """The table of radius ``radius_px`` (quantized) and blur ``sigma_px``, or of spot
+        model ``profile`` when it is not the plain Gaussian disk."""
         b = int(round(math.log(max(radius_px, 1e-6)) / self.log_step))
-        key = (b, round(sigma_px, 9))
+        plain = profile is None or profile.is_gaussian_disk
+        key = (b, round(sigma_px, 9)) if plain else (b, profile)
         t = self._d.get(key)
         if t is None:
-            t = make_table(math.exp(b * self.log_step), sigma_px)
+            t = make_table(math.exp(b * self.log_step), sigma_px,
+                           profile=None if plain else profile)
             self._d[key] = t
             if len(self._d) > self.size:
                 self._d.popitem(last=False)

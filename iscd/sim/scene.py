@@ -26,15 +26,16 @@ import cv2
 import numpy as np
 
 from iscd.airinterface import AirInterface, duty
-from iscd.config import Config, to_dict
+from iscd.config import Config, OpticsConfig, to_dict
 from iscd.sim import kernels
 from iscd.sim.background import background_pair, flicker_gain
 from iscd.sim.exposure import LedClock, on_time
-from iscd.sim.geometry import (Jitter, StereoGeometry, Vibration, distance, led_offsets,
-                                project_rig)
-from iscd.sim.optics import (PIXEL_VAR, Canvas, Footprint, SpotTable, TableCache, footprint,
-                             render, source_box)
-from iscd.sim.sensor import SensorModel
+from iscd.sim.geometry import (Jitter, StereoGeometry, distance, lateral, led_offsets,
+                                make_vibration, project_rig, vibration_margin)
+from iscd.sim.optics import (PIXEL_VAR, ZERO_TABLE, Canvas, Footprint, SpotProfile, SpotTable,
+                             TableCache, diffuser_disks, footprint, gaussian_profile,
+                             glare_components, moffat_components, render, source_box)
+from iscd.sim.sensor import SensorModel, bloom_coefficients
 from iscd.sim.transmitter import LevelSource, PacketSource
 from iscd.sim.truth import Truth
 
@@ -59,12 +60,14 @@ class _Source:
     glare_sigma: float
     glare_half: int
     grid: tuple[int, int] | None = None  # (rows, cols) for an LED array
-    slot: int = 0  # footprint cache slot
+    slot: tuple[int, int] = (0, 0)  # footprint cache slot: (source 0 = LEDs / i + 1, part)
 
 
 @dataclass
 class _Shape:
-    """How a source of radius R px looks in one camera (amplitude-free part of _Source)."""
+    """How a source of radius R px looks in one camera (amplitude-free part of _Source).
+    A source is one or more parts: the first holds the core and the (first) glare
+    Gaussian, further parts (power-law glare) only a glare Gaussian (``tab`` of no light)."""
 
     tab: SpotTable
     core_scale: float  # core peak scale per DN of light: (1 - g) (R / R_table)^2
@@ -115,16 +118,18 @@ class _GroupPlan:
 class _Camera:
     """Per-camera static state: aperture, blur, background, PRNU, noise bank, RNG."""
 
-    def __init__(self, idx: int, name: str, f_number: float, sigma_core: float) -> None:
+    def __init__(self, idx: int, name: str, f_number: float, sigma_core: float,
+                 profile: SpotProfile | None = None) -> None:
         self.idx = idx
         self.name = name
         self.f_number = f_number
         self.sigma_core = sigma_core
+        self.profile = profile if profile is not None else gaussian_profile(sigma_core)
         self.bg: np.ndarray  # (Hp, Wp) float32 clean photo-signal incl. steady distractors
         self.prnu: np.ndarray  # (Hp, Wp) float32
         self.bank: np.ndarray  # (B, Hp, Wp) uint8
         self.jitter: Jitter
-        self.fp_cache: dict[int, tuple[tuple, Footprint]] = {}
+        self.fp_cache: dict[tuple[int, int], tuple[tuple, Footprint]] = {}
         self.plan_key: tuple | None = None  # (radius, u, v) of the cached render plan
         self.plan_run = -1  # its pose run (first frame of a run of frames with that key)
         self.plan: list[_GroupPlan] = []
@@ -197,16 +202,25 @@ class Scene:
         sm = self.sensor
         self._sensor32 = kernels.sensor_constants(sm.gain_dn_per_e, sm.read_dn, sm.dark_dn,
                                                   sm.max_dn)
-        self.vibration = Vibration(sc.vibration_px, self.seed)
-        self.margin = min(int(math.ceil(4 * sc.vibration_px)), 64)
+        self.vibration = make_vibration(sc, self.seed)
+        self.margin = vibration_margin(sc)
         self.tables = TableCache()
         self.led_radius_fn = lambda z: self.geometry.focal_px * tx.led_diameter_m / (2.0 * z)
         scale = self.exposure_s / REF_EXPOSURE_S
+        extra = (PIXEL_VAR, op.right_defocus_px ** 2 + PIXEL_VAR)
         self.cams = [
-            _Camera(0, "left", cam.f_number_left, math.sqrt(op.psf_sigma_px ** 2 + PIXEL_VAR)),
+            _Camera(0, "left", cam.f_number_left, math.sqrt(op.psf_sigma_px ** 2 + PIXEL_VAR),
+                    spot_profile(op, extra[0])),
             _Camera(1, "right", cam.f_number_right,
-                    math.sqrt(op.psf_sigma_px ** 2 + op.right_defocus_px ** 2 + PIXEL_VAR)),
+                    math.sqrt(op.psf_sigma_px ** 2 + op.right_defocus_px ** 2 + PIXEL_VAR),
+                    spot_profile(op, extra[1])),
         ]
+        self.glare = ((1.0, op.glare_sigma_px),) if op.glare_model == "gaussian" else \
+            glare_components(op.glare_sigma_px, op.glare_power)
+        self.bloom_coef = bloom_coefficients(cfg.sensor.blooming, cfg.sensor.bloom_length_px)
+        self.bloom_spill = float(cfg.sensor.blooming)
+        self.bloom_cap = float(self.sensor.max_dn)  # full well = the top grey level
+        self.bloom_reach = int(self.bloom_coef.size)
         for c in self.cams:
             c.gain = (REF_F_NUMBER / c.f_number) ** 2 * scale  # type: ignore[attr-defined]
             c.jitter = Jitter(sc.jitter_px, self.seed, c.idx)
@@ -218,48 +232,71 @@ class Scene:
 
     # ------------------------------------------------------------------ static parts
     def _distractor_sources(self, c: _Camera, ds: list, gains: np.ndarray | None = None
-                            ) -> list[_Source]:
+                            ) -> list[list[_Source]]:
+        """Per distractor its source parts (slots (i + 1, part))."""
         out = []
         for i, d in enumerate(ds):
             ul, ur, v = self.geometry.project(d.x_m, d.y_m, d.z_m)
             u = ul if c.idx == 0 else ur
             R = self.geometry.focal_px * d.diameter_m / (2 * d.z_m)
             amp = d.brightness_dn * c.gain * (1.0 if gains is None else gains[i])  # type: ignore[attr-defined]
-            src = self._make_source(c, np.array([float(u)]), np.array([float(v)]),
-                                    np.array([amp]), R)
-            src.slot = i + 1
-            out.append(src)
+            parts = self._make_sources(c, np.array([float(u)]), np.array([float(v)]),
+                                       np.array([amp]), R)
+            for j, src in enumerate(parts):
+                src.slot = (i + 1, j)
+            out.append(parts)
         return out
 
-    def _shape(self, c: _Camera, radius_px: float) -> _Shape:
-        """Spot table, core and glare scales of a disk of ``radius_px`` in camera ``c``."""
+    def _shapes(self, c: _Camera, radius_px: float) -> list[_Shape]:
+        """Spot table, core and glare scales of a disk of ``radius_px`` in camera ``c``: one
+        shape for the Gaussian glare; for the power-law glare, further glare-only parts."""
         op = self.cfg.optics
         g = op.glare_fraction
-        tab = self.tables.get(radius_px, c.sigma_core)
-        gs = math.sqrt(op.glare_sigma_px ** 2 + radius_px ** 2 / 4.0 + PIXEL_VAR)
-        return _Shape(tab, (1.0 - g) * (radius_px / tab.radius_px) ** 2,
-                      g * math.pi * radius_px ** 2, gs, int(math.ceil(3.5 * gs)) if g > 0 else 0)
+        tab = self.tables.get(radius_px, c.sigma_core, c.profile)
+        shapes = []
+        for j, (wj, sj) in enumerate(self.glare):
+            gs = math.sqrt(sj ** 2 + radius_px ** 2 / 4.0 + PIXEL_VAR)
+            flux = g * math.pi * radius_px ** 2
+            shapes.append(_Shape(tab if j == 0 else ZERO_TABLE,
+                                 (1.0 - g) * (radius_px / tab.radius_px) ** 2 if j == 0 else 0.0,
+                                 flux if wj == 1.0 else wj * flux, gs,
+                                 int(math.ceil(3.5 * gs)) if g > 0 else 0))
+            if g <= 0:
+                break
+        return shapes
+
+    def _shape(self, c: _Camera, radius_px: float) -> _Shape:
+        """The first part of :meth:`_shapes` (core and first glare Gaussian)."""
+        return self._shapes(c, radius_px)[0]
+
+    def _make_sources(self, c: _Camera, u: np.ndarray, v: np.ndarray, amp: np.ndarray,
+                      radius_px: float) -> list[_Source]:
+        """The source parts at (u, v) px with light ``amp`` (DN of the resolved disk)."""
+        out = []
+        for j, sh in enumerate(self._shapes(c, radius_px)):
+            out.append(_Source(u, v, np.asarray(amp * sh.core_scale, np.float64), sh.tab,
+                               np.asarray(amp * sh.flux_scale, np.float64), sh.glare_sigma,
+                               sh.glare_half, slot=(0, j)))
+        return out
 
     def _make_source(self, c: _Camera, u: np.ndarray, v: np.ndarray, amp: np.ndarray,
                      radius_px: float) -> _Source:
-        """Sources at (u, v) px with light ``amp`` (DN of the resolved disk)."""
-        sh = self._shape(c, radius_px)
-        return _Source(u, v, np.asarray(amp * sh.core_scale, np.float64), sh.tab,
-                       np.asarray(amp * sh.flux_scale, np.float64), sh.glare_sigma,
-                       sh.glare_half)
+        """The first part of :meth:`_make_sources`."""
+        return self._make_sources(c, u, v, amp, radius_px)[0]
 
     def _build_backgrounds(self, rng: np.random.Generator, bank_size: int) -> None:
         sc = self.cfg.scene
         H, W, m = self.height, self.width, self.margin
         Hp, Wp = H + 2 * m, W + 2 * m
         d_bg = float(self.geometry.disparity(sc.background_distance_m))
-        bl, br = background_pair(sc.background, (Hp, Wp), sc.background_dn, d_bg, rng)
+        bl, br = background_pair(sc.background, (Hp, Wp), sc.background_dn, d_bg, rng,
+                                 sc.background_contrast)
         steady = [d for d in sc.distractors if d.flicker_hz <= 0]
         for c, bg in zip(self.cams, (bl, br)):
             bg *= c.gain  # type: ignore[attr-defined]
             canvas_all = Canvas(-m, -m, bg)
-            for s in self._distractor_sources(c, steady):
-                _render_into(canvas_all, [s])
+            for parts in self._distractor_sources(c, steady):
+                _render_into(canvas_all, parts)
             c.bg = bg
             prng = np.random.default_rng([self.seed, 0x9A1, c.idx])
             c.prnu = (self.sensor.prnu_map((Hp, Wp), prng) if self.noise
@@ -282,13 +319,13 @@ class Scene:
         sl = vib + self.cams[0].jitter(f)
         sr = vib + self.cams[1].jitter(f)
         sc = self.cfg.scene
-        X = sc.lateral_m + self.offsets[:, 0]
+        X = lateral(tm, sc)[:, None] + self.offsets[None, :, 0]
         Y = sc.vertical_m + self.offsets[:, 1]
         if self.rig is None:
-            ul, ur, v = self.geometry.project(X[None, :], Y[None, :], z[:, None])
+            ul, ur, v = self.geometry.project(X, Y[None, :], z[:, None])
             vl = vr = v
         else:
-            ul, vl, ur, vr = project_rig(self.rig, X[None, :], Y[None, :], z[:, None])
+            ul, vl, ur, vr = project_rig(self.rig, X, Y[None, :], z[:, None])
         on = on_time(t0, self.exposure_s, self.clock, self._duty_of) / self.exposure_s
         return {"frames": f, "t_s": t0, "z_m": z, "vib": vib,
                 "shift_left": sl, "shift_right": sr,
@@ -328,6 +365,8 @@ class Scene:
         t0 = time.perf_counter()
         if self.compiled:
             kernels.warm()
+            if self.bloom_reach:
+                kernels.bloom_columns(*kernels.warm_bloom_args())
         return time.perf_counter() - t0
 
     def render_pair(self, n: int) -> tuple[np.ndarray, np.ndarray]:
@@ -379,6 +418,9 @@ class Scene:
         for gi, g in enumerate(self._plan(c, st, i)):
             if g.empty:
                 continue
+            if self.bloom_reach:
+                self._window_bloom(c, g, st, i, oy, ox, seed + gi, out)
+                continue
             for sq in g.head:
                 kernels.add_sources(g.acc, sq is g.sets[0], sq.kern, sq.ix, sq.iy,
                                     st[sq.key][i, sq.cols], sq.c_amp, sq.c_core, sq.c_flux,
@@ -397,6 +439,24 @@ class Scene:
                                   sp.ix, sp.iy, st[sp.key][i, sp.cols], sp.c_amp, sp.c_core,
                                   sp.c_flux, sp.gy, sp.gxt, sp.grid_q, g.bg, g.prnu, 0, 0, g.z,
                                   noise, self._sensor32)
+
+    def _window_bloom(self, c: _Camera, g: _GroupPlan, st: dict[str, np.ndarray], i: int,
+                      oy: int, ox: int, seed: int, out: np.ndarray) -> None:
+        """A render window with blooming (not fused: every set into the whole canvas, then
+        :func:`kernels.bloom_columns`, then :func:`kernels.expose_window`)."""
+        for sq in g.sets:
+            kernels.add_sources(g.acc, sq is g.sets[0], sq.kern, sq.ix, sq.iy,
+                                st[sq.key][i, sq.cols], sq.c_amp, sq.c_core, sq.c_flux,
+                                sq.gy, sq.gxt, sq.grid_q)
+        kernels.bloom_columns(g.acc, self.bloom_cap, self.bloom_spill, self.bloom_coef)
+        if self.noise:
+            cv2.setRNGSeed(seed & 0x7FFFFFFF)
+            cv2.randn(g.z, 0.0, 1.0)
+        h, w = g.z.shape
+        bg = np.ascontiguousarray(c.bg[oy + g.Y0:oy + g.Y0 + h, ox + g.X0:ox + g.X0 + w])
+        prnu = np.ascontiguousarray(c.prnu[oy + g.Y0:oy + g.Y0 + h, ox + g.X0:ox + g.X0 + w])
+        kernels.expose_window(out, g.Y0, g.X0, g.acc, g.ay, g.ax, bg, prnu, 0, 0, g.z,
+                              self.noise, self._sensor32)
 
     def _plan(self, c: _Camera, st: dict[str, np.ndarray], i: int) -> list[_GroupPlan]:
         """The render windows of camera ``c`` in frame row ``i`` (cached while the LEDs keep
@@ -418,21 +478,25 @@ class Scene:
                     ) -> list[_GroupPlan]:
         """Group the sources (LED array, flickering distractors) into windows as
         :meth:`_render_camera_ref` does and precompute their footprints."""
-        sh = self._shape(c, radius)
         one = np.ones(u.size)
-        led = _Source(u, v, one, sh.tab, one, sh.glare_sigma, sh.glare_half, self.grid)
-        info = {id(led): ("on_fraction", slice(None),
-                          self.cfg.transmitter.radiance_dn * c.gain, sh)}  # type: ignore[attr-defined]
-        sources = [led]
-        for j, (d, s) in enumerate(zip(self.flicker, self._distractor_sources(
+        info = {}
+        sources = []
+        for j, sh in enumerate(self._shapes(c, radius)):
+            led = _Source(u, v, one, sh.tab, one, sh.glare_sigma, sh.glare_half, self.grid,
+                          slot=(0, j))
+            info[id(led)] = ("on_fraction", slice(None),
+                             self.cfg.transmitter.radiance_dn * c.gain, sh)  # type: ignore[attr-defined]
+            sources.append(led)
+        for j, (d, parts) in enumerate(zip(self.flicker, self._distractor_sources(
                 c, self.flicker, np.ones(len(self.flicker))))):
             R = self.geometry.focal_px * d.diameter_m / (2 * d.z_m)
-            info[id(s)] = ("flicker", slice(j, j + 1), d.brightness_dn * c.gain,  # type: ignore[attr-defined]
-                           self._shape(c, R))
-            sources.append(s)
+            for s, ssh in zip(parts, self._shapes(c, R)):
+                info[id(s)] = ("flicker", slice(j, j + 1), d.brightness_dn * c.gain,  # type: ignore[attr-defined]
+                               ssh)
+                sources.append(s)
         plans = []
-        for group in _merge_groups(sources):
-            box = _group_box(group)
+        for group in _merge_groups(sources, self.bloom_reach):
+            box = _group_box(group, self.bloom_reach)
             x0, y0, x1, y1 = box
             clip = (max(x0, 0), max(y0, 0), min(x1, self.width), min(y1, self.height))
             g = _GroupPlan(box, clip, empty=clip[0] >= clip[2] or clip[1] >= clip[3],
@@ -463,14 +527,15 @@ class Scene:
         u = st[pre][i]
         v = st["v_left" if c.idx == 0 else "v_right"][i]
         amp = st["on_fraction"][i] * (self.cfg.transmitter.radiance_dn * c.gain)  # type: ignore[attr-defined]
-        led = self._make_source(c, u, v, amp, float(st["radius"][i]))
-        led.grid = self.grid
-        sources = [led]
+        sources = self._make_sources(c, u, v, amp, float(st["radius"][i]))
+        for led in sources:
+            led.grid = self.grid
         if self.flicker:
-            sources += self._distractor_sources(c, self.flicker, st["flicker"][i])
+            for parts in self._distractor_sources(c, self.flicker, st["flicker"][i]):
+                sources += parts
         seed = self._noise_base + (n * 2 + c.idx) * 8
-        for gi, group in enumerate(_merge_groups(sources)):
-            box = _group_box(group)
+        for gi, group in enumerate(_merge_groups(sources, self.bloom_reach)):
+            box = _group_box(group, self.bloom_reach)
             x0, y0, x1, y1 = box
             X0, Y0, X1, Y1 = max(x0, 0), max(y0, 0), min(x1, W), min(y1, H)
             if X0 >= X1 or Y0 >= Y1:
@@ -479,6 +544,9 @@ class Scene:
             for s in group:
                 acc = render(c.footprint(s, box), s.amp, s.glare_flux if s.glare_half else None,
                              out=acc)
+            if self.bloom_reach:
+                kernels.bloom_columns_ref(acc, self.bloom_cap, self.bloom_spill,
+                                          self.bloom_coef)
             sig = np.add(acc[Y0 - y0:Y1 - y0, X0 - x0:X1 - x0],
                          c.bg[oy + Y0:oy + Y1, ox + X0:ox + X1], dtype=np.float32)
             self.sensor.expose(sig, c.prnu[oy + Y0:oy + Y1, ox + X0:ox + X1],
@@ -549,6 +617,18 @@ class Scene:
         }
 
 
+def spot_profile(op: OpticsConfig, extra_var_px2: float) -> SpotProfile:
+    """The spot model of ``optics`` in a camera whose PSF gets ``extra_var_px2`` px^2 of
+    Gaussian blur on top (pixel area 1/12, right-camera defocus): the Gaussian or Moffat
+    PSF of width ``psf_sigma_px`` and the diffuser's nested disks."""
+    disks = diffuser_disks(op.diffuser_falloff)
+    if op.psf_model == "moffat":
+        psf = moffat_components(op.psf_sigma_px, op.psf_beta, extra_var_px2)
+    else:
+        psf = ((1.0, math.sqrt(op.psf_sigma_px ** 2 + extra_var_px2)),)
+    return SpotProfile(psf, disks)
+
+
 def _mix64(x: int) -> int:
     """splitmix64 finalizer: a well-mixed 64-bit value of ``x``."""
     x = (x + 0x9E3779B97F4A7C15) & 0xFFFFFFFFFFFFFFFF
@@ -589,13 +669,14 @@ def _set_plan(fp: Footprint, key: str, cols: slice, c_amp: float, sh: _Shape) ->
                     np.ascontiguousarray(gy), gxt, int(grid_q))
 
 
-def _group_box(group: list[_Source]) -> tuple[int, int, int, int]:
-    boxes = [source_box(s.u, s.v, max(s.tab.half, s.glare_half)) for s in group]
+def _group_box(group: list[_Source], pad: int = 0) -> tuple[int, int, int, int]:
+    """The canvas box of a source group; ``pad`` px (the blooming reach) at least."""
+    boxes = [source_box(s.u, s.v, max(s.tab.half, s.glare_half, pad)) for s in group]
     return (min(b[0] for b in boxes), min(b[1] for b in boxes),
             max(b[2] for b in boxes), max(b[3] for b in boxes))
 
 
-def _merge_groups(sources: list[_Source]) -> list[list[_Source]]:
+def _merge_groups(sources: list[_Source], pad: int = 0) -> list[list[_Source]]:
     """Group sources whose boxes overlap, so that each group is rendered in one canvas."""
     groups = [[s] for s in sources]
     if len(groups) == 1:
@@ -605,7 +686,7 @@ def _merge_groups(sources: list[_Source]) -> list[list[_Source]]:
         merged = False
         for a in range(len(groups)):
             for b in range(a + 1, len(groups)):
-                A, B = _group_box(groups[a]), _group_box(groups[b])
+                A, B = _group_box(groups[a], pad), _group_box(groups[b], pad)
                 if A[0] < B[2] and B[0] < A[2] and A[1] < B[3] and B[1] < A[3]:
                     groups[a] += groups.pop(b)
                     merged = True

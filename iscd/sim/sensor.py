@@ -64,3 +64,17 @@ class SensorModel:
         s += np.float32(self.dark_dn + 0.5)
         np.clip(s, 0.0, np.float32(self.max_dn + 0.5 - 1e-3), out=s)
         out[...] = s  # float -> integer truncates: floor(x + 0.5) = rounding
+
+
+def bloom_coefficients(spill: float, length_px: float) -> np.ndarray:
+    """Blooming along a column: the float64 weights c_d, d = 1..D, of the charge moved from
+    a saturated pixel to each of its neighbours d rows above and d rows below (the same
+    both ways), c_d = spill (1 - q) q^(d-1) / (2 (1 - q^D)), q = exp(-1/length_px),
+    D = ceil(4 length_px): the two sides together get ``spill`` of the excess (DN above
+    full well, which the pixel loses). Empty when ``spill`` is 0."""
+    if spill <= 0:
+        return np.zeros(0)
+    D = int(np.ceil(4.0 * length_px))
+    q = np.exp(-1.0 / length_px)
+    w = q ** np.arange(D)
+    return spill * w / (2.0 * w.sum())
