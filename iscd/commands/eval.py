@@ -19,7 +19,11 @@ rate, goodput and the dissertation's throughput (4.4) for single-camera and dive
 10-50 m every 10 m: single camera, diversity and HDR reception (table 4.2), and a car
 approaching at 40 km/h with rig vibration. ranging - one LED, PWM-8, b = 0.6 m, 20-60 m every
 5 m: per-frame mean absolute error, bias and RMSE of the range for every shift estimator on the
-same frames (fig. 3.7).
+same frames (fig. 3.7). motion (not part of all) - a moving car (one LED at 40 km/h from 50 m and
+100 km/h from 100 m down to 25 m, 0.3 and 0.5 px vibration, one LED still with vibration, the 8x8
+array with HDR at 40 km/h), 3 seeds a case: SER and packets delivered, and the oracle split of
+iscd.eval.oracle (what following, timing and the channel estimate cost) with per-packet error
+profiles.
 
 Every point has a fixed seed derived from --seed, so a run is reproducible. A full run
 (--suite all) takes about ten minutes on two cores; --quick runs a few points in about ten
@@ -29,15 +33,17 @@ EPILOG = """\
 examples:
   iscd eval --quick --out /tmp/eval
   iscd eval --suite ranging --frames 5000 --out eval-ranging
-  iscd eval --suite comms --packets 10 --distances 50,55,60 --out eval-comms"""
+  iscd eval --suite comms --packets 10 --distances 50,55,60 --out eval-comms
+  iscd eval --suite motion --seeds 3 --out eval-motion
+  iscd eval --suite motion --quick --out /tmp/motion"""
 
 
 def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     p = sub.add_parser("eval", help="simulated sweeps (SER, goodput, range error vs distance) and a report",
                        description=DESCRIPTION, epilog=EPILOG,
                        formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--suite", choices=("comms", "hdr", "ranging", "all"), default="all",
-                   help="which sweep to run (default: all)")
+    p.add_argument("--suite", choices=("comms", "hdr", "ranging", "all", "motion"), default="all",
+                   help="which sweep to run (default: all = comms, hdr and ranging)")
     p.add_argument("--quick", action="store_true",
                    help="a few points only (comms 20 and 60 m, hdr 50 m with f/8, ranging 30 and 60 m "
                         "with 300 frames, project rule only): small enough for CI")
@@ -55,6 +61,15 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
                    help="comma-separated ranging methods (default: all of iscd.ranging.estimators.METHODS)")
     p.add_argument("--rules", metavar="LIST",
                    help="decision rules, comma-separated from iscd,dissertation (default both; iscd with --quick)")
+    p.add_argument("--seeds", type=int, metavar="N",
+                   help="motion suite: seeds per case (default 3; 1 with --quick)")
+    p.add_argument("--cases", metavar="LIST",
+                   help="motion suite: comma-separated case keys (default all of iscd.eval.suites.MOTION_CASES)")
+    p.add_argument("--scene", metavar="KEY=VALUE", action="append",
+                   help="motion suite: a [scene] key over every case's (repeatable), e.g. vibration_model=bumps")
+    p.add_argument("--randomize", action="store_true",
+                   help="motion suite: pass every case through iscd.sim.randomize.randomized(cfg, seed) "
+                        "(runs without it, and says so, where that module is not there)")
     p.add_argument("--config", metavar="FILE",
                    help="base config (sensor, optics, background, distractors, [receiver], [tracking], "
                         "[ranging]); each suite sets its own transmitter, cameras and distances "
@@ -110,9 +125,41 @@ def build_plan(args: argparse.Namespace) -> "object":
             raise UserError(f"--rules: unknown rule {bad[0]!r} (known: iscd, dissertation)")
     d = _distances(args.distances) if args.distances else None
     suites = SUITES if args.suite == "all" else (args.suite,)
+    seeds = getattr(args, "seeds", None)
+    if seeds is not None and seeds < 1:
+        raise UserError(f"--seeds: expected at least 1 seed per case, got {seeds}")
+    cases = None
+    if getattr(args, "cases", None):
+        from iscd.eval.suites import MOTION_CASES
+
+        cases = tuple(_list(args.cases, "cases"))
+        known = [c.key for c in MOTION_CASES]
+        bad = [c for c in cases if c not in known]
+        if bad:
+            raise UserError(f"--cases: unknown case {bad[0]!r} (known: {', '.join(known)})")
+    scene = tuple(_scene_key(t) for t in (getattr(args, "scene", None) or ()))
     return EvalPlan(suites=suites, quick=args.quick, seed=args.seed, packets=args.packets,
                     frames=args.frames, rules=rules, methods=methods, comms_distances=d,
-                    hdr_distances=d, ranging_distances=d)
+                    hdr_distances=d, ranging_distances=d, motion_seeds=seeds, motion_cases=cases,
+                    motion_scene=scene, motion_randomize=bool(getattr(args, "randomize", False)))
+
+
+def _scene_key(text: str) -> tuple[str, object]:
+    """``KEY=VALUE`` of --scene: the value as a TOML value (number, boolean, quoted or
+    bare string)."""
+    import tomllib
+
+    from iscd.cli import UserError
+
+    key, sep, value = text.partition("=")
+    key = key.strip()
+    if not sep or not key:
+        raise UserError(f"--scene: expected KEY=VALUE, got {text!r}")
+    try:
+        v = tomllib.loads(f"v = {value.strip()}")["v"]
+    except tomllib.TOMLDecodeError:
+        v = value.strip()
+    return key, v
 
 
 def run(args: argparse.Namespace) -> int:
@@ -139,7 +186,10 @@ def run(args: argparse.Namespace) -> int:
         import matplotlib  # noqa: F401
     except ImportError:
         print(f"iscd eval: warning: {NO_MATPLOTLIB}", file=sys.stderr)
-    total = total_frames(base, plan)  # type: ignore[arg-type]
+    try:
+        total = total_frames(base, plan)  # type: ignore[arg-type]
+    except ValueError as e:  # a --scene key or value the config rejects: one line
+        raise UserError(str(e)) from None
     with tqdm(total=total, unit="frame", desc="eval", disable=None, file=sys.stderr) as bar:
         current = [""]
 
@@ -152,7 +202,7 @@ def run(args: argparse.Namespace) -> int:
             bar.update(n)
         try:
             results = run_plan(base, plan, progress)  # type: ignore[arg-type]
-        except ValueError as e:  # a bad value that slipped past the checks: one line
+        except ValueError as e:  # a bad value (a --scene key the config rejects...): one line
             raise UserError(str(e)) from None
     command = "iscd eval " + " ".join(shlex.quote(a) for a in _argv_of(args))
     try:
@@ -169,9 +219,13 @@ def _argv_of(args: argparse.Namespace) -> list[str]:
     a = [f"--suite={args.suite}", f"--seed={args.seed}"]
     if args.quick:
         a.append("--quick")
-    for k in ("frames", "packets", "distances", "methods", "rules", "config"):
-        v = getattr(args, k)
+    for k in ("frames", "packets", "distances", "methods", "rules", "seeds", "cases", "config"):
+        v = getattr(args, k, None)
         if v is not None:
             a.append(f"--{k}={v}")
+    for t in getattr(args, "scene", None) or ():
+        a.append(f"--scene={t}")
+    if getattr(args, "randomize", False):
+        a.append("--randomize")
     a.append(f"--out={args.out}")
     return a

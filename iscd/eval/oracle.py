@@ -78,8 +78,11 @@ SPLIT = (("following", "receiver", "+true positions"), ("timing", "+true positio
          ("channel", "+true timing", "+true channel"))
 """(cost, stage without, stage with) of each replaced part."""
 FLOOR = "decision/noise"
-GENIE_WINDOW_SYMBOLS = 32
-"""Symbols of the true-level window of the ``+true channel`` estimate (8-symbol stretches)."""
+GENIE_WINDOWS = (32, 96, None)
+"""True-level windows (symbols; None = the whole packet) of the ``+true channel`` estimate,
+on 8-symbol stretches; per packet the one with the fewest errors counts (a short window
+follows a growing spot but estimates from few samples: one LED has ~6 clean frames per
+level in 32 symbols)."""
 GENIE_STRETCH_WINDOW = 24
 """``channel_window_symbols`` given to the demodulator with the true channel: its stretches
 are then a third of it, 8 symbols."""
@@ -177,7 +180,7 @@ def nearest_dark(dark: np.ndarray, frames: np.ndarray, k: int = DARK_NEIGHBOURS)
 
 
 def genie_channel(L: np.ndarray, e: float, levels: np.ndarray, M: int, cfg: ReceiverConfig,
-                  window: int | None = GENIE_WINDOW_SYMBOLS) -> Callable[[SymbolClock, int, int], ChannelModel]:
+                  window: int | None = 32) -> Callable[[SymbolClock, int, int], ChannelModel]:
     """A channel from the truth for :func:`demodulate_packet` ``channel=``: for packet
     symbols [a, b), the receiver's estimate (:func:`estimate_iscd`, its settings) from the
     clean frames of the ``window`` symbols centred on [a, b) labelled with the true
@@ -359,14 +362,16 @@ def _assembler_scores(packets: list[Any], truth: Truth, air: AirInterface, tol_s
 
 
 def run_oracle(cfg: Config, packets: int = 2, *, mode: ReceiverMode | None = None, block: int = 32,
-               bins: int = 8, genie: bool = True, genie_window: int = GENIE_WINDOW_SYMBOLS,
+               bins: int = 8, genie: bool = True,
+               genie_windows: Sequence[int | None] = GENIE_WINDOWS,
                progress: Callable[[int], None] | None = None) -> OracleResult:
     """Render ``packets`` whole packets of ``cfg``'s scene (as :func:`iscd.eval.sweeps.run_comms`),
     decode them with the receiver (``mode``, default both cameras with the project's rule)
     and again with the oracle stages (module docstring); ``bins`` stretches per packet in
     the error profiles; ``genie``: also the genie-luminance reference rows (renders the
-    recording's all-dark frames once more for the background); ``genie_window``: symbols
-    of the true-level channel window. ``progress(n)`` after every block."""
+    recording's all-dark frames once more for the background); ``genie_windows``: the
+    true-level channel windows tried per packet (symbols; None = the packet), the best
+    counts. ``progress(n)`` after every block."""
     if packets < 1:
         raise ValueError(f"packets: expected >= 1, got {packets}")
     mode = mode or ReceiverMode("both", "both")
@@ -484,20 +489,23 @@ def run_oracle(cfg: Config, packets: int = 2, *, mode: ReceiverMode | None = Non
         clock = SymbolClock(clk.u0 - lo, clk.p)
         true_lev = truth.levels_of(k0, k0 + Ptot).astype(np.int64) - 1
         sent = true_lev[air.data_offset:] + 1
-        runs: list[tuple[str, np.ndarray, ReceiverConfig, Any]] = [
-            ("+true timing", L_tp, rx, None),
-            ("+true channel", L_tp, rx_genie, genie_window),
-            ("+true channel (one per packet)", L_tp, rx_static, "packet")]
+        runs: list[tuple[str, np.ndarray, ReceiverConfig, Sequence[Any]]] = [
+            ("+true timing", L_tp, rx, ("receiver",)),
+            ("+true channel", L_tp, rx_genie, tuple(genie_windows)),
+            ("+true channel (one per packet)", L_tp, rx_static, (None,))]
         if genie:
-            runs += [("genie luminance", L_g, rx, None), ("genie luminance +true channel", L_g, rx_genie, genie_window)]
-        for name, Lsrc, rcfg, chan in runs:
+            runs += [("genie luminance", L_g, rx, ("receiver",)),
+                     ("genie luminance +true channel", L_g, rx_genie, tuple(genie_windows))]
+        for name, Lsrc, rcfg, windows in runs:
             buf = np.ascontiguousarray(Lsrc[list(cams), lo:hi])
-            ch = None
-            if chan is not None:
-                ch = genie_channel(buf, e, true_lev, M, rx, None if chan == "packet" else int(chan))
-            r = demodulate_packet(buf, clock.u0, air, e, p_nom, clock.p, p_sig, rcfg, clock=clock, channel=ch)
-            if isinstance(r, PacketResult):
-                scores[name][idx] = _score_levels(sent, r.levels.astype(np.int64), r.crc_ok, bins)
+            for w in windows:  # the best of the true channels counts
+                ch = None if w == "receiver" else genie_channel(buf, e, true_lev, M, rx, w)
+                r = demodulate_packet(buf, clock.u0, air, e, p_nom, clock.p, p_sig, rcfg, clock=clock,
+                                      channel=ch)
+                if isinstance(r, PacketResult):
+                    sc = _score_levels(sent, r.levels.astype(np.int64), r.crc_ok, bins)
+                    if idx not in scores[name] or sc.errors < scores[name][idx].errors:
+                        scores[name][idx] = sc
     if not genie:
         notes.append("genie luminance rows not computed")
     out: list[PacketOracle] = []
@@ -511,3 +519,23 @@ def run_oracle(cfg: Config, packets: int = 2, *, mode: ReceiverMode | None = Non
                 po.stages[name] = scores[name].get(idx, StageScore(False))
         out.append(po)
     return OracleResult(res, out, bins, STAGES if genie else STAGES[:-2], notes)
+
+
+def pool(results: Sequence[OracleResult]) -> OracleResult:
+    """Several recordings (seeds) of one case as one result: the receiver's counts summed,
+    the packets side by side (SERs, split and profiles are then over all of them)."""
+    if not results:
+        raise ValueError("pool: no results")
+    r0 = results[0].receiver
+    rec = CommsResult(mode=r0.mode, levels=r0.levels, n_leds=r0.n_leds, data_symbols=r0.data_symbols,
+                      packet_s=r0.packet_s, payload_bytes=r0.payload_bytes)
+    for r in results:
+        c = r.receiver
+        for k in ("packets_sent", "found", "crc_ok", "exact", "undetected", "spurious", "spurious_crc_ok",
+                  "symbols", "symbol_errors", "bits", "bit_errors"):
+            setattr(rec, k, getattr(rec, k) + getattr(c, k))
+        rec.margin_p01 += c.margin_p01
+        rec.seconds += c.seconds
+    stages = tuple(s for s in STAGES if all(s in r.stages for r in results))
+    notes = sorted({n for r in results for n in r.notes})
+    return OracleResult(rec, [p for r in results for p in r.packets], results[0].bins, stages, notes)

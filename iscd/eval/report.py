@@ -21,7 +21,7 @@ from typing import Any, Iterable
 import numpy as np
 
 from iscd.eval import reference as ref
-from iscd.eval.suites import CommsRow, EvalResults, RangingRow
+from iscd.eval.suites import CommsRow, EvalResults, MotionRow, RangingRow
 
 NO_MATPLOTLIB = ("matplotlib is not installed, so this report has no plots "
                  "(pip install matplotlib, or the project's test extra: pip install -e '.[test]')")
@@ -174,6 +174,129 @@ def ranging_tables(rows: list[RangingRow]) -> str:
     if failed:
         parts.append("Frames without a finite range (not in the statistics): " + "; ".join(failed) + ".")
     return "\n\n".join(parts)
+
+
+def _motion_groups(rows: list[MotionRow]) -> list[tuple[Any, Any, list[MotionRow]]]:
+    """(case, pooled oracle result, rows) per motion case, in the order first run."""
+    from iscd.eval.oracle import pool
+
+    groups: dict[str, list[MotionRow]] = {}
+    for r in rows:
+        groups.setdefault(r.case.key, []).append(r)
+    return [(rs[0].case, pool([r.result for r in rs]), rs) for rs in groups.values()]
+
+
+def _ser_cell(res: Any) -> str:
+    c = res.receiver
+    return f"{fmt_rate(c.ser)} ({c.exact}/{c.packets_sent})"
+
+
+def motion_ser_table(rows: list[MotionRow]) -> str:
+    """SER of the receiver (packets delivered bit-exact / sent) against speed and vibration:
+    one row per transmitter and motion, one column per vibration amplitude, seeds pooled."""
+    groups = _motion_groups(rows)
+    vibs = sorted({g[0].vibration_px for g in groups})
+    lines: dict[tuple, dict[float, str]] = {}
+    for case, res, _ in groups:
+        who = "1 LED (f/4+f/4)" if case.leds == 1 else "8x8 (HDR f/4+f/8)"
+        motion = (f"{case.speed_kmh:g} km/h, {case.start_m:g} -> {case.end_m:g} m" if case.speed_kmh
+                  else f"still, {case.start_m:g} m")
+        extra = ", ".join(f"{k}={v}" for k, v in case.scene)
+        lines.setdefault((case.leds, case.speed_kmh, who, motion + (f" ({extra})" if extra else "")), {})[
+            case.vibration_px] = _ser_cell(res)
+    body = [[k[2], k[3]] + [cells.get(v, "") for v in vibs] for k, cells in sorted(lines.items())]
+    return _table(["transmitter", "motion"] + [f"vibration {v:g} px" for v in vibs], body)
+
+
+def motion_split_table(rows: list[MotionRow]) -> str:
+    """Per case: the receiver's scores, the oracle stages' SER on the common packets and the
+    split (what following, timing and the channel estimate cost; the decision floor)."""
+    from iscd.eval.oracle import CHAIN, FLOOR, REFERENCE, SPLIT
+
+    header = (["case", "seeds", "found/sent", "delivered", "SER (found)", "common"] + list(CHAIN)
+              + [s[0] for s in SPLIT] + [FLOOR] + list(REFERENCE))
+    body = []
+    for case, res, rs in _motion_groups(rows):
+        c = res.receiver
+        sp = res.split()
+        body.append([case.label, str(len(rs)), f"{c.found}/{c.packets_sent}", f"{c.exact}/{c.packets_sent}",
+                     fmt_rate(c.ser), f"{len(res.common())}/{len(res.packets)}"]
+                    + [fmt_rate(res.ser(s)) for s in CHAIN]
+                    + [_signed_rate(sp[s[0]]) for s in SPLIT] + [fmt_rate(sp[FLOOR])]
+                    + [fmt_rate(res.ser(s)) if s in res.stages else "-" for s in REFERENCE])
+    return _table(header, body)
+
+
+def motion_found_table(rows: list[MotionRow]) -> str:
+    """Per case and stage: SER over the packets that stage demodulated, and how many it
+    demodulated / delivered with a valid CRC (of those sent)."""
+    groups = _motion_groups(rows)
+    stages = [s for s in groups[0][1].stages] if groups else []
+    body = []
+    for case, res, _ in groups:
+        sent = len(res.packets)
+        line = [case.label]
+        for s in stages:
+            if s not in res.stages:
+                line.append("-")
+                continue
+            found = sum(p.stages[s].found for p in res.packets)
+            ok = sum(p.stages[s].crc_ok for p in res.packets)
+            line.append(f"{fmt_rate(res.ser(s, res.packets))} ({found}/{ok}/{sent})")
+        body.append(line)
+    return _table(["case"] + stages, body)
+
+
+def _signed_rate(x: float) -> str:
+    if x is None or not math.isfinite(x):
+        return "-"
+    return "0" if x == 0 else f"{x:+.2e}"
+
+
+def motion_profile_tables(rows: list[MotionRow]) -> str:
+    """Per case the SER in equal stretches along the packets' data (first to last), per
+    stage, on the common packets."""
+    parts = []
+    for case, res, _ in _motion_groups(rows):
+        body = [[s] + [fmt_rate(x) for x in res.profile(s)] for s in res.stages]
+        first = _rows_of(rows, case)[0].result.packets
+        parts.append(f"**{case.label}** ({len(res.common())} common packets of {len(res.packets)}; packets "
+                     + ", ".join(f"{p.z_start_m:.0f} -> {p.z_end_m:.0f} m" for p in first)
+                     + ")\n\n" + _table(["stage"] + [f"bin {i + 1}" for i in range(res.bins)], body))
+    return "\n\n".join(parts)
+
+
+def _rows_of(rows: list[MotionRow], case: Any) -> list[MotionRow]:
+    return [r for r in rows if r.case.key == case.key]
+
+
+def motion_section(rows: list[MotionRow], settings: dict[str, Any]) -> list[str]:
+    """The report's motion section (issue 12): SER against speed and vibration, the
+    oracle split and the error profiles."""
+    notes = sorted({r.note for r in rows if r.note} | {n for r in rows for n in r.result.notes})
+    out = ["", "## Motion: a moving car, and where its errors come from (issue 12)", "",
+           f"PWM-8; one LED: b = 0.6 m, f/4 + f/4 (both cameras); 8x8: b = 0.25 m, HDR f/4 + f/8; "
+           f"{settings.get('motion_seeds')} seed(s) a case, pooled"
+           + (", quick form (short packets)" if settings.get("quick") else "") + ". "
+           "SER over the packets found; in brackets packets delivered bit-exact / sent.", "",
+           motion_ser_table(rows), "",
+           "**Oracle split** (iscd.eval.oracle): the stages decode the same frames with one more part of "
+           "the receiver replaced by the truth -- true LED positions (luminance at the true centres, "
+           "the receiver's window), true symbol timing, true channel (true-level estimates per 8-symbol "
+           "stretch from windows of 32 or 96 symbols or the whole packet, the best per packet). Stage SERs are over the 'common' packets (every stage "
+           "demodulated them); following + timing + channel + decision/noise = receiver. References: "
+           "one true channel per packet (staleness), genie luminance (background-subtracted sum within "
+           "the spot's radius R = f D / 2Z + 2 x blur, background from the nearest all-dark frames; "
+           "true positions and timing) with the receiver's and with the true channel.", "",
+           motion_split_table(rows), "",
+           "Every stage on the packets it demodulated: SER (demodulated / CRC-valid / sent packets).", "",
+           motion_found_table(rows), "",
+           "**Error profiles**: SER in equal stretches along the data symbols of each packet "
+           "(bin 1 = first), over the common packets.", "",
+           motion_profile_tables(rows)]
+    if notes:
+        out += ["", "Notes: " + "; ".join(notes) + "."]
+    return out
 
 
 # ----------------------------------------------------------------------------- plots
@@ -386,6 +509,8 @@ def markdown(results: EvalResults, plots: dict[str, str] | None = None, note: st
                 "21 m), 0.3 px RMS rig vibration. (Closer than ~17 m, where the light grows 30 % within "
                 "the channel window and both cameras saturate, the receiver does not decode yet.)", "",
                 comms_table(results.approach, dissertation_col=False)]
+    if results.motion:
+        out += motion_section(results.motion, s)
     if results.ranging:
         out += ["", "## Ranging (dissertation chapter 3, fig. 3.7)", "",
                 f"One LED, PWM-8, b = 0.6 m, f/4, right camera defocused (0.3 px), independent air "

@@ -9,6 +9,11 @@
 - ``ranging`` (chapter 3, fig. 3.7): one LED, PWM-8, b = 0.6 m, f/4, right camera slightly
   defocused (0.3 px), independent air jitter 0.05 px RMS per camera, textured background,
   20-60 m every 5 m, every shift estimator on the same frames.
+- ``motion`` (issue 12; not part of ``all``): a moving car, :data:`MOTION_CASES` (one LED
+  approaching at 40 km/h from 50 m and at 100 km/h from 100 m, both down to 25 m, 0.3 and
+  0.5 px vibration, one LED still with vibration only, the 8x8 array with HDR f/4 + f/8 at
+  40 km/h), several seeds a case, each decoded by the receiver and by the oracle stages of
+  :mod:`iscd.eval.oracle` (where the errors come from, and where along the packet).
 
 Each reception mode runs with the project's decision rule and (``rules``) the
 dissertation's. Every point has its own fixed seed, derived from ``seed`` and the point's
@@ -30,6 +35,8 @@ from iscd.ranging.estimators import METHODS
 from iscd.sim.presets import override, single_led
 
 SUITES = ("comms", "hdr", "ranging")
+"""The suites of ``--suite all`` (``motion`` runs only when asked for)."""
+ALL_SUITES = SUITES + ("motion",)
 COMMS_DISTANCES_M = (20.0, 25.0, 30.0, 35.0, 40.0, 45.0, 50.0, 55.0, 60.0)
 HDR_DISTANCES_M = (10.0, 20.0, 30.0, 40.0, 50.0)
 RANGING_DISTANCES_M = COMMS_DISTANCES_M
@@ -42,6 +49,86 @@ APPROACH_VIBRATION_PX = 0.3
 APPROACH_PACKETS = 2
 """Packets of the approach point: 50 -> 21 m at 40 km/h (a third would end at 7 m; the
 receiver decodes to ~17 m, docs/receiver.md)."""
+
+
+MOTION_SEEDS = 3
+"""Seeds per motion case (the quick form: 1)."""
+MOTION_QUICK_DATA_SYMBOLS = 120
+"""Data symbols per packet in the quick motion form (short packets, same physics)."""
+
+
+@dataclass(frozen=True)
+class MotionCase:
+    """One case of the motion suite: ``leds`` 1 (chapter 3: b = 0.6 m, f/4 + f/4, both
+    cameras) or 64 (the 8x8 array, chapter 4: b = 0.25 m, HDR f/4 + f/8), PWM-8; closing at
+    ``speed_kmh`` from ``start_m`` until ``end_m`` (the approach stops there), rig
+    vibration ``vibration_px`` RMS; ``packets`` whole packets. ``scene``: further
+    ``[scene]`` keys (e.g. ``(("vibration_model", "bumps"),)``); ``randomize``: pass the
+    config through ``iscd.sim.randomize.randomized(cfg, seed)`` when that exists."""
+
+    key: str
+    leds: int
+    speed_kmh: float
+    start_m: float
+    end_m: float
+    vibration_px: float
+    packets: int = 2
+    scene: tuple[tuple[str, Any], ...] = ()
+    randomize: bool = False
+
+    @property
+    def label(self) -> str:
+        who = "1 LED" if self.leds == 1 else "8x8 HDR f/4+f/8"
+        if self.speed_kmh:
+            how = f"{self.speed_kmh:g} km/h {self.start_m:g}->{self.end_m:g} m"
+        else:
+            how = f"still at {self.start_m:g} m"
+        extra = "".join(f", {k}={v}" for k, v in self.scene)
+        return f"{who} PWM-8, {how}, {self.vibration_px:g} px{extra}"
+
+
+MOTION_CASES = (
+    MotionCase("1led-40kmh-0.3px", 1, 40.0, 50.0, 25.0, 0.3),
+    MotionCase("1led-40kmh-0.5px", 1, 40.0, 50.0, 25.0, 0.5),
+    MotionCase("1led-100kmh-0.3px", 1, 100.0, 100.0, 25.0, 0.3),
+    MotionCase("1led-100kmh-0.5px", 1, 100.0, 100.0, 25.0, 0.5),
+    MotionCase("1led-still-0.5px", 1, 0.0, 50.0, 50.0, 0.5),
+    MotionCase("8x8-40kmh-0.3px", 64, 40.0, 50.0, 25.0, 0.3),
+)
+"""The motion suite. Two packets (1.3 s each) a case: 40 km/h covers 50 -> 25 m (reached
+after 2.25 s; the rest at 25 m), 100 km/h 100 -> 27.4 m."""
+
+
+def motion_cfg(base: Config, case: MotionCase, seed: int, *, quick: bool = False,
+               scene: dict[str, Any] | None = None, randomize: bool = False) -> tuple[Config, str]:
+    """The config of ``case`` with scene seed ``seed`` (and the note of what was done to
+    it). ``scene``: ``[scene]`` keys over the case's own; ``quick``: packets of
+    :data:`MOTION_QUICK_DATA_SYMBOLS` data symbols; ``randomize`` (or the case's own):
+    through ``iscd.sim.randomize.randomized(cfg, seed)``, imported here -- when that
+    module is not there the case runs without it and the note says so."""
+    keys = {"speed_mps": case.speed_kmh / 3.6, "vibration_px": case.vibration_px,
+            "min_distance_m": min(case.end_m, case.start_m), **dict(case.scene), **(scene or {})}
+    if case.leds == 1:
+        cfg = chapter3_cfg(base, case.start_m, 8, seed, **keys)
+    else:
+        side = int(round(math.sqrt(case.leds)))
+        if side * side != case.leds:
+            raise ValueError(f"motion case {case.key}: {case.leds} LEDs is not a square array")
+        cfg = chapter4_cfg(base, case.start_m, 8, 8.0, seed, **keys)
+        if side != 8:
+            cfg = override(cfg, transmitter={"rows": side, "cols": side})
+    if quick:
+        cfg = override(cfg, transmitter={"data_symbols": MOTION_QUICK_DATA_SYMBOLS})
+    note = ""
+    if randomize or case.randomize:
+        try:
+            from iscd.sim.randomize import randomized  # lazily: another part of the simulator
+        except ImportError:
+            note = "iscd.sim.randomize is not available: run without randomized physics"
+        else:
+            cfg = randomized(cfg, seed)
+            note = "randomized physics (iscd.sim.randomize)"
+    return cfg, note
 
 
 def point_seed(seed: int, *keys: Any) -> int:
@@ -148,13 +235,32 @@ class EvalResults:
     hdr: list[CommsRow] = field(default_factory=list)
     approach: list[CommsRow] = field(default_factory=list)
     ranging: list[RangingRow] = field(default_factory=list)
+    motion: list["MotionRow"] = field(default_factory=list)
     seconds: float = 0.0
 
     def as_dict(self) -> dict[str, Any]:
-        return {"settings": self.settings, "seconds": round(self.seconds, 1),
-                "comms": [r.as_dict() for r in self.comms], "hdr": [r.as_dict() for r in self.hdr],
-                "approach": [r.as_dict() for r in self.approach],
-                "ranging": [r.as_dict() for r in self.ranging]}
+        out = {"settings": self.settings, "seconds": round(self.seconds, 1),
+               "comms": [r.as_dict() for r in self.comms], "hdr": [r.as_dict() for r in self.hdr],
+               "approach": [r.as_dict() for r in self.approach],
+               "ranging": [r.as_dict() for r in self.ranging]}
+        if self.motion:
+            out["motion"] = [r.as_dict() for r in self.motion]
+        return out
+
+
+@dataclass
+class MotionRow:
+    """One seed of one motion case: the receiver's scores and the oracle stages
+    (:class:`iscd.eval.oracle.OracleResult`)."""
+
+    case: MotionCase
+    seed: int
+    result: Any  # iscd.eval.oracle.OracleResult (imported lazily: it imports the pipeline)
+    note: str = ""
+
+    def as_dict(self) -> dict[str, Any]:
+        return {"case": self.case.key, "label": self.case.label, "seed": self.seed, "note": self.note,
+                **self.result.as_dict()}
 
 
 @dataclass
@@ -184,6 +290,14 @@ class EvalPlan:
     hdr_distances: tuple[float, ...] | None = None
     ranging_distances: tuple[float, ...] | None = None
     block: int = 32
+    motion_seeds: int | None = None
+    """seeds per motion case (default :data:`MOTION_SEEDS`, 1 with ``quick``)"""
+    motion_cases: tuple[str, ...] | None = None
+    """keys of :data:`MOTION_CASES` to run (default all)"""
+    motion_scene: tuple[tuple[str, Any], ...] = ()
+    """``[scene]`` keys over every motion case's (e.g. a vibration model)"""
+    motion_randomize: bool = False
+    """pass every motion case through ``iscd.sim.randomize.randomized`` when it exists"""
 
     def resolved(self) -> "EvalPlan":
         """Fill the defaults (full or ``quick``)."""
@@ -197,7 +311,9 @@ class EvalPlan:
             rules=self.rules or (("iscd",) if q else ("iscd", "dissertation")),
             comms_distances=self.comms_distances or ((20.0, 60.0) if q else COMMS_DISTANCES_M),
             hdr_distances=self.hdr_distances or ((50.0,) if q else HDR_DISTANCES_M),
-            ranging_distances=self.ranging_distances or ((30.0, 60.0) if q else RANGING_DISTANCES_M))
+            ranging_distances=self.ranging_distances or ((30.0, 60.0) if q else RANGING_DISTANCES_M),
+            motion_seeds=self.motion_seeds or (1 if q else MOTION_SEEDS),
+            motion_cases=self.motion_cases or tuple(c.key for c in MOTION_CASES))
 
     def settings(self) -> dict[str, Any]:
         p = self.resolved()
@@ -205,7 +321,10 @@ class EvalPlan:
                 "frames": p.frames, "rules": list(p.rules or ()), "methods": list(p.methods),
                 "comms_distances_m": list(p.comms_distances or ()),
                 "hdr_distances_m": list(p.hdr_distances or ()),
-                "ranging_distances_m": list(p.ranging_distances or ())}
+                "ranging_distances_m": list(p.ranging_distances or ()),
+                **({"motion_seeds": p.motion_seeds, "motion_cases": list(p.motion_cases or ()),
+                    "motion_scene": {k: v for k, v in p.motion_scene},
+                    "motion_randomize": p.motion_randomize} if "motion" in p.suites else {})}
 
 
 def _packet_frames(cfg: Config, packets: int) -> int:
@@ -260,6 +379,29 @@ def jobs(base: Config, plan: EvalPlan, results: EvalResults) -> list[Job]:
                              s, results.approach,
                              note=f"{APPROACH_SPEED_MPS * 3.6:.0f} km/h, {APPROACH_VIBRATION_PX} px vibration",
                              packets=APPROACH_PACKETS))
+    if "motion" in p.suites:
+        cases = {c.key: c for c in MOTION_CASES}
+        unknown = [k for k in p.motion_cases or () if k not in cases]
+        if unknown:
+            raise ValueError(f"unknown motion case(s) {', '.join(unknown)} (known: {', '.join(cases)})")
+        for key in p.motion_cases or ():
+            case = cases[key]
+            for i in range(p.motion_seeds or 1):
+                s = point_seed(p.seed, "motion", case.key, i)
+                cfg, note = motion_cfg(base, case, s, quick=p.quick, scene=dict(p.motion_scene),
+                                       randomize=p.motion_randomize)
+
+                def run(progress: Callable[[int], None] | None, cfg: Config = cfg, case: MotionCase = case,
+                        s: int = s, note: str = note) -> list[Any]:
+                    from iscd.eval.oracle import run_oracle
+
+                    row = MotionRow(case, s, run_oracle(cfg, case.packets, mode=ReceiverMode(
+                        "HDR f/4+f/8" if case.leds > 1 else "diversity", "both"), block=p.block,
+                        progress=progress), note)
+                    results.motion.append(row)
+                    return [row]
+                out.append(Job("motion", f"motion {case.key} seed {i + 1}", cfg,
+                               _packet_frames(cfg, case.packets), run))
     if "ranging" in p.suites:
         for d in p.ranging_distances or ():
             s = point_seed(p.seed, "ranging", d)
