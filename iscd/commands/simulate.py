@@ -35,6 +35,12 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="seconds of recording to render (frames = S * camera.fps)")
     p.add_argument("--seed", type=int, metavar="S",
                    help="override scene.seed (noise, texture, LED phase, random payloads)")
+    p.add_argument("--randomize", type=int, metavar="SEED",
+                   help="draw the simulator's physics for SEED (vibration model, PSF, glare, "
+                        "diffuser, blooming, defocus, noise, background, exposure, LED clock, "
+                        "lateral motion; iscd.sim.randomize, docs/simulator.md) on top of the "
+                        "config; the drawn values go to DIR/config.toml and truth.json "
+                        "(meta.randomized)")
     p.add_argument("--no-noise", action="store_true",
                    help="render without sensor noise and PRNU (for debugging)")
     p.add_argument("--overwrite", action="store_true",
@@ -62,6 +68,12 @@ def run(args: argparse.Namespace) -> int:
     cfg = load(args.config)
     if args.seed is not None:
         cfg = override(cfg, scene={"seed": args.seed})
+    randomized_meta = None
+    if args.randomize is not None:
+        from iscd.sim.randomize import drawn, randomized
+
+        cfg = randomized(cfg, args.randomize)
+        randomized_meta = drawn(cfg)
     if args.frames is not None and args.frames < 1:
         raise UserError(f"--frames: expected a number of frames >= 1, got {args.frames}")
     if args.duration is not None and not (args.duration > 0 and math.isfinite(args.duration)):
@@ -96,7 +108,8 @@ def run(args: argparse.Namespace) -> int:
     from iscd.recording import RecordingError
 
     try:
-        write_recording(scene, out, n_frames)
+        write_recording(scene, out, n_frames,
+                        extra_meta={"randomized": randomized_meta} if randomized_meta else None)
         (out / "config.toml").write_text(config_to_toml(
             cfg, f"Config of the simulated recording in this folder ({n_frames} frames).\n"
                  f"Reproduce: iscd simulate --config config.toml --out DIR --frames {n_frames}"))
@@ -110,8 +123,10 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-def write_recording(scene: object, out: Path, n_frames: int, block: int = 32) -> None:
-    """Render frames 0..n_frames-1 into out/left.iscr, out/right.iscr and save the truth."""
+def write_recording(scene: object, out: Path, n_frames: int, block: int = 32,
+                    extra_meta: dict | None = None) -> None:
+    """Render frames 0..n_frames-1 into out/left.iscr, out/right.iscr and save the truth
+    (``extra_meta``: added to the truth's meta, e.g. the randomized draw)."""
     from tqdm import tqdm
 
     from iscd.config import to_dict
@@ -146,7 +161,9 @@ def write_recording(scene: object, out: Path, n_frames: int, block: int = 32) ->
     finally:
         for w in writers:
             w.close()
-    s.truth(np.arange(n_frames)).save(out)  # type: ignore[attr-defined]
+    truth = s.truth(np.arange(n_frames))  # type: ignore[attr-defined]
+    truth.meta.update(extra_meta or {})
+    truth.save(out)
 
 
 def _write_calibration(cfg: object, path: Path) -> str:
