@@ -70,10 +70,16 @@ _FAST = {"reassoc", "contract", "nsz", "arcp"}
 def _follow_kernel(L, R, starts: np.ndarray, half: int, w: float, iterations: int,
                    sel: np.ndarray, lit_ref: np.ndarray, lit_share: float, max_px: float,
                    scale: bool, accelerate: bool, sigmas: np.ndarray,
-                   out_c: np.ndarray, out_lum: np.ndarray, out_light: np.ndarray) -> None:
+                   out_c: np.ndarray, out_lum: np.ndarray, out_light: np.ndarray,
+                   has_bg: bool, bg_l: np.ndarray, bg_r: np.ndarray, st_l: np.ndarray,
+                   st_r: np.ndarray, blk: int, rise: float) -> None:
     """See :func:`follow_and_measure_compiled`. starts (2F, N, 2) px (left frames first);
     lit_ref (2,) the remembered light of a lit LED per camera (< 0: none); sigmas (2,) px.
-    Writes out_c (2F, N, 2) px, out_lum (2F, N) DN, out_light (2,)."""
+    Writes out_c (2F, N, 2) px, out_lum (2F, N) DN, out_light (2,). With ``has_bg`` the
+    per-pixel backgrounds bg_l/bg_r (H, W) float32 and their stamps st_l/st_r (H, W) are
+    first updated with the block's patches (:class:`~iscd.receiver.luminance.PixelBackground`,
+    block number ``blk``, ``rise`` DN) and the centroids and luminance use the light above
+    them."""
     F = L.shape[0]
     N = starts.shape[1]
     n = sel.size
@@ -90,6 +96,27 @@ def _follow_kernel(L, R, starts: np.ndarray, half: int, w: float, iterations: in
                 ya = int(np.rint(starts[g * F + f, i, 1])) - half
                 x0[g * F + f, i] = min(max(xa, 0), W - K)
                 y0[g * F + f, i] = min(max(ya, 0), H - K)
+    # ---- the per-pixel backgrounds: relaxed once per block, then lowered to every pixel
+    # any LED's patch shows in this block
+    if has_bg:
+        for g in range(2):
+            fr = L if g == 0 else R
+            bgi = bg_l if g == 0 else bg_r
+            sti = st_l if g == 0 else st_r
+            for f in range(F):
+                for i in range(N):
+                    xa, ya = x0[g * F + f, i], y0[g * F + f, i]
+                    for a in range(K):
+                        row = fr[f, ya + a, xa:xa + K]
+                        brow = bgi[ya + a, xa:xa + K]
+                        srow = sti[ya + a, xa:xa + K]
+                        for b in range(K):
+                            if srow[b] != blk:
+                                srow[b] = blk
+                                brow[b] += np.float32(rise)
+                            v = np.float32(row[b])
+                            if v < brow[b]:
+                                brow[b] = v
     # ---- per selected LED and frame: patch sum, patch minimum, and (patches that stay
     # put over the block) each pixel's least value over the block's frames
     pmin = np.empty((FF, n))
@@ -177,18 +204,26 @@ def _follow_kernel(L, R, starts: np.ndarray, half: int, w: float, iterations: in
                     swx += wx[k]
                     sxw += xw[k]
                 fr = L if q < F else R
+                bgi = bg_l if q < F else bg_r
                 f = q if q < F else q - F
                 m = pmin[q, j]
                 for a in range(a0, a1):
                     row = fr[f, ya + a, xa:xa + K]
                     ra = 0.0
                     rx = 0.0
-                    for b in range(b0, b1):
-                        v = float(row[b])
-                        ra += v * wx[b]
-                        rx += v * xw[b]
-                    ra -= m * swx  # light above the patch minimum
-                    rx -= m * sxw
+                    if has_bg:  # light above each pixel's background
+                        brow = bgi[ya + a, xa:xa + K]
+                        for b in range(b0, b1):
+                            v = float(row[b]) - float(brow[b])
+                            ra += v * wx[b]
+                            rx += v * xw[b]
+                    else:
+                        for b in range(b0, b1):
+                            v = float(row[b])
+                            ra += v * wx[b]
+                            rx += v * xw[b]
+                        ra -= m * swx  # light above the patch minimum
+                        rx -= m * sxw
                     tot += wy[a] * ra
                     sx += wy[a] * rx
                     sy += wy[a] * ra * (ya + a)
@@ -262,6 +297,7 @@ def _follow_kernel(L, R, starts: np.ndarray, half: int, w: float, iterations: in
     # ---- Gaussian-weighted luminance of every LED at its refined position
     for g in range(2):
         fr = L if g == 0 else R
+        bgi = bg_l if g == 0 else bg_r
         a2 = -0.5 / (sigmas[g] * sigmas[g])
         for f in range(F):
             q = g * F + f
@@ -274,8 +310,13 @@ def _follow_kernel(L, R, starts: np.ndarray, half: int, w: float, iterations: in
                 for a in range(K):
                     row = fr[f, ya + a, xa:xa + K]
                     r = 0.0
-                    for b in range(K):
-                        r += float(row[b]) * wx[b]
+                    if has_bg:
+                        brow = bgi[ya + a, xa:xa + K]
+                        for b in range(K):
+                            r += (float(row[b]) - float(brow[b])) * wx[b]
+                    else:
+                        for b in range(K):
+                            r += float(row[b]) * wx[b]
                     s += wy[a] * r
                 out_lum[q, i] = s / (swx * swy)
     out_c[:] = cc
@@ -284,8 +325,11 @@ def _follow_kernel(L, R, starts: np.ndarray, half: int, w: float, iterations: in
 def _warm_args() -> tuple:
     fr = np.zeros((2, 16, 16), np.uint8)
     st = np.full((4, 2, 2), 8.0)
+    bg = np.full((16, 16), np.inf, np.float32)
+    stamp = np.zeros((16, 16), np.int64)
     return (fr, fr, st, 3, 3.0, 3, np.arange(2), np.full(2, -1.0), 0.25, 1.5, True, True,
-            np.ones(2), np.empty((4, 2, 2)), np.empty((4, 2)), np.empty(2))
+            np.ones(2), np.empty((4, 2, 2)), np.empty((4, 2)), np.empty(2),
+            True, bg, bg.copy(), stamp, stamp.copy(), 1, 0.25)
 
 
 def _warm_args16() -> tuple:
@@ -300,11 +344,17 @@ register_warm(_follow_kernel, _warm_args)
 register_warm(_follow_kernel, _warm_args16)
 
 
+_NO_BG = np.zeros((1, 1), np.float32)
+_NO_STAMP = np.zeros((1, 1), np.int64)
+"""Placeholders for the kernel's background arguments when there is no background."""
+
+
 def follow_and_measure_compiled(frames: list[np.ndarray], starts: list[np.ndarray], size: int,
                                 sigmas: list[float], use: np.ndarray | None = None,
                                 iterations: int = 3, lit_light: np.ndarray | None = None,
-                                info: dict | None = None, *, lit_share: float | None = None,
-                                max_px: float = 1.5, scale: bool = True, accelerate: bool = True
+                                info: dict | None = None, backgrounds: list | None = None, *,
+                                lit_share: float | None = None, max_px: float = 1.5,
+                                scale: bool = True, accelerate: bool = True
                                 ) -> tuple[list[np.ndarray], list[np.ndarray]]:
     """The compiled :func:`iscd.receiver.luminance.follow_and_measure` (same arguments,
     same results to float tolerance) for two cameras.
@@ -312,8 +362,10 @@ def follow_and_measure_compiled(frames: list[np.ndarray], starts: list[np.ndarra
     frames: (left, right) (F, H, W) of one integer dtype; starts: per camera (N, 2) or
     (F, N, 2) px; size: the following box, px; sigmas: per camera the Gaussian window, px;
     use: indices of the LEDs whose centroids steer (all by default); lit_light: per camera
-    the light of a lit LED from earlier blocks; info: gets ``"light"`` (2,). Returns per
-    camera the refined centres (F, N, 2) px and the luminance (F, N) DN.
+    the light of a lit LED from earlier blocks; info: gets ``"light"`` (2,);
+    backgrounds: per camera a :class:`~iscd.receiver.luminance.PixelBackground` (updated in
+    place, as the reference does). Returns per camera the refined centres (F, N, 2) px
+    and the luminance (F, N) DN.
     """
     from iscd.receiver.luminance import LIT_SHARE, patch_half
 
@@ -331,7 +383,8 @@ def follow_and_measure_compiled(frames: list[np.ndarray], starts: list[np.ndarra
     if min(L.shape[1:] + R.shape[1:]) < K:  # an image smaller than a patch: the reference
         from iscd.receiver.luminance import follow_and_measure  # repeats its edge pixels
 
-        return follow_and_measure([L, R], starts, size, sigmas, use, iterations, lit_light, info)
+        return follow_and_measure([L, R], starts, size, sigmas, use, iterations, lit_light, info,
+                                  backgrounds)
     st = np.empty((2 * F,) + np.shape(starts[0])[-2:], np.float64)
     st[:F] = np.asarray(starts[0], dtype=np.float64)
     st[F:] = np.asarray(starts[1], dtype=np.float64)
@@ -343,8 +396,24 @@ def follow_and_measure_compiled(frames: list[np.ndarray], starts: list[np.ndarra
     light = np.empty(2)
     sel = np.require(sel, requirements=["C", "W"])
     ref = np.require(ref, requirements=["C", "W"])
+    if backgrounds is None:
+        has_bg, bgs, sts, blk, rise = False, (_NO_BG, _NO_BG), (_NO_STAMP, _NO_STAMP), 0, 0.0
+    else:
+        if len(backgrounds) != 2 or backgrounds[0].rise_dn != backgrounds[1].rise_dn:
+            raise ValueError("backgrounds: one PixelBackground per camera, with one rise_dn")
+        for b, fr in zip(backgrounds, (L, R)):
+            if b.bg.shape != fr.shape[1:]:
+                raise ValueError(f"background of {b.bg.shape} px for frames of {fr.shape[1:]} px")
+            b.block += 1
+        if backgrounds[0].block != backgrounds[1].block:
+            raise ValueError("backgrounds: the two cameras' maps are at different blocks")
+        has_bg = True
+        bgs = tuple(b.bg for b in backgrounds)
+        sts = tuple(b.stamp for b in backgrounds)
+        blk, rise = backgrounds[0].block, backgrounds[0].rise_dn
     _follow_kernel(L, R, st, half, float(size), iterations, sel, ref, lit_share, max_px, scale,
-                   accelerate, np.array(sigmas, dtype=np.float64).reshape(2), c, lum, light)
+                   accelerate, np.array(sigmas, dtype=np.float64).reshape(2), c, lum, light,
+                   has_bg, bgs[0], bgs[1], sts[0], sts[1], blk, rise)
     if info is not None:
         info["light"] = light
     return [c[:F], c[F:]], [lum[:F], lum[F:]]

@@ -203,7 +203,8 @@ def gauss_mean(frames: np.ndarray, centres: np.ndarray, sigma_px: float = 1.0,
 def refine_in_patches(p: Patches, centres: np.ndarray, size: int = 3, iterations: int = 3,
                       scale: bool = True, max_px: float = 1.5, groups: int = 1,
                       use: np.ndarray | None = None, accelerate: bool = True,
-                      lit_light: np.ndarray | None = None, info: dict | None = None) -> np.ndarray:
+                      lit_light: np.ndarray | None = None, info: dict | None = None,
+                      bg_pix: np.ndarray | None = None) -> np.ndarray:
     """:func:`refine_centres` on patches gathered around ``centres`` (F, N, 2) px (the
     patches must reach size / 2 + max_px px around them). ``groups``: the frames are that
     many equal runs from different cameras (their light levels differ), each with its own
@@ -215,7 +216,9 @@ def refine_in_patches(p: Patches, centres: np.ndarray, size: int = 3, iterations
     90th percentile, whichever is more (in a block where every LED is dark -- zero padding
     -- that percentile is noise, and noise would walk the centres away). ``info``: filled
     with this block's 90th percentile per group (``"light"``), to keep as the next block's
-    ``lit_light``."""
+    ``lit_light``. ``bg_pix``: the per-pixel background of each patch (F, N, K, K) DN
+    (:class:`PixelBackground`); the centroids are then taken of the light above it instead
+    of above each patch's darkest pixel (a textured background then pulls no centroid)."""
     w = _window(size)[0]
     c0 = np.asarray(centres, dtype=np.float64)
     F, N = c0.shape[:2]
@@ -234,7 +237,10 @@ def refine_in_patches(p: Patches, centres: np.ndarray, size: int = 3, iterations
     lit = shown >= np.repeat(LIT_SHARE * ref, F // groups)[:, None]
     # the centroids: light above the patch's darkest pixel (a spot that moves within the
     # block keeps its shape there)
-    img = pix - pix.reshape(F, n, -1).min(-1)[..., None, None]
+    if bg_pix is None:
+        img = pix - pix.reshape(F, n, -1).min(-1)[..., None, None]
+    else:
+        img = pix - bg_pix[:, sel]
     xs, ys = p.xs[:, sel], p.ys[:, sel]
     cc = c0.copy()
     prev: tuple[np.ndarray, np.ndarray] | None = None
@@ -303,7 +309,8 @@ def grid_sample(rows: int, cols: int, per_axis: int = 4) -> np.ndarray:
 
 def follow_and_measure(frames: list[np.ndarray], starts: list[np.ndarray], size: int,
                        sigmas: list[float], use: np.ndarray | None = None, iterations: int = 3,
-                       lit_light: np.ndarray | None = None, info: dict | None = None
+                       lit_light: np.ndarray | None = None, info: dict | None = None,
+                       backgrounds: list["PixelBackground"] | None = None
                        ) -> tuple[list[np.ndarray], list[np.ndarray]]:
     """Follow the LEDs and measure their luminance in each camera, in one vectorized pass.
 
@@ -313,6 +320,11 @@ def follow_and_measure(frames: list[np.ndarray], starts: list[np.ndarray], size:
     (shift and scale of each frame, from the LEDs ``use``; ``lit_light`` and ``info`` as
     there, per camera) and :func:`gauss_in_patches`. Returns per camera the refined
     centres (F, N, 2) px and the luminance (F, N) DN.
+
+    backgrounds: per camera a :class:`PixelBackground`, first updated with this block's
+    patches (:meth:`PixelBackground.update`); the centroids and the luminance are then
+    of the light above it (the luminance: the Gaussian-weighted mean of ``pixel -
+    background``, which a textured background moving under the window does not change).
     """
     F = frames[0].shape[0]
     # the Gaussian reaches 3.5 sigma on every side however the LED sits in its patch (a
@@ -324,11 +336,64 @@ def follow_and_measure(frames: list[np.ndarray], starts: list[np.ndarray], size:
     pix = np.empty((len(frames) * F, N, K, K), np.float32)  # every camera's patches, stacked
     ps = [gather_patches(fr, s, half, out=pix[k * F:(k + 1) * F]) for k, (fr, s) in enumerate(zip(frames, st))]
     p = Patches(pix=pix, x0=np.concatenate([q.x0 for q in ps]), y0=np.concatenate([q.y0 for q in ps]))
+    bg_pix = None
+    if backgrounds is not None:
+        if len(backgrounds) != len(frames):
+            raise ValueError(f"backgrounds: one per camera ({len(frames)}), got {len(backgrounds)}")
+        bg_pix = np.concatenate([b.update(q) for b, q in zip(backgrounds, ps)])
     c = refine_in_patches(p, np.concatenate(st), size, iterations, groups=len(frames), use=use,
-                          lit_light=lit_light, info=info)
-    lum = gauss_in_patches(p, c, np.repeat(np.asarray(sigmas, dtype=np.float64), F))
+                          lit_light=lit_light, info=info, bg_pix=bg_pix)
+    sig = np.repeat(np.asarray(sigmas, dtype=np.float64), F)
+    if bg_pix is None:
+        lum = gauss_in_patches(p, c, sig)
+    else:
+        lum = gauss_in_patches(Patches(pix=pix - bg_pix, x0=p.x0, y0=p.y0), c, sig)
     n = len(frames)
     return [c[k * F:(k + 1) * F] for k in range(n)], [lum[k * F:(k + 1) * F] for k in range(n)]
+
+
+class PixelBackground:
+    """Per-pixel background of one camera, DN: what a pixel shows when no LED lights it.
+
+    Each pixel's least value over the frames whose LED patches covered it, relaxed upward
+    by ``rise_dn`` once per block that covers it (so a background that brightens, or a
+    pixel that a spot covered in every frame of a while, is followed back up). Every
+    packet's header and training hold level-1 (dark) symbols, so the pixels under an LED
+    see its dark frames within a packet; their least value is then the background there
+    (with its noise's lower tail: a constant offset, which the channel absorbs). Unlike
+    the patch's darkest pixel, it keeps the texture of the background, so the light above
+    it does not change as vibration or an approach moves the window over that texture.
+
+    ``bg`` (H, W) float32 (+inf where no patch has been yet) and ``stamp`` (H, W) int64
+    (the last block that relaxed each pixel) are the state; the compiled kernel
+    (:func:`iscd.receiver.follow_kernel.follow_and_measure_compiled`) updates the same
+    arrays the same way.
+    """
+
+    def __init__(self, shape: tuple[int, int], rise_dn: float = 0.25) -> None:
+        if not rise_dn >= 0:
+            raise ValueError(f"rise_dn: expected >= 0 DN per block, got {rise_dn}")
+        self.bg = np.full(shape, np.inf, np.float32)
+        self.stamp = np.zeros(shape, np.int64)
+        self.block = 0
+        self.rise_dn = float(rise_dn)
+
+    def update(self, p: Patches) -> np.ndarray:
+        """Fold one block's patches (one camera, :func:`gather_patches`) in; returns the
+        background under each patch pixel (F, N, K, K) float32 DN after the update."""
+        self.block += 1
+        K = p.pix.shape[-1]
+        ys = (p.y0[..., None] + np.arange(K))[..., :, None]  # (F, N, K, 1)
+        xs = (p.x0[..., None] + np.arange(K))[..., None, :]  # (F, N, 1, K)
+        ys, xs = np.broadcast_arrays(ys, xs)
+        flat = (ys * self.bg.shape[1] + xs).ravel()
+        touched = np.unique(flat)
+        bg, stamp = self.bg.reshape(-1), self.stamp.reshape(-1)
+        fresh = touched[stamp[touched] != self.block]
+        bg[fresh] += np.float32(self.rise_dn)
+        stamp[fresh] = self.block
+        np.minimum.at(bg, flat, p.pix.reshape(-1).astype(np.float32))
+        return bg[flat].reshape(p.pix.shape)
 
 
 def patch_half(size: int, max_px: float = 1.5) -> int:
