@@ -167,6 +167,16 @@ def test_motion_cfg_takes_scene_keys_and_the_optional_randomizer(monkeypatch: py
     monkeypatch.setitem(sys.modules, "iscd.sim.randomize", fake)
     cfg4, note = motion_cfg(base, case, 11, randomize=True)
     assert seen == [11] and cfg4.scene.vibration_px == 0.4 and "randomized" in note
+    # one that takes the motion to keep: the case's speed and vibration are passed
+    kept: list[dict] = []
+
+    def randomized_m(c, seed, *, motion=None):  # type: ignore[no-untyped-def]
+        kept.append(dict(motion or {}))
+        return c
+    fake.randomized = randomized_m  # type: ignore[attr-defined]
+    motion_cfg(base, case, 11, randomize=True, scene={"jitter_px": 0.01})
+    assert kept[0]["vibration_px"] == case.vibration_px and kept[0]["jitter_px"] == 0.01
+    assert kept[0]["speed_mps"] == pytest.approx(case.speed_kmh / 3.6)
 
 
 def test_motion_suite_report_table_and_json(tmp_path: Path) -> None:

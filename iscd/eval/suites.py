@@ -104,8 +104,10 @@ def motion_cfg(base: Config, case: MotionCase, seed: int, *, quick: bool = False
     """The config of ``case`` with scene seed ``seed`` (and the note of what was done to
     it). ``scene``: ``[scene]`` keys over the case's own; ``quick``: packets of
     :data:`MOTION_QUICK_DATA_SYMBOLS` data symbols; ``randomize`` (or the case's own):
-    through ``iscd.sim.randomize.randomized(cfg, seed)``, imported here -- when that
-    module is not there the case runs without it and the note says so."""
+    through ``iscd.sim.randomize.randomized(cfg, seed, motion=...)`` with the case's
+    [scene] keys (speed, vibration amplitude, ``scene``) fixed and the rest of the physics
+    drawn, imported here -- when that module is not there the case runs without it and the
+    note says so."""
     keys = {"speed_mps": case.speed_kmh / 3.6, "vibration_px": case.vibration_px,
             "min_distance_m": min(case.end_m, case.start_m), **dict(case.scene), **(scene or {})}
     if case.leds == 1:
@@ -126,7 +128,12 @@ def motion_cfg(base: Config, case: MotionCase, seed: int, *, quick: bool = False
         except ImportError:
             note = "iscd.sim.randomize is not available: run without randomized physics"
         else:
-            cfg = randomized(cfg, seed)
+            import inspect
+
+            if "motion" in inspect.signature(randomized).parameters:  # the case's motion stays fixed
+                cfg = randomized(cfg, seed, motion=keys)
+            else:
+                cfg = randomized(cfg, seed)
             note = "randomized physics (iscd.sim.randomize)"
     return cfg, note
 
