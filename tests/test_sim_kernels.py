@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from iscd.config import default_config
-from iscd.sim import ArraySource, Scene, kernels
+from iscd.sim import ArraySource, Scene, kernels, sensor
 from iscd.sim.presets import override, single_led
 
 FRAMES = (0, 3, 511, 512, 1777)
@@ -32,6 +32,26 @@ def _configs() -> dict:
         "edge": override(d, scene={"lateral_m": 2.2, "distance_m": 25.0}),  # clipped window
         "single_close": single_led(d, 4.0),
         "no_glare": override(d, optics={"glare_fraction": 0.0}),
+        # the spot and motion models of issue 12: each through both paths
+        "moffat": override(d, optics={"psf_model": "moffat", "psf_beta": 2.2,
+                                      "right_defocus_px": 0.7}),
+        "diffuser": override(d, optics={"diffuser_falloff": 0.6}),
+        "power_glare": override(d, optics={"glare_model": "power", "glare_power": 1.8,
+                                           "glare_fraction": 0.08}),
+        "blooming": override(d, sensor={"blooming": 0.4}, scene={"distance_m": 12.0}),
+        "blooming_single": override(single_led(d, 5.0), sensor={"blooming": 0.5}),
+        "bumps_lateral": override(d, scene={"vibration_model": "bumps", "vibration_px": 0.4,
+                                            "jitter_px": 0.05, "speed_mps": 20.0,
+                                            "lateral_speed_mps": 0.8}),
+        "engine": override(d, scene={"vibration_model": "engine", "vibration_px": 0.3}),
+        "everything": override(d, optics={"psf_model": "moffat", "diffuser_falloff": 0.4,
+                                          "glare_model": "power"},
+                               sensor={"blooming": 0.3},
+                               scene={"vibration_model": "bumps", "vibration_px": 0.3,
+                                      "speed_mps": 11.0, "distractors": [
+                                          {"x_m": 0.1, "y_m": 0.05, "z_m": 30.0,
+                                           "diameter_m": 0.1, "brightness_dn": 200.0,
+                                           "flicker_hz": 100.0}]}),
     }
 
 
@@ -132,6 +152,36 @@ def test_add_sources_matches_reference(grid):
     np.testing.assert_allclose(acc[0], acc[1], rtol=1e-12)
     np.testing.assert_allclose(acc[2], acc[3], rtol=1e-12)
     np.testing.assert_allclose(acc[2] - acc[0], 3.0, rtol=1e-9)  # clear=False adds
+
+
+@pytest.mark.parametrize("shape", [(30, 12), (7, 3), (1, 5)])
+def test_bloom_columns_matches_reference(shape):
+    rng = np.random.default_rng(3)
+    acc = rng.uniform(0, 600, shape)
+    acc[rng.uniform(size=shape) < 0.5] = 0.0
+    coef = sensor.bloom_coefficients(0.4, 2.0)
+    assert 2 * coef.sum() == pytest.approx(0.4)
+    a, b = acc.copy(), acc.copy()
+    kernels.bloom_columns(a, 255.0, 0.4, coef)
+    kernels.bloom_columns_ref(b, 255.0, 0.4, coef)
+    np.testing.assert_array_equal(a, b)
+    # charge moves only from pixels above full well, only along columns
+    ex = np.maximum(acc - 255.0, 0.0)
+    lost = 0.4 * ex.sum()
+    gained = (a - acc + 0.4 * ex).sum()
+    assert gained <= lost + 1e-9
+    quiet = ex.sum(axis=0) == 0
+    np.testing.assert_array_equal(a[:, quiet], acc[:, quiet])
+
+
+def test_blooming_scene_warm_up_compiles_its_kernel():
+    cfg = _configs()["blooming"]
+    s = Scene(cfg)
+    s.warm_up()
+    n = len(kernels.bloom_columns.signatures)
+    assert n >= 1
+    s.render_pair(3)
+    assert len(kernels.bloom_columns.signatures) == n
 
 
 def test_warm_up_compiles_what_the_scene_calls():
