@@ -86,6 +86,7 @@ def _short(cfg):  # type: ignore[no-untyped-def]
 def test_static_clean_scene_every_stage_is_error_free() -> None:
     cfg = _short(chapter3_cfg(default_config(), 30.0, 8, 5))
     res = run_oracle(cfg, 2)
+    assert res.notes == []  # among others: the oracle's window is the receiver's
     assert res.receiver.found == 2 and res.receiver.exact == 2
     assert set(res.stages) == set(STAGES)
     assert len(res.common()) == 2
@@ -109,6 +110,7 @@ def approach() -> oracle.OracleResult:
 
 def test_true_everything_is_not_worse_than_the_receiver_on_an_approach(approach: oracle.OracleResult) -> None:
     res = approach
+    assert res.notes == []
     assert res.common(), "no packet that every stage demodulated"
     rx = res.ser("receiver")
     assert rx > 0  # a perturbed scene: the receiver makes errors

@@ -86,6 +86,9 @@ level in 32 symbols)."""
 GENIE_STRETCH_WINDOW = 24
 """``channel_window_symbols`` given to the demodulator with the true channel: its stretches
 are then a third of it, 8 symbols."""
+WINDOW_TOLERANCE = 2e-3
+"""Relative difference between the receiver's luminance and the oracle's reconstruction of
+its window (at the receiver's own centres) above which a result notes it."""
 DARK_NEIGHBOURS = 4
 """Dark frames (nearest in time) whose per-pixel median is the genie's background."""
 
@@ -315,6 +318,10 @@ class _RecordingDecoder(StreamDecoder):
     def __init__(self, cfg: Config, hook: Callable[..., None]) -> None:
         self._hook = hook
         self._last_growth: list[float] = [1.0, 1.0]
+        self.window_error = 0.0
+        """largest relative difference between the receiver's luminance and the oracle's
+        window at the receiver's own followed centres (first frame of each block): ~1e-6
+        unless the pipeline's window formula changed"""
         super().__init__(cfg)
 
     def _growth(self, starts: list[np.ndarray]) -> list[float]:
@@ -329,6 +336,11 @@ class _RecordingDecoder(StreamDecoder):
         assert tr is not None
         # the window of StreamDecoder._luminance
         sig = [float(np.clip(s * g, 0.6, max(s, self.MAX_SIGMA_PX))) for s, g in zip(tr.roi_sigma, self._last_growth)]
+        if self.last_centres is not None:  # check: that window at the followed centres is the receiver's
+            for img, c, lum, sg in zip((left, right), self.last_centres, (lum_l, lum_r), sig):
+                again = gauss_mean(img[:1], c[:1], sg, radius=int(np.ceil(3.5 * sg)) + 1)
+                scale = max(float(np.nanmax(np.abs(lum[:1]))), 1.0)
+                self.window_error = max(self.window_error, float(np.nanmax(np.abs(again - lum[:1]))) / scale)
         self._hook(np.asarray(frame_ids, dtype=np.int64), left, right, lum_l, lum_r, sig)
         return lum_l, lum_r
 
@@ -447,6 +459,9 @@ def run_oracle(cfg: Config, packets: int = 2, *, mode: ReceiverMode | None = Non
             progress(n)
     records += [r for r in dec.finish() if r["type"] == "packet"]
     dec.close()
+    if dec.window_error > WINDOW_TOLERANCE:
+        notes.append(f"+true positions: the oracle's luminance window differs from the receiver's by up to "
+                     f"{100 * dec.window_error:.2g} % (has StreamDecoder._luminance changed?)")
 
     tol = 0.5 / tx.symbol_rate_hz
     packet_s = air.period_symbols / tx.symbol_rate_hz
