@@ -5,7 +5,9 @@ then for each window around the LEDs (and flickering distractors) add the light 
 source set (:func:`add_sources`: the spot cores from their cached footprints and the
 separable glare) into a float64 canvas and read it out through the sensor
 (:func:`expose_window`: background, PRNU, shot and read noise, dark level, rounding,
-clipping). The references (``*_ref``) do the same with the numpy functions of
+clipping); with blooming (``sensor.blooming`` > 0) the window's canvas first goes through
+:func:`bloom_columns` (charge above full well spilled along the columns). The references
+(``*_ref``) do the same with the numpy functions of
 :mod:`iscd.sim.optics` and :mod:`iscd.sim.sensor` (``Scene(..., compiled=False)`` renders
 with them); ``tests/test_sim_kernels.py`` checks that both agree.
 

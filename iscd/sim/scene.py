@@ -9,6 +9,12 @@ whatever was rendered before). The per-pixel work runs in the compiled kernels o
 :mod:`iscd.sim.kernels` (``Scene(cfg, compiled=False)``: their numpy references, the same
 frames); ``scene.warm_up()`` compiles or loads them (0.4 s cached, ~4 s cold).
 
+The motion and spot models of the config (``scene.vibration_model``, ``lateral_speed_mps``,
+``optics.psf_model``, ``diffuser_falloff``, ``glare_model``, ``sensor.blooming``) all render
+through the same kernels: a spot model is a table (:class:`~iscd.sim.optics.SpotProfile`),
+a power-law glare adds glare-only source sets to a window, and blooming adds one kernel
+(:func:`~iscd.sim.kernels.bloom_columns`) before the read-out of each window.
+
     scene = Scene(cfg)
     left, right = scene.render_pair(n)            # uint8 (H, W) each
     scene.render_pair_into(n, out_l, out_r)        # no allocation
@@ -265,10 +271,6 @@ class Scene:
                 break
         return shapes
 
-    def _shape(self, c: _Camera, radius_px: float) -> _Shape:
-        """The first part of :meth:`_shapes` (core and first glare Gaussian)."""
-        return self._shapes(c, radius_px)[0]
-
     def _make_sources(self, c: _Camera, u: np.ndarray, v: np.ndarray, amp: np.ndarray,
                       radius_px: float) -> list[_Source]:
         """The source parts at (u, v) px with light ``amp`` (DN of the resolved disk)."""
@@ -278,11 +280,6 @@ class Scene:
                                np.asarray(amp * sh.flux_scale, np.float64), sh.glare_sigma,
                                sh.glare_half, slot=(0, j)))
         return out
-
-    def _make_source(self, c: _Camera, u: np.ndarray, v: np.ndarray, amp: np.ndarray,
-                     radius_px: float) -> _Source:
-        """The first part of :meth:`_make_sources`."""
-        return self._make_sources(c, u, v, amp, radius_px)[0]
 
     def _build_backgrounds(self, rng: np.random.Generator, bank_size: int) -> None:
         sc = self.cfg.scene
