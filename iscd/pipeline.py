@@ -32,7 +32,7 @@ import numpy as np
 from calibration.io import StereoCalibration
 from iscd.airinterface import AirInterface
 from iscd.config import Config, build_section
-from iscd.demod_worker import DemodWorker
+from iscd.demod_pipe import PipeDemodWorker as DemodWorker
 from iscd.receiver.follow_kernel import follow_and_measure_compiled
 from iscd.receiver.luminance import follow_and_measure, grid_sample
 from iscd.receiver.detect import GridFit, detect_array, light_map, match_stereo, track_box, track_on_light
@@ -138,8 +138,9 @@ class StreamDecoder:
         """``async_demod``: run the packet assembler elsewhere, so that demodulating a
         whole packet (0.1-0.2 s for an 8x8 array) does not delay the per-frame work;
         packets then come out of a later :meth:`push` (in order) or of :meth:`finish`.
-        ``"process"`` (the daemon): a worker process (:mod:`iscd.demod_worker`; no GIL
-        shared with the frame loop); ``True`` or ``"thread"``: a worker thread. Replay and
+        ``"process"`` (the daemon): a worker process (:mod:`iscd.demod_worker`'s
+        operations over :mod:`iscd.demod_pipe`; no GIL and no helper thread shared with
+        the frame loop); ``True`` or ``"thread"``: a worker thread. Replay and
         tests run synchronously. ``compiled``: the per-frame kernels compiled
         (:mod:`iscd.receiver.follow_kernel`); ``False`` runs their numpy references (the
         same records to float tolerance; for tests)."""

@@ -41,7 +41,7 @@ import numpy as np
 from calibration.io import StereoCalibration, rectify_points
 from iscd.ranging.config import PROJECT_METHODS, RangingSettings
 from iscd.ranging.estimators import Estimator, get_estimator
-from iscd.ranging.project_kernel import patch_minimum, project_patches
+from iscd.ranging.project_kernel import block_minima, range_block
 from iscd.ranging.projected import Plan, ProjectedShift, make_plan, ring_indices, robust_level
 from iscd.ranging.range import DEFAULT_MIN_QUALITY, range_from_disparity, range_sigma
 from iscd.receiver.detect import GridFit
@@ -335,18 +335,23 @@ class StereoRanger:
                           est_obj: ProjectedShift) -> RangeResult:
         """:meth:`measure` for the live case (identity rectification, ``"iscd-fast"`` with
         its row weights, no core refill) on the compiled kernels of
-        :mod:`iscd.ranging.project_kernel`: the same steps without (n, h, w) temporaries."""
+        :mod:`iscd.ranging.project_kernel`: both cameras' block minima in one call, the
+        running backgrounds, then the projections, noise, SNR, correlation peak and range
+        of both cameras in one more (:func:`~iscd.ranging.project_kernel.range_block`), no
+        (n, h, w) temporaries and no per-frame Python."""
         n = left.shape[0]
-        bl = self.background["left"].update_min(patch_minimum(left, g.x0l, g.y0, g.h, g.w), g.x0l, g.y0, n)
-        br = self.background["right"].update_min(patch_minimum(right, g.x0r, g.y0, g.h, g.w), g.x0r, g.y0, n)
+        cur_l, cur_r = block_minima(left, right, g.x0l, g.x0r, g.y0, g.h, g.w)
+        bl = self.background["left"].update_min(cur_l, g.x0l, g.y0, n)
+        br = self.background["right"].update_min(cur_r, g.x0r, g.y0, n)
         plan = g.plan
         assert plan is not None and plan.weights_left is not None and plan.weights_right is not None
-        ped_l, mad_l, sig_l, prof_l = project_patches(left, g.x0l, g.y0, bl, g.ring, g.snr_left, plan.weights_left)
-        ped_r, mad_r, sig_r, prof_r = project_patches(right, g.x0r, g.y0, br, g.ring, g.snr_right, plan.weights_right)
-        noise_l = max(float(np.sort(mad_l)[n // 2]), _QUANT_NOISE_DN)
-        noise_r = max(float(np.sort(mad_r)[n // 2]), _QUANT_NOISE_DN)
-        snr = np.minimum(sig_l / noise_l, sig_r / noise_r)
-        return self._result(g, est_obj.from_profiles(prof_l, prof_r, plan, compiled=True), snr)
+        z, d, sig, q, valid, snr = range_block(
+            left, right, g.x0l, g.x0r, g.y0, bl, br, g.ring, g.snr_left, g.snr_right,
+            plan.weights_left, plan.weights_right, beta=est_obj.beta, band_cutoff=est_obj.band_cutoff,
+            max_shift_px=plan.max_shift_px, iterations=est_obj.iterations,
+            sigma_floor_px=est_obj.sigma_floor_px, focal_px=self.f_px, baseline_m=self.b_m,
+            quant_noise_dn=_QUANT_NOISE_DN, min_snr=self.settings.min_snr, min_quality=self.min_quality)
+        return RangeResult(z_m=z, disparity_px=d, sigma_m=sig, quality=q, valid=valid, snr=snr)
 
     def _result(self, g: _Geometry, est, snr: np.ndarray) -> RangeResult:  # est: ShiftEstimate
         d = (g.x0l - g.x0r) + np.asarray(est.dx, dtype=np.float64)

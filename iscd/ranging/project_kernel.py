@@ -71,6 +71,18 @@ def _project(fr, x0: int, y0: int, bg: np.ndarray, ring: np.ndarray, snr_w: np.n
     k = ring.size
     vals = np.empty(k)
     dev = np.empty(k)
+    # the ring's pixels as (row, column) once, and whether they are all inside the image
+    r_a = np.empty(k, np.int64)
+    r_b = np.empty(k, np.int64)
+    r_bg = np.empty(k)
+    inside = True
+    for i in range(k):
+        a, b = ring[i] // w, ring[i] % w
+        r_a[i] = a
+        r_b[i] = b
+        r_bg[i] = bg[a, b]
+        if not (0 <= y0 + a < H and 0 <= x0 + b < W):
+            inside = False
     sw_tot = 0.0
     for i in range(h * w):
         sw_tot += snr_w[i]
@@ -84,35 +96,44 @@ def _project(fr, x0: int, y0: int, bg: np.ndarray, ring: np.ndarray, snr_w: np.n
         for b in range(w):
             bg_prof[b] += row_w[a] * bg[a, b]
             bg_snr += snr_w[a * w + b] * bg[a, b]
+    # the columns of the patch inside the image
+    xa = max(0, -x0)
+    xb = min(w, W - x0)
     for f in range(n):
-        for i in range(k):
-            a, b = ring[i] // w, ring[i] % w
-            y, x = y0 + a, x0 + b
-            v = float(fr[f, y, x]) if 0 <= y < H and 0 <= x < W else 0.0
-            vals[i] = v - bg[a, b]
+        frf = fr[f]
+        if inside:
+            for i in range(k):
+                vals[i] = float(frf[y0 + r_a[i], x0 + r_b[i]]) - r_bg[i]
+        else:
+            for i in range(k):
+                y, x = y0 + r_a[i], x0 + r_b[i]
+                v = float(frf[y, x]) if 0 <= y < H and 0 <= x < W else 0.0
+                vals[i] = v - r_bg[i]
         p = np.median(vals)  # selection, not a sort (exact: the same order statistic)
         for i in range(k):
             dev[i] = abs(vals[i] - p)
         ped[f] = p
         mad[f] = 1.4826 * np.median(dev)
         s = 0.0
+        pf = prof[f]
         for b in range(w):
-            prof[f, b] = 0.0
-        for a in range(h):
-            y = y0 + a
-            if y < 0 or y >= H:
-                continue
-            ra = row_w[a]
-            xa = max(0, -x0)
-            xb = min(w, W - x0)
-            row = fr[f, y]
-            for b in range(xa, xb):
-                v = float(row[x0 + b])
-                prof[f, b] += ra * v
-                s += snr_w[a * w + b] * v
+            pf[b] = 0.0
+        if xb > xa:
+            for a in range(h):
+                y = y0 + a
+                if y < 0 or y >= H:
+                    continue
+                ra = row_w[a]
+                row = frf[y, x0 + xa:x0 + xb]  # hoisted slices: the inner loop vectorizes
+                sw = snr_w[a * w + xa:a * w + xb]
+                pp = pf[xa:xb]
+                for b in range(xb - xa):
+                    v = float(row[b])
+                    pp[b] += ra * v
+                    s += sw[b] * v
         snr_sum[f] = s - bg_snr - p * sw_tot
         for b in range(w):
-            prof[f, b] -= bg_prof[b] + p * rw_tot
+            pf[b] -= bg_prof[b] + p * rw_tot
 
 
 def project_patches(frames: np.ndarray, x0: int, y0: int, background: np.ndarray, ring: np.ndarray,
@@ -283,3 +304,141 @@ def _warm_c() -> tuple:
 
 
 register_warm(_correlate, _warm_c)
+
+
+# ---------------------------------------------------------------- one call per block
+@njit
+def _block_minima(L, R, x0l: int, x0r: int, y0: int, out_l: np.ndarray, out_r: np.ndarray,
+                  scratch: np.ndarray) -> None:
+    """out_l, out_r (h, w) float32: both cameras' per-pixel patch minima over the block
+    (:func:`patch_minimum` of each; 0 outside the image). ``scratch`` (h, w) of the frames'
+    dtype (the minimum itself runs in it: integer minima vectorize)."""
+    for g in range(2):
+        out = out_l if g == 0 else out_r
+        scratch[:] = 0
+        _patch_minimum(L if g == 0 else R, x0l if g == 0 else x0r, y0, scratch)
+        h, w = out.shape
+        for a in range(h):
+            for b in range(w):
+                out[a, b] = np.float32(scratch[a, b])
+
+
+def block_minima(left: np.ndarray, right: np.ndarray, x0l: int, x0r: int, y0: int, h: int, w: int
+                 ) -> tuple[np.ndarray, np.ndarray]:
+    """Both cameras' (h, w) float32 per-pixel minima over a block of frames (n, H, W) of
+    the patches at (x0l, y0) and (x0r, y0) px: :func:`patch_minimum` of each in one call."""
+    L = np.require(left, requirements=["C", "W"])
+    R = np.require(right, dtype=L.dtype, requirements=["C", "W"])
+    out_l = np.empty((h, w), np.float32)
+    out_r = np.empty((h, w), np.float32)
+    _block_minima(L, R, int(x0l), int(x0r), int(y0), out_l, out_r, np.empty((h, w), L.dtype))
+    return out_l, out_r
+
+
+@njit
+def _range_block(L, R, x0l: int, x0r: int, y0: int, bg_l: np.ndarray, bg_r: np.ndarray,
+                 ring: np.ndarray, snr_l: np.ndarray, snr_r: np.ndarray, row_l: np.ndarray,
+                 row_r: np.ndarray, cos_t: np.ndarray, sin_t: np.ndarray, omega: np.ndarray,
+                 mult: np.ndarray, band: np.ndarray, w2: np.ndarray, w2m: np.ndarray, beta: float,
+                 max_shift: float, iterations: int, tiny: float, floor_px: float, fb: float,
+                 quant_noise: float, min_snr: float, min_quality: float,
+                 z: np.ndarray, disp: np.ndarray, sigma_m: np.ndarray, quality: np.ndarray,
+                 valid: np.ndarray, snr: np.ndarray) -> None:
+    """See :func:`range_block`. Not fastmath here: the result arithmetic is numpy's, in
+    numpy's order (the inner kernels keep their own flags)."""
+    n = L.shape[0]
+    w = bg_l.shape[1]
+    ped_l, mad_l, sig_l, prof_l = np.empty(n), np.empty(n), np.empty(n), np.empty((n, w))
+    ped_r, mad_r, sig_r, prof_r = np.empty(n), np.empty(n), np.empty(n), np.empty((n, w))
+    _project(L, x0l, y0, bg_l, ring, snr_l, row_l, ped_l, mad_l, sig_l, prof_l)
+    _project(R, x0r, y0, bg_r, ring, snr_r, row_r, ped_r, mad_r, sig_r, prof_r)
+    noise_l = max(np.sort(mad_l)[n // 2], quant_noise)
+    noise_r = max(np.sort(mad_r)[n // 2], quant_noise)
+    dx, height, sig = np.empty(n), np.empty(n), np.empty(n)
+    _correlate(prof_l, prof_r, cos_t, sin_t, omega, mult, band, w2, w2m, beta, max_shift,
+               iterations, tiny, dx, height, sig)
+    off = float(x0l - x0r)
+    for f in range(n):
+        s = min(sig_l[f] / noise_l, sig_r[f] / noise_r)
+        snr[f] = s
+        dead = not (np.isfinite(height[f]) and np.isfinite(dx[f]))
+        q = 0.0 if dead else height[f]
+        quality[f] = q
+        d = off + (np.nan if dead else dx[f])
+        disp[f] = d
+        zf = fb / d if (np.isfinite(d) and d > 0) else np.nan
+        sp = np.sqrt(sig[f] ** 2 + floor_px ** 2)
+        ok = np.isfinite(zf) and s >= min_snr and q >= min_quality
+        valid[f] = ok
+        z[f] = zf if ok else np.nan
+        sigma_m[f] = zf * zf / fb * sp if ok else np.nan
+
+
+_SPECTRAL_W: dict[tuple[int, float | None], tuple[np.ndarray, ...]] = {}
+"""writable copies of :func:`iscd.ranging.projected._spectral` per (w, band cutoff)"""
+
+
+def range_block(left: np.ndarray, right: np.ndarray, x0l: int, x0r: int, y0: int, bg_left: np.ndarray,
+                bg_right: np.ndarray, ring: np.ndarray, snr_left: np.ndarray, snr_right: np.ndarray,
+                row_left: np.ndarray, row_right: np.ndarray, *, beta: float, band_cutoff: float | None,
+                max_shift_px: float | None, iterations: int, sigma_floor_px: float, focal_px: float,
+                baseline_m: float, quant_noise_dn: float, min_snr: float, min_quality: float
+                ) -> tuple[np.ndarray, ...]:
+    """A block's ranges in one compiled call (the live case of
+    :meth:`iscd.stereo_range.StereoRanger.measure`: identity rectification, ``"iscd-fast"``
+    with row weights, no core refill): both cameras' :func:`project_patches`, the per-block
+    noise (median over the frames of the ring MAD, at least ``quant_noise_dn``), the
+    weaker camera's matched-filter SNR, :func:`correlate_1d_compiled` of the profiles and
+    the range with its standard deviation (:func:`iscd.ranging.range.range_from_disparity`,
+    :func:`~iscd.ranging.range.range_sigma`; ``sigma_floor_px`` added in quadrature).
+
+    left/right (n, H, W) frames; (x0l, y0), (x0r, y0) the patches' top-left px; bg_* (h, w)
+    their backgrounds, grey levels; ring, snr_*, row_* as :func:`project_patches`.
+    Returns (z m, disparity px, sigma m, quality, valid, snr), each (n,); z and sigma NaN
+    where not valid (frames below ``min_snr`` or ``min_quality``, no peak, d <= 0)."""
+    from iscd.ranging.projected import _TINY, _spectral
+
+    L = np.require(left, requirements=["C", "W"])
+    R = np.require(right, dtype=L.dtype, requirements=["C", "W"])
+    n = L.shape[0]
+    w = int(np.shape(bg_left)[1])
+    key = (w, band_cutoff)
+    spec = _SPECTRAL_W.get(key)
+    if spec is None:  # writable copies (the cached ones are read-only: another Numba type)
+        spec = _SPECTRAL_W[key] = tuple(np.array(a, dtype=np.float64) for a in _spectral(w, band_cutoff))
+    omega, mult, band, w2, w2m = spec
+    cos_t, sin_t = _tables(w, omega.size)
+    out = [np.empty(n) for _ in range(4)]
+    valid = np.empty(n, np.bool_)
+    snr = np.empty(n)
+    _range_block(L, R, int(x0l), int(x0r), int(y0), _w(bg_left, np.float32), _w(bg_right, np.float32),
+                 _w(ring, np.int64), _w(snr_left, np.float64), _w(snr_right, np.float64),
+                 _w(row_left, np.float64), _w(row_right, np.float64), cos_t, sin_t,
+                 omega, mult, band, w2, w2m, float(beta),
+                 -1.0 if max_shift_px is None else float(max_shift_px), int(iterations), _TINY,
+                 float(sigma_floor_px), float(focal_px) * float(baseline_m), float(quant_noise_dn),
+                 float(min_snr), float(min_quality), out[0], out[1], out[2], out[3], valid, snr)
+    z, d, sig, q = out
+    return z, d, sig, q, valid, snr
+
+
+def _warm_b(dtype: type) -> tuple:
+    fr = np.zeros((2, 8, 8), dtype)
+    return (fr, fr, 1, 1, 1, np.zeros((4, 4), np.float32), np.zeros((4, 4), np.float32), np.zeros((4, 4), dtype))
+
+
+def _warm_r(dtype: type) -> tuple:
+    fr = np.zeros((2, 8, 8), dtype)
+    w, nk = 4, 3
+    t = np.ones((nk, w))
+    v = np.ones(nk)
+    bg = np.zeros((4, 4), np.float32)
+    return (fr, fr, 1, 1, 1, bg, bg, np.arange(4, dtype=np.int64), np.zeros(16), np.zeros(16),
+            np.zeros(4), np.zeros(4), t, t, v, v, v, v, v, 0.5, 2.0, 2, 1e-12, 0.006, 100.0,
+            0.5, 3.0, 0.5, np.empty(2), np.empty(2), np.empty(2), np.empty(2), np.empty(2, np.bool_),
+            np.empty(2))
+
+
+for _dt in (np.uint8, np.uint16):
+    register_warm(_block_minima, lambda _dt=_dt: _warm_b(_dt))
+    register_warm(_range_block, lambda _dt=_dt: _warm_r(_dt))
