@@ -61,6 +61,9 @@ class PacketResult:
     erasures: int = 0
     channel: str = "static"
     """``tracked`` (re-estimated along the packet) or ``static`` (one channel per packet)"""
+    reason: str = ""
+    """why a packet that failed its CRC could not be decoded (:func:`failure_reason`);
+    empty when the CRC passed"""
 
     def quality(self) -> dict[str, float]:
         """Summary metrics (the receiver has no truth): margins and sync quality."""
@@ -72,7 +75,8 @@ class PacketResult:
                 "erasures": int(self.erasures), "drift_ppm": float(self.drift_ppm),
                 "channel_tracked": self.channel == "tracked",
                 "header_r2": float(self.header_r2), "training_rho": float(self.training_rho),
-                "contrast": float(self.contrast)}
+                "contrast": float(self.contrast),
+                **({"reason": self.reason} if not self.crc_ok and self.reason else {})}
 
 
 @dataclass
@@ -86,6 +90,52 @@ class Rejection:
     def incomplete(self) -> bool:
         """The packet's frames are not all in the buffer yet (not a verdict)."""
         return self.reason == "incomplete"
+
+
+SEPARATION_MIN = 6.0
+"""Adjacent levels whose centroids lie fewer noise RMS apart than this are called
+indistinguishable by :func:`failure_reason`: with Gaussian noise a symbol between them is
+wrong with probability 2 Q(6 / 2) = 0.27 %, one or more errors in a few hundred symbols."""
+
+WEAK_MARGIN = 4.0
+"""A decision margin below this is a weak symbol (as :meth:`PacketResult.quality` counts)."""
+
+
+def level_separation(model: ChannelModel) -> np.ndarray:
+    """(C, N, M - 1) distance of adjacent level centroids in noise RMS units:
+    ``(mu_s+1 - mu_s) / sqrt((var_s + var_s+1) / 2)`` per camera and LED."""
+    sd = np.sqrt(0.5 * (model.var[..., 1:] + model.var[..., :-1]))
+    return (model.mu[..., 1:] - model.mu[..., :-1]) / np.maximum(sd, 1e-9)
+
+
+def failure_reason(models: list[ChannelModel], margins: np.ndarray) -> str:
+    """Why a packet failed its CRC, from the receiver's own channel estimates: one line.
+
+    * ``"saturated"`` -- in every camera some LED's upper levels (above M / 2) lie closer
+      than :data:`SEPARATION_MIN` noise RMS: its spot clips (too close, or too bright for
+      both apertures) and its levels live only in the wings;
+    * ``"low light"`` -- the same among the lower levels (too far, too dim);
+    * ``"weak decisions"`` -- the levels are apart but many decisions are weak (noise,
+      motion, timing);
+    * otherwise ``"few symbol errors"`` -- a handful of wrong symbols (v1 has no FEC).
+    The worst stretch of the packet counts (``models``: the channel of each stretch)."""
+    n_weak = int((margins < WEAK_MARGIN).sum()) if margins.size else 0
+    detail = f"{n_weak} of {margins.size} decisions weak"
+    noisy = [m for m in models if m.kind != "euclid"]  # (the dissertation's rule has no variances)
+    if not noisy:
+        return f"weak decisions: {detail}" if n_weak > 0.02 * max(margins.size, 1) else f"few symbol errors: {detail}"
+    sep = np.min([level_separation(m) for m in noisy], axis=0)  # (C, N, M - 1)
+    M1 = sep.shape[-1]
+    half = M1 // 2
+    bad = sep < SEPARATION_MIN
+    if bad[..., half:].any(axis=-1).any(axis=-1).all():
+        lo = int(np.argmax(bad[..., half:].any(axis=(0, 1)))) + half + 1
+        return f"saturated: levels {lo}-{M1 + 1} overlap in every camera (too close or too bright); {detail}"
+    if bad[..., :half].any(axis=-1).any(axis=-1).all():
+        return f"low light: the lower levels overlap in every camera (too far or too dim); {detail}"
+    if margins.size and n_weak > 0.02 * margins.size:
+        return f"weak decisions: {detail}"
+    return f"few symbol errors: {detail}"
 
 
 def known_levels(air: AirInterface) -> np.ndarray:
@@ -510,9 +560,10 @@ def _demodulate(L: np.ndarray, u_guess: float, air: AirInterface, e: float,
     levels = (lev[n_known:] + 1).astype(np.uint8)
     raw, ok = air.decode_data(levels)
     first = int(clean_frame(np.array([0]), clock, e)[0])
+    reason = "" if ok else failure_reason([dmodel] if cfg.dissertation else models, margins)
     return PacketResult(u0=clock.u0, p=clock.p, first_frame=first, levels=levels, raw=raw,
                         crc_ok=bool(ok), drift_ppm=clock.drift_ppm(p_nominal),
                         header_r2=r2, training_rho=rho_t, contrast=contrast,
                         margins=margins, erasures=erasures,
-                        channel="tracked" if tracked else "static")
+                        channel="tracked" if tracked else "static", reason=reason)
 

@@ -1,0 +1,78 @@
+"""A packet that fails its CRC says why (issue 12: "too close, both cameras saturated"),
+from the receiver's own channel estimates, never from the truth."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from iscd.receiver.channel import ChannelModel
+from iscd.receiver.demod import SEPARATION_MIN, failure_reason, level_separation
+
+
+def _model(mu_per_cam: list[list[float]], sd: float = 1.0) -> ChannelModel:
+    mu = np.array(mu_per_cam, dtype=np.float64)[:, None, :]  # (C, 1, M)
+    return ChannelModel(mu=mu, var=np.full_like(mu, sd * sd), kind="t")
+
+
+def test_separation_is_in_noise_rms_units() -> None:
+    m = _model([[0, 10, 30, 60]], sd=2.0)
+    np.testing.assert_allclose(level_separation(m)[0, 0], [5.0, 10.0, 15.0])
+
+
+def test_saturated_in_every_camera() -> None:
+    clipped = [10, 60, 110, 160, 200, 250, 254, 255]  # the top levels clip
+    m = _model([clipped, clipped])
+    r = failure_reason([m], np.full(600, 2.0))
+    assert r.startswith("saturated: levels 6-8")
+
+
+def test_one_camera_still_apart_is_not_saturation() -> None:
+    # HDR: the f/8 camera keeps the upper levels apart, so saturation is not the reason
+    m = _model([[10, 60, 110, 160, 200, 250, 254, 255], [5, 30, 55, 80, 105, 130, 155, 180]])
+    r = failure_reason([m], np.r_[np.full(590, 20.0), np.full(10, 1.0)])
+    assert r.startswith("few symbol errors: 10 of 600")
+
+
+def test_low_light_and_weak_decisions() -> None:
+    dim = [10, 12, 14, 40, 80, 120, 160, 200]
+    assert failure_reason([_model([dim, dim])], np.full(100, 20.0)).startswith("low light")
+    apart = [0, 20, 40, 60, 80, 100, 120, 140]
+    assert failure_reason([_model([apart])], np.r_[np.full(90, 20.0), np.full(10, 1.0)]).startswith("weak decisions")
+
+
+def test_the_worst_stretch_counts() -> None:
+    good = _model([[0, 20, 40, 60, 80, 100, 120, 140]] * 2)
+    late = _model([[0, 20, 40, 60, 80, 100, 140, 140 + 0.5 * SEPARATION_MIN]] * 2)
+    assert failure_reason([good], np.full(10, 20.0)).startswith("few symbol errors")
+    assert failure_reason([good, late], np.full(10, 20.0)).startswith("saturated: levels 7-8")
+
+
+def test_a_saturated_close_led_says_so_in_its_packet_record() -> None:
+    """One very bright LED at 8 m: both apertures clip, the packet fails, its record says
+    "saturated"; the same LED at 30 m decodes (no reason in a good packet)."""
+    from iscd.airinterface import AirInterface
+    from iscd.config import default_config
+    from iscd.eval.sweeps import ReceiverMode, _decoder_cfg, frames_for_packets
+    from iscd.pipeline import StreamDecoder
+    from iscd.sim.presets import override, single_led
+    from iscd.sim.scene import Scene
+
+    seen = {}
+    for d in (8.0, 30.0):
+        cfg = override(single_led(default_config(), d, seed=3), transmitter={"radiance_dn": 3000.0})
+        sc = Scene(cfg)
+        n = frames_for_packets(sc, AirInterface.from_config(cfg.transmitter), 1)
+        dec = StreamDecoder(_decoder_cfg(cfg, ReceiverMode("both", "both")))
+        L = np.empty((32, sc.height, sc.width), np.uint8)
+        R = np.empty_like(L)
+        recs = []
+        for s in range(0, n, 32):
+            ids = np.arange(s, min(s + 32, n))
+            for i, k in enumerate(ids):
+                sc.render_pair_into(int(k), L[i], R[i])
+            recs += dec.push(ids, ids / sc.fps, L[:ids.size], R[:ids.size])
+        recs += dec.finish()
+        seen[d] = [r for r in recs if r["type"] == "packet"]
+    assert len(seen[8.0]) == 1 and not seen[8.0][0]["crc_ok"]
+    assert seen[8.0][0]["reason"].startswith("saturated")
+    assert len(seen[30.0]) == 1 and seen[30.0][0]["crc_ok"] and "reason" not in seen[30.0][0]
