@@ -141,6 +141,29 @@ def test_pool_adds_the_seeds(approach: oracle.OracleResult) -> None:
         assert both.ser(s) == pytest.approx(approach.ser(s))
 
 
+def test_oracle_of_a_recording_is_the_oracle_of_its_scene(tmp_path: Path) -> None:
+    """A recording written by ``iscd simulate`` (frames + truth + config) gives the same
+    decodings as rendering the scene: the oracle runs on another renderer's recordings."""
+    from iscd.sim.tomlout import config_to_toml
+
+    cfg = override(_short(chapter3_cfg(default_config(), 40.0, 8, 9, vibration_px=0.3)),
+                   camera={"width": 192, "height": 96})  # small frames: a small recording
+    (tmp_path / "in.toml").write_text(config_to_toml(cfg))
+    from iscd.eval.sweeps import frames_for_packets
+    from iscd.sim.scene import Scene
+    from iscd.airinterface import AirInterface
+
+    n = frames_for_packets(Scene(cfg), AirInterface.from_config(cfg.transmitter), 2)
+    rec = tmp_path / "rec"
+    assert main(["simulate", "--config", str(tmp_path / "in.toml"), "--out", str(rec), "--frames", str(n)]) == 0
+    a = oracle.oracle_of_recording(rec)
+    b = run_oracle(cfg, 2)
+    assert len(a.packets) == len(b.packets) == 2 and b.receiver.found >= 1 and len(b.common()) >= 1
+    for s in a.stages:
+        assert a.counts(s) == b.counts(s), s
+    assert a.receiver.as_dict() | {"seconds": 0} == b.receiver.as_dict() | {"seconds": 0}
+
+
 # ----------------------------------------------------------------------------- the suite
 
 def test_motion_cfg_takes_scene_keys_and_the_optional_randomizer(monkeypatch: pytest.MonkeyPatch) -> None:

@@ -49,6 +49,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field, replace
+from pathlib import Path
 from typing import Any, Callable, Sequence
 
 import numpy as np
@@ -373,17 +374,69 @@ def _assembler_scores(packets: list[Any], truth: Truth, air: AirInterface, tol_s
     return out
 
 
+FrameReader = Callable[[int, np.ndarray, np.ndarray], None]
+"""``read(k, left, right)``: frame k of each camera into the (H, W) uint8 arrays given
+(as :meth:`iscd.sim.scene.Scene.render_pair_into`)."""
+
+
+def whole_packets(truth: Truth, packet_symbols: int, fps: float, exposure_s: float) -> int:
+    """How many packets from the first transmitted one lie wholly within ``truth``'s frames
+    (their last symbol ends before the last frame's exposure does)."""
+    t_end = float(truth.t_s[-1]) + exposure_s
+    n = 0
+    for k0 in truth.packet_start_symbol:
+        i = int(k0) + packet_symbols - int(truth.symbol_index[0])
+        if k0 < 0 or i >= truth.symbol_t_s.size or truth.symbol_t_s[i] > t_end:
+            break
+        n += 1
+    return n
+
+
+def oracle_of_recording(directory: str | Path, *, mode: ReceiverMode | None = None, block: int = 32,
+                        bins: int = 8, genie: bool = True,
+                        progress: Callable[[int], None] | None = None) -> OracleResult:
+    """:func:`run_oracle` on a recording written by ``iscd simulate`` (or any renderer that
+    writes the same files): ``left.iscr``, ``right.iscr``, ``truth.npz`` + ``truth.json``
+    (:class:`~iscd.sim.truth.Truth`) and ``config.toml`` in ``directory``; every whole
+    packet of it. The frames must be numbered from 0 (as ``iscd simulate`` writes them)."""
+    from iscd.config import load
+    from iscd.recording import open_recording
+
+    d = Path(directory)
+    cfg = load(d / "config.toml")
+    truth = Truth.load(d)
+    left, right = open_recording(d / "left.iscr"), open_recording(d / "right.iscr")
+    try:
+        def read(k: int, out_l: np.ndarray, out_r: np.ndarray) -> None:
+            out_l[...] = left[k]
+            out_r[...] = right[k]
+        air = AirInterface.from_config(cfg.transmitter)
+        n = whole_packets(truth, air.packet_symbols, cfg.camera.fps, cfg.camera.exposure_s)
+        if n < 1:
+            raise ValueError(f"{d}: no whole packet in the recording")
+        return run_oracle(cfg, n, mode=mode, block=block, bins=bins, genie=genie, progress=progress,
+                          reader=read, truth=truth)
+    finally:
+        left.close()
+        right.close()
+
+
 def run_oracle(cfg: Config, packets: int = 2, *, mode: ReceiverMode | None = None, block: int = 32,
                bins: int = 8, genie: bool = True,
                genie_windows: Sequence[int | None] = GENIE_WINDOWS,
-               progress: Callable[[int], None] | None = None) -> OracleResult:
+               progress: Callable[[int], None] | None = None,
+               reader: FrameReader | None = None, truth: Truth | None = None) -> OracleResult:
     """Render ``packets`` whole packets of ``cfg``'s scene (as :func:`iscd.eval.sweeps.run_comms`),
     decode them with the receiver (``mode``, default both cameras with the project's rule)
     and again with the oracle stages (module docstring); ``bins`` stretches per packet in
     the error profiles; ``genie``: also the genie-luminance reference rows (renders the
     recording's all-dark frames once more for the background); ``genie_windows``: the
     true-level channel windows tried per packet (symbols; None = the packet), the best
-    counts. ``progress(n)`` after every block."""
+    counts. ``progress(n)`` after every block.
+
+    ``reader`` and ``truth``: frames and truth of a recording made elsewhere (frames 0 ..
+    len(truth) - 1, :func:`oracle_of_recording`) instead of rendering ``cfg``'s scene; cfg
+    must be the config it was rendered with (transmitter, camera, optics, [receiver])."""
     if packets < 1:
         raise ValueError(f"packets: expected >= 1, got {packets}")
     mode = mode or ReceiverMode("both", "both")
@@ -393,8 +446,14 @@ def run_oracle(cfg: Config, packets: int = 2, *, mode: ReceiverMode | None = Non
     scene = Scene(cfg)
     air = AirInterface.from_config(cfg.transmitter)
     tx = cfg.transmitter
-    n_frames = frames_for_packets(scene, air, packets)
-    truth = scene.truth(np.arange(n_frames))
+    if truth is None:
+        n_frames = frames_for_packets(scene, air, packets)
+        truth = scene.truth(np.arange(n_frames))
+    else:
+        n_frames = len(truth)
+        if not np.array_equal(truth.frames, np.arange(n_frames)):
+            raise ValueError("truth: frames must be numbered 0 .. n - 1")
+    read = reader or scene.render_pair_into
     N, F, M = tx.n_leds, air.data_symbols, tx.levels
     fps, e = cfg.camera.fps, cfg.camera.exposure_s * cfg.camera.fps
     notes: list[str] = []
@@ -432,7 +491,7 @@ def run_oracle(cfg: Config, packets: int = 2, *, mode: ReceiverMode | None = Non
         dl = np.empty((H, W), np.uint8)
         dr = np.empty_like(dl)
         for k in dark:
-            scene.render_pair_into(int(k), dl, dr)
+            read(int(k), dl, dr)
             for c, img in enumerate((dl, dr)):
                 x0, y0, x1, y1 = boxes[c]
                 dark_crops[c].append(img[y0:y1, x0:x1].copy())
@@ -445,7 +504,7 @@ def run_oracle(cfg: Config, packets: int = 2, *, mode: ReceiverMode | None = Non
     for ids in _blocks(n_frames, block):
         n = ids.size
         for i, k in enumerate(ids):
-            scene.render_pair_into(int(k), Lb[i], Rb[i])
+            read(int(k), Lb[i], Rb[i])
         if genie:
             near = nearest_dark(dark, ids)  # (n, k)
             for c, img in enumerate((Lb[:n], Rb[:n])):
