@@ -162,6 +162,15 @@ def test_oracle_of_a_recording_is_the_oracle_of_its_scene(tmp_path: Path) -> Non
     for s in a.stages:
         assert a.counts(s) == b.counts(s), s
     assert a.receiver.as_dict() | {"seconds": 0} == b.receiver.as_dict() | {"seconds": 0}
+    # and from the command line: the report's motion tables for the recording
+    out = tmp_path / "rep"
+    assert main(["eval", "--recording", str(rec), "--out", str(out)]) == 0
+    md = (out / "report.md").read_text()
+    data = json.loads((out / "results.json").read_text())
+    (row,) = data["motion"]
+    assert row["case"] == "rec" and row["ser"] == a.as_dict()["ser"]
+    assert "rec: 1x1 PWM-8, 0 km/h from 40 m, 0.3 px" in md and "**Oracle split**" in md
+    assert main(["eval", "--recording", str(tmp_path / "nothing"), "--out", str(out)]) == 2
 
 
 # ----------------------------------------------------------------------------- the suite

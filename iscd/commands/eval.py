@@ -70,6 +70,10 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     p.add_argument("--randomize", action="store_true",
                    help="motion suite: pass every case through iscd.sim.randomize.randomized(cfg, seed) "
                         "(runs without it, and says so, where that module is not there)")
+    p.add_argument("--recording", metavar="DIR", action="append",
+                   help="the oracle split of a recording instead of a suite (repeatable): DIR holds "
+                        "left.iscr, right.iscr, truth.npz, truth.json and config.toml as iscd simulate "
+                        "writes them (another renderer may write the same files)")
     p.add_argument("--config", metavar="FILE",
                    help="base config (sensor, optics, background, distractors, [receiver], [tracking], "
                         "[ranging]); each suite sets its own transmitter, cameras and distances "
@@ -171,6 +175,11 @@ def run(args: argparse.Namespace) -> int:
     from iscd.eval.suites import run_plan, total_frames
 
     plan = build_plan(args)
+    if getattr(args, "recording", None):
+        for name in ("iscd.pipeline", "iscd.receiver"):
+            if not getattr(args, "verbose", 0):
+                logging.getLogger(name).setLevel(logging.WARNING)
+        return _run_recordings(args)
     base = load(args.config)
     if not getattr(args, "verbose", 0):  # per-decoder acquisition/search logs are noise here (-v shows them)
         for name in ("iscd.pipeline", "iscd.receiver", "matplotlib"):
@@ -214,6 +223,46 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
+def _run_recordings(args: argparse.Namespace) -> int:
+    """``--recording DIR ...``: the oracle of each recording, in the report's motion section."""
+    import time
+
+    from iscd.cli import UserError
+    from iscd.config import ConfigError, load
+    from iscd.eval.oracle import oracle_of_recording
+    from iscd.eval.report import write_report
+    from iscd.eval.suites import EvalResults, MotionCase, MotionRow
+    from iscd.recording import RecordingError
+
+    t0 = time.perf_counter()
+    results = EvalResults(settings={"suites": ["recording"], "quick": False, "seed": None,
+                                    "recordings": list(args.recording), "motion_seeds": 1})
+    for d in args.recording:
+        path = Path(d)
+        try:
+            cfg = load(path / "config.toml")
+            print(f"iscd eval: oracle of {path}", file=sys.stderr, flush=True)
+            res = oracle_of_recording(path)
+        except (OSError, ConfigError, RecordingError, ValueError, KeyError) as e:
+            raise UserError(f"--recording {d}: {e}") from None
+        sc, tx = cfg.scene, cfg.transmitter
+        case = MotionCase(key=path.name or str(path), leds=tx.n_leds, speed_kmh=sc.speed_mps * 3.6,
+                          start_m=sc.distance_m, end_m=max(sc.min_distance_m, 0.0),
+                          vibration_px=sc.vibration_px, packets=res.receiver.packets_sent,
+                          title=f"{path.name or path}: {tx.rows}x{tx.cols} PWM-{tx.levels}, "
+                                f"{sc.speed_mps * 3.6:g} km/h from {sc.distance_m:g} m, {sc.vibration_px:g} px")
+        results.motion.append(MotionRow(case, int(sc.seed), res))
+    results.seconds = time.perf_counter() - t0
+    out = Path(args.out)
+    command = "iscd eval " + " ".join(shlex.quote(a) for a in _argv_of(args))
+    try:
+        report = write_report(results, out, command)
+    except OSError as e:
+        raise UserError(f"--out: cannot write to {out}: {e.strerror or e}") from None
+    print(f"iscd eval: {results.seconds:.0f} s; wrote {report} and {out / 'results.json'}", file=sys.stderr)
+    return 0
+
+
 def _argv_of(args: argparse.Namespace) -> list[str]:
     """The options of this run, to reproduce it."""
     a = [f"--suite={args.suite}", f"--seed={args.seed}"]
@@ -225,6 +274,8 @@ def _argv_of(args: argparse.Namespace) -> list[str]:
             a.append(f"--{k}={v}")
     for t in getattr(args, "scene", None) or ():
         a.append(f"--scene={t}")
+    for t in getattr(args, "recording", None) or ():
+        a.append(f"--recording={t}")
     if getattr(args, "randomize", False):
         a.append("--randomize")
     a.append(f"--out={args.out}")

@@ -75,9 +75,13 @@ class MotionCase:
     packets: int = 2
     scene: tuple[tuple[str, Any], ...] = ()
     randomize: bool = False
+    title: str = ""
+    """the label, when not made from the fields (a recording's)"""
 
     @property
     def label(self) -> str:
+        if self.title:
+            return self.title
         who = "1 LED" if self.leds == 1 else "8x8 HDR f/4+f/8"
         if self.speed_kmh:
             how = f"{self.speed_kmh:g} km/h {self.start_m:g}->{self.end_m:g} m"
