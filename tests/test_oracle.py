@@ -97,6 +97,11 @@ def test_static_clean_scene_every_stage_is_error_free() -> None:
         assert res.counts(s) == (0, 2 * 120)
     sp = res.split()
     assert sp == {"receiver": 0.0, "following": 0.0, "timing": 0.0, "channel": 0.0, FLOOR: 0.0}
+    # the luminance the stages decoded: the receiver's and the true-position one agree on a
+    # still scene (the same window, the LEDs followed to within a small fraction of a pixel)
+    lr, lt = res.luminance["receiver"], res.luminance["true positions"]
+    ok = np.isfinite(lr) & np.isfinite(lt)
+    assert ok.sum() > 1000 and np.allclose(lr[ok], lt[ok], rtol=0.02, atol=0.5)
     d = json.loads(json.dumps(res.as_dict()))  # JSON-ready
     assert d["ser"]["receiver"] == 0.0 and d["common_packets"] == [0, 1]
 

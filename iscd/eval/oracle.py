@@ -256,6 +256,10 @@ class OracleResult:
     bins: int
     stages: tuple[str, ...] = STAGES
     notes: list[str] = field(default_factory=list)
+    luminance: dict[str, np.ndarray] = field(default_factory=dict, repr=False)
+    """(2, frames, N) per camera and frame (NaN = not measured), for plots: ``receiver``
+    (what the decoder measured), ``true positions`` (its window at the true centres),
+    ``genie`` (DN summed over the spot); not in :meth:`as_dict`, not kept by :func:`pool`."""
 
     def common(self) -> list[PacketOracle]:
         """The packets that every stage of the chain demodulated (the split's packets)."""
@@ -592,7 +596,8 @@ def run_oracle(cfg: Config, packets: int = 2, *, mode: ReceiverMode | None = Non
             if name in scores:
                 po.stages[name] = scores[name].get(idx, StageScore(False))
         out.append(po)
-    return OracleResult(res, out, bins, STAGES if genie else STAGES[:-2], notes)
+    lum = {"receiver": L_rx, "true positions": L_tp, **({"genie": L_g} if genie else {})}
+    return OracleResult(res, out, bins, STAGES if genie else STAGES[:-2], notes, lum)
 
 
 def pool(results: Sequence[OracleResult]) -> OracleResult:
