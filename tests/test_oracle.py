@@ -146,7 +146,8 @@ def test_pool_adds_the_seeds(approach: oracle.OracleResult) -> None:
         assert both.ser(s) == pytest.approx(approach.ser(s))
 
 
-def test_oracle_of_a_recording_is_the_oracle_of_its_scene(tmp_path: Path) -> None:
+def test_oracle_of_a_recording_is_the_oracle_of_its_scene(tmp_path: Path,
+                                                         capsys: pytest.CaptureFixture[str]) -> None:
     """A recording written by ``iscd simulate`` (frames + truth + config) gives the same
     decodings as rendering the scene: the oracle runs on another renderer's recordings."""
     from iscd.sim.tomlout import config_to_toml
@@ -170,6 +171,7 @@ def test_oracle_of_a_recording_is_the_oracle_of_its_scene(tmp_path: Path) -> Non
     # and from the command line: the report's motion tables for the recording
     out = tmp_path / "rep"
     assert main(["eval", "--recording", str(rec), "--out", str(out)]) == 0
+    assert "**Oracle split**" in capsys.readouterr().out  # printed too
     md = (out / "report.md").read_text()
     data = json.loads((out / "results.json").read_text())
     (row,) = data["motion"]

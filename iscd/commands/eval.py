@@ -220,7 +220,17 @@ def run(args: argparse.Namespace) -> int:
         raise UserError(f"--out: cannot write to {out}: {e.strerror or e}") from None
     print(f"iscd eval: {results.seconds:.0f} s; wrote {path}, {out / 'results.json'} and the plots",
           file=sys.stderr)
+    _print_motion(results)
     return 0
+
+
+def _print_motion(results: "object") -> None:
+    """The motion section (SER table, oracle split, error profiles per case) on stdout."""
+    rows = getattr(results, "motion", None)
+    if rows:
+        from iscd.eval.report import motion_section
+
+        print("\n".join(motion_section(rows, getattr(results, "settings", {}))).strip())
 
 
 def _run_recordings(args: argparse.Namespace) -> int:
@@ -260,6 +270,7 @@ def _run_recordings(args: argparse.Namespace) -> int:
     except OSError as e:
         raise UserError(f"--out: cannot write to {out}: {e.strerror or e}") from None
     print(f"iscd eval: {results.seconds:.0f} s; wrote {report} and {out / 'results.json'}", file=sys.stderr)
+    _print_motion(results)
     return 0
 
 
