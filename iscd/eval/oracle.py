@@ -97,10 +97,26 @@ DARK_NEIGHBOURS = 4
 # ----------------------------------------------------------------------------- pure parts
 
 def profile_bins(F: int, N: int, bins: int) -> np.ndarray:
-    """Bin (0 .. bins - 1) of every data symbol of a packet, (F, N) int64: data symbol
-    ``j = t N + i`` (symbol time t, LED i; SPEC section 3) goes to bin ``j bins // (F N)``,
-    so every data symbol is in exactly one bin and the bins hold F N / bins symbols each
-    (+-1)."""
+    """Bin of every data symbol of a packet along the packet.
+
+    Data symbol ``j = t N + i`` (symbol time t, LED i; SPEC section 3) goes to bin
+    ``j bins // (F N)``, so every data symbol is in exactly one bin and the bins hold
+    F N / bins symbols each (+-1), in transmission order.
+
+    Parameters
+    ----------
+    F : int
+        Data symbol times per packet.
+    N : int
+        LEDs.
+    bins : int
+        Stretches along the packet.
+
+    Returns
+    -------
+    numpy.ndarray
+        (F, N) int64 bin indices 0 .. bins - 1.
+    """
     if F < 1 or N < 1 or bins < 1:
         raise ValueError(f"profile_bins: F, N and bins must be >= 1, got {F}, {N}, {bins}")
     j = np.arange(F * N, dtype=np.int64)
@@ -108,10 +124,20 @@ def profile_bins(F: int, N: int, bins: int) -> np.ndarray:
 
 
 def error_profile(sent: np.ndarray, got: np.ndarray, bins: int) -> tuple[np.ndarray, np.ndarray]:
-    """Symbol errors and symbols per bin along a packet's data, two (bins,) int64 arrays.
+    """Symbol errors and symbols per stretch along a packet's data.
 
-    sent, got: (F, N) levels 1..M of the data symbols (:func:`profile_bins` says which
-    bin each symbol is in)."""
+    Parameters
+    ----------
+    sent, got : numpy.ndarray
+        (F, N) levels 1..M of the data symbols, sent and decided.
+    bins : int
+        Stretches (:func:`profile_bins` says which symbol is in which).
+
+    Returns
+    -------
+    errors, symbols : numpy.ndarray
+        (bins,) int64 each.
+    """
     s, g = np.asarray(sent), np.asarray(got)
     if s.shape != g.shape or s.ndim != 2:
         raise ValueError(f"sent {s.shape} and got {g.shape}: expected the same (F, N) shape")
@@ -121,10 +147,25 @@ def error_profile(sent: np.ndarray, got: np.ndarray, bins: int) -> tuple[np.ndar
 
 
 def true_clock(symbol_t_s: np.ndarray, fps: float, frame0: int = 0) -> SymbolClock:
-    """The symbol clock (frame units, :mod:`iscd.receiver.timing`) of a packet from the
-    true start times (s, camera clock) of its symbols 0, 1, ...: the least-squares line
-    ``u0 + k p`` through ``t_k fps - frame0`` (exact for a constant clock drift; frame n
-    exposes from ``n / fps``). ``frame0``: the buffer's first frame."""
+    """The true symbol clock of a packet.
+
+    The least-squares line ``u0 + k p`` through ``t_k fps - frame0`` (exact for a constant
+    clock drift; frame n exposes from ``n / fps``).
+
+    Parameters
+    ----------
+    symbol_t_s : numpy.ndarray
+        (S,) true start times of the packet's symbols 0, 1, ..., s (camera clock).
+    fps : float
+        Frame rate, 1/s.
+    frame0 : int
+        The demodulation buffer's first frame.
+
+    Returns
+    -------
+    SymbolClock
+        ``u0`` and ``p`` in frame units relative to ``frame0`` (:mod:`iscd.receiver.timing`).
+    """
     t = np.asarray(symbol_t_s, dtype=np.float64).reshape(-1)
     if t.size < 2:
         raise ValueError("true_clock: need the start times of at least two symbols")
@@ -135,15 +176,45 @@ def true_clock(symbol_t_s: np.ndarray, fps: float, frame0: int = 0) -> SymbolClo
 
 
 def true_centres(truth: Truth, side: int) -> np.ndarray:
-    """(F, N, 2) true LED centres (x, y) px in every frame of ``truth``; side 0 = left."""
+    """True LED centres in every frame of ``truth``.
+
+    Parameters
+    ----------
+    truth : Truth
+        The recording's truth.
+    side : int
+        0 = left camera, 1 = right.
+
+    Returns
+    -------
+    numpy.ndarray
+        (F, N, 2) centres (x, y), px.
+    """
     u, v = (truth.u_left, truth.v_left) if side == 0 else (truth.u_right, truth.v_right)
     return np.stack([u, v], axis=-1)
 
 
 def spot_radius_px(cfg: Config, z_m: np.ndarray, side: int) -> np.ndarray:
-    """Genie window radius per frame, px: the LED disc ``R = f_px D / (2 Z)`` plus twice
-    the camera's blur (PSF, defocus of the right camera and the pixel), at most half the
-    LED pitch in the image (an array's neighbours), at least 1 px."""
+    """Radius of the genie luminance window.
+
+    The LED disc ``R = f_px D / (2 Z)`` plus twice the camera's blur (PSF sigma, the right
+    camera's defocus, the pixel), at most half the LED pitch in the image (an array's
+    neighbours), at least 1 px.
+
+    Parameters
+    ----------
+    cfg : Config
+        The scene's config (camera, optics, transmitter).
+    z_m : numpy.ndarray
+        (F,) distance per frame, m.
+    side : int
+        0 = left camera, 1 = right.
+
+    Returns
+    -------
+    numpy.ndarray
+        (F,) radius, px.
+    """
     f_px = cfg.camera.focal_px
     z = np.asarray(z_m, dtype=np.float64)
     op = cfg.optics
@@ -156,11 +227,24 @@ def spot_radius_px(cfg: Config, z_m: np.ndarray, side: int) -> np.ndarray:
 
 def genie_sum(frames: np.ndarray, centres: np.ndarray, radius_px: np.ndarray, background: np.ndarray
               ) -> np.ndarray:
-    """Background-subtracted sum of the pixels whose centres lie within ``radius_px`` of
-    each LED centre: (F, N) float64, DN summed over the window.
+    """Background-subtracted sum of the pixels within a radius of each LED centre.
 
-    frames: (F, H, W) images; centres: (F, N, 2) px; radius_px: (F,) px; background:
-    (F, H, W) per-pixel background of each frame, DN (same pixel grid)."""
+    Parameters
+    ----------
+    frames : numpy.ndarray
+        (F, H, W) images, DN.
+    centres : numpy.ndarray
+        (F, N, 2) LED centres (x, y), px.
+    radius_px : numpy.ndarray
+        (F,) window radius per frame, px (a pixel counts when its centre is inside).
+    background : numpy.ndarray
+        (F, H, W) per-pixel background of each frame, DN, on the same pixel grid.
+
+    Returns
+    -------
+    numpy.ndarray
+        (F, N) float64, DN summed over the window's pixels.
+    """
     r = np.asarray(radius_px, dtype=np.float64).reshape(-1)
     half = int(np.ceil(r.max())) + 1
     p = gather_patches(frames, centres, half)
@@ -173,8 +257,22 @@ def genie_sum(frames: np.ndarray, centres: np.ndarray, radius_px: np.ndarray, ba
 
 
 def nearest_dark(dark: np.ndarray, frames: np.ndarray, k: int = DARK_NEIGHBOURS) -> np.ndarray:
-    """(F, k') indices into ``dark`` (sorted frame numbers) of the k frames nearest in
-    time to each of ``frames`` (k' = min(k, dark.size))."""
+    """The dark frames nearest in time to each frame.
+
+    Parameters
+    ----------
+    dark : numpy.ndarray
+        (D,) sorted frame numbers of frames in which every LED is dark.
+    frames : numpy.ndarray
+        (F,) frame numbers.
+    k : int
+        How many.
+
+    Returns
+    -------
+    numpy.ndarray
+        (F, min(k, D)) indices into ``dark``.
+    """
     d = np.asarray(dark, dtype=np.float64)
     if d.size == 0:
         raise ValueError("nearest_dark: no dark frames")
@@ -185,13 +283,32 @@ def nearest_dark(dark: np.ndarray, frames: np.ndarray, k: int = DARK_NEIGHBOURS)
 
 def genie_channel(L: np.ndarray, e: float, levels: np.ndarray, M: int, cfg: ReceiverConfig,
                   window: int | None = 32) -> Callable[[SymbolClock, int, int], ChannelModel]:
-    """A channel from the truth for :func:`demodulate_packet` ``channel=``: for packet
-    symbols [a, b), the receiver's estimate (:func:`estimate_iscd`, its settings) from the
-    clean frames of the ``window`` symbols centred on [a, b) labelled with the true
-    levels (``None``: the whole packet, one channel).
+    """A channel from the truth for :func:`demodulate_packet`'s ``channel=``.
 
-    L: (C, n, N) buffer luminance; levels: (P, N) true 0-based levels of the packet's
-    symbols (header, training, data)."""
+    For packet symbols [a, b): the receiver's estimate (:func:`estimate_iscd` with the
+    receiver's settings) from the clean frames of the ``window`` symbols centred on [a, b),
+    labelled with the true levels.
+
+    Parameters
+    ----------
+    L : numpy.ndarray
+        (C, n, N) the demodulation buffer's luminance, DN (NaN = missing).
+    e : float
+        Exposure, frames.
+    levels : numpy.ndarray
+        (P, N) true 0-based levels of the packet's symbols (header, training, data).
+    M : int
+        Levels.
+    cfg : ReceiverConfig
+        The receiver's settings (noise model, variance floor).
+    window : int or None
+        Symbols of the window; None = the whole packet (one channel).
+
+    Returns
+    -------
+    callable
+        ``channel(clock, a, b) -> ChannelModel``.
+    """
     st = IscdChannelSettings(var_floor_dn=cfg.var_floor_dn)
     lev = np.asarray(levels, dtype=np.int64)
     P = lev.shape[0]
@@ -384,8 +501,24 @@ FrameReader = Callable[[int, np.ndarray, np.ndarray], None]
 
 
 def whole_packets(truth: Truth, packet_symbols: int, fps: float, exposure_s: float) -> int:
-    """How many packets from the first transmitted one lie wholly within ``truth``'s frames
-    (their last symbol ends before the last frame's exposure does)."""
+    """Packets, from the first one, that lie wholly within a truth's frames.
+
+    Parameters
+    ----------
+    truth : Truth
+        The recording's truth.
+    packet_symbols : int
+        Symbols of a packet (header + training + data).
+    fps : float
+        Frame rate, 1/s.
+    exposure_s : float
+        Exposure, s.
+
+    Returns
+    -------
+    int
+        Packets whose last symbol ends before the last frame's exposure does.
+    """
     t_end = float(truth.t_s[-1]) + exposure_s
     n = 0
     for k0 in truth.packet_start_symbol:
@@ -399,10 +532,21 @@ def whole_packets(truth: Truth, packet_symbols: int, fps: float, exposure_s: flo
 def oracle_of_recording(directory: str | Path, *, mode: ReceiverMode | None = None, block: int = 32,
                         bins: int = 8, genie: bool = True,
                         progress: Callable[[int], None] | None = None) -> OracleResult:
-    """:func:`run_oracle` on a recording written by ``iscd simulate`` (or any renderer that
-    writes the same files): ``left.iscr``, ``right.iscr``, ``truth.npz`` + ``truth.json``
-    (:class:`~iscd.sim.truth.Truth`) and ``config.toml`` in ``directory``; every whole
-    packet of it. The frames must be numbered from 0 (as ``iscd simulate`` writes them)."""
+    """:func:`run_oracle` on a recording with its truth, every whole packet of it.
+
+    Parameters
+    ----------
+    directory : str or Path
+        Holds ``left.iscr``, ``right.iscr``, ``truth.npz`` + ``truth.json``
+        (:class:`~iscd.sim.truth.Truth`) and ``config.toml``, as ``iscd simulate`` writes
+        them (any renderer may write the same files); frames numbered from 0.
+    mode, block, bins, genie, progress
+        As :func:`run_oracle`.
+
+    Returns
+    -------
+    OracleResult
+    """
     from iscd.config import load
     from iscd.recording import open_recording
 
@@ -430,17 +574,44 @@ def run_oracle(cfg: Config, packets: int = 2, *, mode: ReceiverMode | None = Non
                genie_windows: Sequence[int | None] = GENIE_WINDOWS,
                progress: Callable[[int], None] | None = None,
                reader: FrameReader | None = None, truth: Truth | None = None) -> OracleResult:
-    """Render ``packets`` whole packets of ``cfg``'s scene (as :func:`iscd.eval.sweeps.run_comms`),
-    decode them with the receiver (``mode``, default both cameras with the project's rule)
-    and again with the oracle stages (module docstring); ``bins`` stretches per packet in
-    the error profiles; ``genie``: also the genie-luminance reference rows (renders the
-    recording's all-dark frames once more for the background); ``genie_windows``: the
-    true-level channel windows tried per packet (symbols; None = the packet), the best
-    counts. ``progress(n)`` after every block.
+    """Decode a simulated recording with the receiver and with the oracle stages.
 
-    ``reader`` and ``truth``: frames and truth of a recording made elsewhere (frames 0 ..
-    len(truth) - 1, :func:`oracle_of_recording`) instead of rendering ``cfg``'s scene; cfg
-    must be the config it was rendered with (transmitter, camera, optics, [receiver])."""
+    Renders ``packets`` whole packets of ``cfg``'s scene (as
+    :func:`iscd.eval.sweeps.run_comms`), decodes them with the receiver and again with
+    the stages of the module docstring.
+
+    Parameters
+    ----------
+    cfg : Config
+        The scene (and the ``[receiver]``, ``[tracking]`` sections).
+    packets : int
+        Whole packets to render and score.
+    mode : ReceiverMode, optional
+        Cameras and decision rule (default both cameras, the project's rule).
+    block : int
+        Frames per block pushed to the decoder.
+    bins : int
+        Stretches per packet of the error profiles.
+    genie : bool
+        Also the genie-luminance reference rows (reads the all-dark frames once more for
+        the background).
+    genie_windows : sequence of int or None
+        True-level channel windows tried per packet, symbols (None = the packet); the
+        one with the fewest errors counts.
+    progress : callable, optional
+        ``progress(n)`` after every block of n frames.
+    reader : callable, optional
+        ``reader(k, left, right)`` writes frame k of each camera (uint8 (H, W)) -- a
+        recording made elsewhere (:func:`oracle_of_recording`) instead of rendering;
+        ``cfg`` must then be the config it was made with.
+    truth : Truth, optional
+        That recording's truth (frames 0 .. len(truth) - 1).
+
+    Returns
+    -------
+    OracleResult
+        Receiver scores, per-packet stage scores and profiles, the luminance decoded.
+    """
     if packets < 1:
         raise ValueError(f"packets: expected >= 1, got {packets}")
     mode = mode or ReceiverMode("both", "both")
@@ -601,8 +772,19 @@ def run_oracle(cfg: Config, packets: int = 2, *, mode: ReceiverMode | None = Non
 
 
 def pool(results: Sequence[OracleResult]) -> OracleResult:
-    """Several recordings (seeds) of one case as one result: the receiver's counts summed,
-    the packets side by side (SERs, split and profiles are then over all of them)."""
+    """Several recordings (seeds) of one case as one result.
+
+    Parameters
+    ----------
+    results : sequence of OracleResult
+        One per recording.
+
+    Returns
+    -------
+    OracleResult
+        The receiver's counts summed, the packets side by side (SERs, split and profiles
+        are then over all of them), the stages every result has; no luminance.
+    """
     if not results:
         raise ValueError("pool: no results")
     r0 = results[0].receiver

@@ -105,13 +105,32 @@ after 2.25 s; the rest at 25 m), 100 km/h 100 -> 27.4 m."""
 
 def motion_cfg(base: Config, case: MotionCase, seed: int, *, quick: bool = False,
                scene: dict[str, Any] | None = None, randomize: bool = False) -> tuple[Config, str]:
-    """The config of ``case`` with scene seed ``seed`` (and the note of what was done to
-    it). ``scene``: ``[scene]`` keys over the case's own; ``quick``: packets of
-    :data:`MOTION_QUICK_DATA_SYMBOLS` data symbols; ``randomize`` (or the case's own):
-    through ``iscd.sim.randomize.randomized(cfg, seed, motion=...)`` with the case's
-    [scene] keys (speed, vibration amplitude, ``scene``) fixed and the rest of the physics
-    drawn, imported here -- when that module is not there the case runs without it and the
-    note says so."""
+    """The config of a motion case.
+
+    Parameters
+    ----------
+    base : Config
+        Sensor, optics, background, [receiver], [tracking] come from it.
+    case : MotionCase
+        Transmitter, motion (km/h, m) and vibration (px RMS).
+    seed : int
+        Scene seed (noise, LED phase, payloads, vibration; the randomizer's draw).
+    quick : bool
+        Packets of :data:`MOTION_QUICK_DATA_SYMBOLS` data symbols.
+    scene : dict, optional
+        ``[scene]`` keys over the case's own (e.g. a vibration model).
+    randomize : bool
+        (Or the case's own flag.) Through ``iscd.sim.randomize.randomized(cfg, seed,
+        motion=...)`` with the case's [scene] keys (speed, distances, vibration amplitude,
+        ``scene``) fixed and the rest of the physics drawn; imported here -- when that
+        module is not there the case runs without it.
+
+    Returns
+    -------
+    cfg : Config
+    note : str
+        What was done about the randomizer ("" when not asked for).
+    """
     keys = {"speed_mps": case.speed_kmh / 3.6, "vibration_px": case.vibration_px,
             "min_distance_m": min(case.end_m, case.start_m), **dict(case.scene), **(scene or {})}
     if case.leds == 1:
