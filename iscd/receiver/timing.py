@@ -30,6 +30,7 @@ straddling frame carries timing information: its value moves with the boundary p
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Callable
 
 import numpy as np
 from numpy.lib.stride_tricks import sliding_window_view
@@ -352,6 +353,135 @@ def _warm_clock_c() -> tuple:
 register_warm(_clock_sums, _warm_clock_c)
 
 
+@njit(error_model="numpy")
+def _clock_cost(L: np.ndarray, n_lo: int, n_hi: int, u0: float, p: float, e: float,
+                lev: np.ndarray, k_first: int, starts: np.ndarray, mu_t: np.ndarray,
+                var_t: np.ndarray, err_t: np.ndarray, timing_sigma: float, huber: float) -> float:
+    """Robust cost of the clock (u0, p) on frames n_lo .. n_hi - 1: every frame whose window
+    lies in labelled symbols, clean (the centroid of its level) or straddling (the response
+    of :func:`_clock_sums`), Huber's rho of the normalized residual. Element by element
+    :func:`clock_cost_reference` (sums in frame order)."""
+    C = L.shape[0]
+    S, N = lev.shape
+    J = starts.shape[0]
+    M = mu_t.shape[3]
+    ts_e = timing_sigma / e
+    tot = 0.0
+    for fr in range(n_lo, n_hi):
+        n = float(fr)
+        k = int(np.floor((n - u0) / p))
+        end = u0 + (k + 1) * p
+        alpha = min(max((end - n) / e, 0.0), 1.0)
+        clean = alpha >= 1.0
+        if not (k >= k_first and (k < k_first + S if clean else k + 1 < k_first + S)):
+            continue
+        seg = J - 1
+        for jj in range(J):
+            if starts[jj] > k:
+                seg = jj - 1
+                break
+        seg = min(max(seg, 0), J - 1)
+        for i in range(N):
+            la = lev[k - k_first, i]
+            lb = la if clean else lev[k + 1 - k_first, i]
+            if la < 0 or lb < 0:
+                continue
+            q = alpha * la + (1 - alpha) * lb
+            q0 = int(min(max(np.floor(q), 0.0), M - 2.0))
+            f = q - q0
+            se = int(min(max(q, 0.0), M - 2.0))
+            dl = la - lb
+            for c in range(C):
+                obs = L[c, fr, i]
+                if not np.isfinite(obs):
+                    continue
+                a = mu_t[seg, c, i, q0]
+                va = var_t[seg, c, i, q0]
+                mu = a + f * (mu_t[seg, c, i, q0 + 1] - a)
+                var = va + f * (var_t[seg, c, i, q0 + 1] - va)
+                if not clean:
+                    gain = (mu_t[seg, c, i, M - 1] - mu_t[seg, c, i, 0]) / max(M - 1, 1)
+                    tv = ts_e * gain * dl
+                    ee = err_t[seg, c, i, se]
+                    var = var + tv * tv + ee * ee
+                z = abs(obs - mu) / np.sqrt(var)
+                tot += z * z if z <= huber else 2.0 * huber * z - huber * huber
+    return tot
+
+
+def clock_cost_reference(L: np.ndarray, n_lo: int, n_hi: int, u0: float, p: float, e: float,
+                         lev: np.ndarray, k_first: int, track: ChannelTrack, timing_sigma: float,
+                         huber: float) -> float:
+    """Pure-numpy reference of :func:`_clock_cost` (the clock's robust cost on all labelled
+    frames, clean and straddling)."""
+    S, N = lev.shape
+    frames = np.arange(n_lo, n_hi)
+    k, alpha = frame_map(frames, SymbolClock(u0, p), e)
+    clean = alpha >= 1.0
+    ok = (k >= k_first) & np.where(clean, k < k_first + S, k + 1 < k_first + S)
+    frames, k, alpha, clean = frames[ok], k[ok], alpha[ok], clean[ok]
+    if frames.size == 0:
+        return 0.0
+    la = lev[k - k_first]
+    lb = np.where(clean[:, None], la, lev[np.minimum(k + 1, k_first + S - 1) - k_first])
+    valid = (la >= 0) & (lb >= 0)
+    q = alpha[:, None] * la + (1 - alpha[:, None]) * lb
+    mu, _, var = _response(track, k, q, la - lb, e, timing_sigma)
+    mu_t, var_t, _ = track.tables
+    M = mu_t.shape[3]
+    seg = track.segment(k)[:, None]
+    led = np.arange(N)[None, :]
+    q0 = np.clip(np.floor(q), 0, M - 2).astype(np.intp)
+    f = (q - q0)[None]
+    va = np.moveaxis(var_t[seg, :, led, q0], -1, 0)
+    var_clean = va + f * (np.moveaxis(var_t[seg, :, led, q0 + 1], -1, 0) - va)
+    var = np.where(clean[None, :, None], var_clean, var)
+    obs = L[:, frames, :]
+    z = np.abs(obs - mu) / np.sqrt(var)
+    rho = np.where(z <= huber, z * z, 2.0 * huber * z - huber * huber)
+    use = valid[None] & np.isfinite(obs)
+    return float(np.where(use, rho, 0.0).sum())
+
+
+def _warm_cost() -> tuple:
+    a = _warm_clock_c()
+    return a[:8] + a[9:]
+
+
+register_warm(_clock_cost, _warm_cost)
+
+
+PERIOD_SEARCH_FRAMES = 0.05
+"""With exposures shorter than the frame period (a dark gap of more than
+:data:`GAP_MIN_FRAMES` between two windows) the period is searched on a grid first when
+its prior uncertainty (3 sigma) moves the span's far end by more than this, frames. A
+boundary may then sit in the gap at the start of a packet and drift into the windows
+later; no frame straddles under the nominal period, and a Gauss-Newton fit that only
+sees the frames straddling under its current estimate never moves (a randomized approach
+scene lost its first packet so). Without a gap every boundary crosses some window and
+the fit sees it: no search (and the default rig's results are what they were)."""
+
+GAP_MIN_FRAMES = 0.01
+"""Dark time between exposures (frames) below which there is no gap to search across."""
+
+
+def _search_period(cost: Callable[[float, float], float], uc: float, kc: float, p: float,
+                   p_prior: float, p_sigma: float, half_span: float) -> float:
+    """The period on a grid over p_prior +- 3 p_sigma (steps that move the span's ends by
+    0.03 frames) minimizing ``cost(u0, p)`` (the clock through ``uc`` at symbol ``kc``) plus
+    the prior; ``p`` itself is a candidate, and wins ties."""
+    step = 0.03 / max(half_span, 1.0)
+    n = int(min(np.ceil(3 * p_sigma / step), 60))
+    grid = p_prior + step * np.arange(-n, n + 1)
+    best_p = p
+    best = cost(uc - kc * p, p) + ((p - p_prior) / p_sigma) ** 2
+    for q in grid:
+        c = cost(uc - kc * q, q) + ((q - p_prior) / p_sigma) ** 2
+        if c < best:
+            best, best_p = c, float(q)
+    return best_p
+
+
 def refine_clock(L: np.ndarray, clock: SymbolClock, e: float, lev: np.ndarray, k_first: int,
                  model: ChannelModel | ChannelTrack, p_prior: float, p_sigma: float, iters: int = 3,
                  huber: float = 3.0, timing_sigma: float = 0.02,
@@ -379,6 +509,12 @@ def refine_clock(L: np.ndarray, clock: SymbolClock, e: float, lev: np.ndarray, k
     Lc = L if L.dtype == np.float64 else L.astype(np.float64)
     levc = np.ascontiguousarray(lev, dtype=np.int64)
     used = 0
+    if fit_p and e < 1.0 - GAP_MIN_FRAMES and 3 * p_sigma * S / 2 > PERIOD_SEARCH_FRAMES:
+        lo, hi = n_lo, max(n_lo, n_hi)
+        p = _search_period(lambda u0, q: _clock_cost(Lc, lo, hi, u0, q, float(e), levc, int(k_first),
+                                                     starts, mu_t, var_t, err_t, float(timing_sigma),
+                                                     float(huber)),
+                           uc, kc, p, p_prior, p_sigma, S / 2.0)
     for _ in range(iters):
         n_sel, h00, h01, h11, b0, b1, n_used = _clock_sums(
             Lc, n_lo, max(n_lo, n_hi), uc - kc * p, p, float(e), levc, int(k_first), float(kc),
@@ -429,6 +565,10 @@ def refine_clock_reference(L: np.ndarray, clock: SymbolClock, e: float, lev: np.
     n_hi = int(min(n, np.ceil(clock.boundary(k_first + S)) + 1))
     frames = np.arange(n_lo, n_hi)
     used = 0
+    if fit_p and e < 1.0 - GAP_MIN_FRAMES and 3 * p_sigma * S / 2 > PERIOD_SEARCH_FRAMES:
+        p = _search_period(lambda u0, q: clock_cost_reference(L, n_lo, n_hi, u0, q, e, lev, k_first, track,
+                                                              timing_sigma, huber),
+                           uc, kc, p, p_prior, p_sigma, S / 2.0)
     for _ in range(iters):
         ck = SymbolClock(uc - kc * p, p)
         k, alpha = frame_map(frames, ck, e)
