@@ -34,7 +34,7 @@ from iscd.airinterface import AirInterface
 from iscd.config import Config, build_section
 from iscd.demod_pipe import PipeDemodWorker as DemodWorker
 from iscd.receiver.follow_kernel import follow_and_measure_compiled
-from iscd.receiver.luminance import follow_and_measure, grid_sample
+from iscd.receiver.luminance import PixelBackground, follow_and_measure, grid_sample
 from iscd.receiver.detect import GridFit, detect_array, light_map, match_stereo, track_box, track_on_light
 from iscd.receiver.track_kernel import LightAccumulator, track_on_light_compiled
 from iscd.receiver.packets import Packet, PacketAssembler
@@ -60,6 +60,9 @@ class PipelineSettings:
     roi_radius_px: int = field(default=-1, metadata={"lo": -1, "hi": 8, "doc": "half-size of the box that follows each spot frame by frame, px ((2r+1)^2 pixels); -1 = from the spot size and LED pitch"})
     roi_sigma_px: float = field(default=-1.0, metadata={"lo": -1.0, "hi": 8.0, "doc": "luminance window: Gaussian weights of this RMS radius, px; -1 = matched to the spot (its FWHM / 2.355, at most (pitch - 0.8) / 4 in an array)"})
     ranging: bool = field(default=True, metadata={"doc": "measure the range every frame"})
+    background: bool = field(default=False, metadata={"doc": "luminance and centroids of the light above a per-pixel background (each pixel's least value in the frames its LEDs were dark): a textured background under a window that moves with the LED then cancels"})
+    window_scale: float = field(default=1.0, metadata={"lo": 0.5, "hi": 4.0, "doc": "luminance window relative to the spot-matched Gaussian (roi_sigma_px = -1): wider reaches the unsaturated wings of a spot whose core clips"})
+    background_rise_dn: float = field(default=0.25, metadata={"lo": 0, "doc": "how fast the per-pixel background follows a background that brightens, DN per block"})
 
 
 def _jsonable(rec: dict[str, Any]) -> dict[str, Any]:
@@ -127,6 +130,8 @@ class _Track:
     prev: tuple[GridFit, GridFit] | None = None
     """the fits before the current ones (for the grid's motion), fitted at ``prev_frame``"""
     prev_frame: float = math.nan
+    disparity0: float = 0.0
+    """right x - left x of the array's centre at acquisition, px (one LED's growth)"""
 
 
 class StreamDecoder:
@@ -193,6 +198,7 @@ class StreamDecoder:
         self._followed: list[np.ndarray | None] = [None, None]
         """per camera, the LED centres (N, 2) px refined in the last decoded frame"""
         self._lit_light: np.ndarray | None = None
+        self._backgrounds: list[PixelBackground] | None = None
         """per camera, the box light of a lit LED (following ignores LEDs far below it)"""
         self._win: tuple[tuple[int, int, int, int], tuple[int, int, int, int]] = ((0, 0, 0, 0), (0, 0, 0, 0))
         self._new_assembler()
@@ -423,6 +429,7 @@ class StreamDecoder:
         self._ids_sum = 0.0
         self._followed = [None, None]
         self._lit_light = None
+        self._backgrounds = None
         self._since_fit = 0
         self._acq_l.clear()
         self._acq_r.clear()
@@ -486,10 +493,14 @@ class StreamDecoder:
         box = 2 * max(1, int(round(max(tr.roi_radius) * max(growth)))) + 1
         info: dict[str, np.ndarray] = {}
         follow = follow_and_measure_compiled if self.compiled else follow_and_measure
+        if self.settings.background and self._backgrounds is None:
+            rise = self.settings.background_rise_dn
+            self._backgrounds = [PixelBackground(left.shape[1:], rise), PixelBackground(right.shape[1:], rise)]
         (c_l, c_r), (lum_l, lum_r) = follow(
             [left, right], starts, box,
             [float(np.clip(sig * g, 0.6, max(sig, self.MAX_SIGMA_PX))) for sig, g in zip(tr.roi_sigma, growth)],
-            use=grid_sample(self.rows, self.cols), lit_light=self._lit_light, info=info)
+            use=grid_sample(self.rows, self.cols), lit_light=self._lit_light, info=info,
+            backgrounds=self._backgrounds)
         # the light of a lit LED, held over dark stretches (halves in ~5 s of darkness)
         light = info["light"]
         self._lit_light = light if self._lit_light is None else np.maximum(light, self.LIT_DECAY * self._lit_light)
@@ -509,12 +520,27 @@ class StreamDecoder:
         smooth, which the tracked channel follows."""
         tr = self.track
         assert tr is not None
+        if self.rows * self.cols == 1:
+            # one LED: its image grows as 1/Z, as the stereo disparity does (raw x
+            # difference; ``disparity0`` at acquisition). Both cameras alike.
+            c = [np.asarray(st, dtype=np.float64).reshape(-1, 2)[0] for st in starts]
+            d = float(c[1][0] - c[0][0])
+            g = abs(d) / abs(tr.disparity0) if abs(tr.disparity0) >= self.MIN_DISPARITY_PX else 1.0
+            g = float(np.clip(g, 1.0, self.MAX_GROWTH))
+            return [g, g]
         out = []
         for side, st in enumerate(starts):
             ref = tr.spread0[side]
             c = np.asarray(st, dtype=np.float64).reshape(-1, st.shape[-2], 2)[0]
             out.append(max(1.0, _spread(c) / ref) if ref > 0 else 1.0)
         return out
+
+    MIN_DISPARITY_PX = 4.0
+    """One LED's growth from the disparity only when it is at least this at acquisition, px
+    (a nearly zero disparity -- very far, or uncalibrated cameras -- says nothing)."""
+
+    MAX_GROWTH = 8.0
+    """Largest growth of one LED's image taken from the disparity."""
 
     def _roi_sigma(self, fit: GridFit) -> float:
         """Gaussian luminance window, px: the configured one, or (auto) matched to the
@@ -523,10 +549,10 @@ class StreamDecoder:
         s = self.settings.roi_sigma_px
         if s > 0:
             return float(s)
-        s = fit.spot_px / 2.355
+        s = self.settings.window_scale * fit.spot_px / 2.355
         if fit.rows * fit.cols > 1 and fit.pitch_px > 0:
             s = min(s, (fit.pitch_px - 0.8) / 4.0)
-        return float(np.clip(s, 0.6, 2.0))
+        return float(np.clip(s, 0.6, 2.0 * max(1.0, self.settings.window_scale)))
 
     def _roi_radius(self, fit: GridFit) -> int:
         """ROI half-size: the configured one, or (auto) half the spot so that a saturated
@@ -589,10 +615,12 @@ class StreamDecoder:
             return None
         self._followed = [None, None]
         self._lit_light = None
+        self._backgrounds = None
         self.track = _Track(left=fl, right=fr, first_score=min(fl.score, fr.score),
                             roi_radius=(self._roi_radius(fl), self._roi_radius(fr)),
                             roi_sigma=(self._roi_sigma(fl), self._roi_sigma(fr)),
                             spread0=(_spread(fl.centers), _spread(fr.centers)),
+                            disparity0=float(fr.center[0] - fl.center[0]),
                             since_frame=int(frame_ids[-1]), fit_frame=float(meta[:, 0].mean()))
         self.counters["acquisitions"] += 1
         self._new_assembler()
