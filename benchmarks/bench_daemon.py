@@ -66,6 +66,15 @@ def run(duration_s: float, hog: bool = False, config: str | None = None) -> dict
     p99 = sorted(r["latency_ms_p99"] for r in steady)
     final["steady_p99_median_ms"] = p99[len(p99) // 2] if p99 else None
     final["steady_p99_max_ms"] = p99[-1] if p99 else None
+    # each process's CPU share in the steady seconds (the daemon's own per-second meter)
+    per: dict[str, float] = {}
+    for name in ("frame_loop", "acquisition", "demod_worker"):
+        v = sorted(x for r in steady if (x := (r.get("cpu_cores_by_process") or {}).get(name)) is not None)
+        if v:
+            per[name] = v[len(v) // 2]
+    final["steady_cores_by_process"] = per
+    final["steady_cores"] = (sorted(r["cpu_cores"] for r in steady)[len(steady) // 2]
+                             if steady and all(r.get("cpu_cores") is not None for r in steady) else None)
     final["cpu_cores_tree"] = cpu / wall
     final["wall_s"] = wall
     final["packets_seen"] = sum(1 for r in recs if r.get("type") == "packet")
@@ -91,6 +100,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     print(f"  CPU of the daemon and all its processes: {r['cpu_cores_tree']:.3f} cores over {r['wall_s']:.1f} s "
           f"wall, start-up and shutdown included (target <= 1.0); machine load before: "
           f"{os.getloadavg()[0]:.2f}")
+    per = ", ".join(f"{k} {v:.3f}" for k, v in r["steady_cores_by_process"].items())
+    print(f"  steady seconds (after 3 s), median per second: all {r['steady_cores']} cores; {per}")
     return 0
 
 

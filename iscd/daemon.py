@@ -141,7 +141,8 @@ class Daemon:
         decoder = StreamDecoder(cfg, cal, async_demod="process")
         H, W = cfg.camera.height, cfg.camera.width
         dtype = np.uint8 if cfg.camera.bit_depth == 8 else np.uint16
-        ring = StereoRing.create(height=H, width=W, capacity=capacity_for(st.ring_ms, cfg.camera.fps), dtype=dtype)
+        ring = StereoRing.create(height=H, width=W, capacity=capacity_for(st.ring_ms, cfg.camera.fps), dtype=dtype,
+                                 max_held=st.block_max)  # a block's pairs are taken at once
         factory = functools.partial(make_stereo, cfg)
         cam_settings = (settings_from_config(cfg, "left"), settings_from_config(cfg, "right"))
         acq = AcquisitionProcess(factory, ring, settings=cam_settings)
@@ -154,6 +155,8 @@ class Daemon:
                 old_handlers[sig] = signal.signal(sig, self.request_stop)
         overload = OverloadPolicy(self.overload_settings)
         lat = LatencyWindow()
+        wake = LatencyWindow(cap=2000)
+        work = LatencyWindow(cap=2000)
         cpu = CpuMeter()
         B = st.block_max
         blk_l = np.zeros((B, H, W), dtype)
@@ -203,7 +206,12 @@ class Daemon:
             a = acq.stats()
             rs = ring.stats()
             p50, p99 = lat.take()
-            share, rss = cpu.sample([os.getpid()] + ([acq.pid] if acq.pid else []) + decoder.worker_pids)
+            workers = decoder.worker_pids
+            share, rss = cpu.sample([os.getpid()] + ([acq.pid] if acq.pid else []) + workers)
+            by_process = {"frame_loop": cpu.shares.get(os.getpid()),
+                          "acquisition": cpu.shares.get(acq.pid) if acq.pid else None,
+                          "demod_worker": (round(sum(cpu.shares.get(p, 0.0) for p in workers), 3)
+                                           if any(p in cpu.shares for p in workers) else None)}
             rec = {"type": "stats", "tx": 0, "frame": int(last_frame),
                    "t_s": last_t_s,  # camera time of the last decoded frame, as in the other records
                    "uptime_s": round(time.monotonic() - t_start, 3), "final": final,
@@ -220,7 +228,10 @@ class Daemon:
                    "led_ranges_shed": decoder.counters["led_ranges_shed"], **overload.counters,
                    "tracking": decoder.track is not None,
                    "latency_ms_p50": p50, "latency_ms_p99": p99,
-                   "cpu_cores": share, "rss_mb": round(rss / 2**20, 1),
+                   # per block: its last pair's arrival to the block read, and the decoding
+                   # (outputs excluded); the rest of a pair's latency is the block filling
+                   "block_read_ms_p50_p99": wake.take(), "block_decode_ms_p50_p99": work.take(),
+                   "cpu_cores": share, "cpu_cores_by_process": by_process, "rss_mb": round(rss / 2**20, 1),
                    "pair_gaps": counters["pair_gaps"],
                    "acquisition": a.as_dict(), "acquisition_restarts": counters["acquisition_restarts"],
                    "output_errors": counters["output_errors"], "decode_errors": counters["decode_errors"],
@@ -231,6 +242,12 @@ class Daemon:
                     rec.update({k: v for k, v in c().items() if isinstance(v, (int, float))})
             return rec
 
+        _prof = None
+        if os.environ.get("ISCD_PROFILE"):  # cProfile of the frame loop, written at the end
+            import cProfile
+
+            _prof = cProfile.Profile(time.process_time)  # CPU time: what the loop costs, not its waits
+            _prof.enable()
         try:
             draining = False
             while True:
@@ -269,29 +286,33 @@ class Daemon:
                         time.sleep(min(st.block_wait_ms / 1000, (missing - 1) / fps))
                 while n < B:
                     timeout = max(0.0, t_fill - time.monotonic()) if n else 0.05
-                    slot = ring.read(timeout_s=timeout)
-                    if slot is None:
+                    # every pair already queued in one go (one lock to take them, one to
+                    # give them back: not four lock operations a pair)
+                    slots = ring.read_batch(B - n, timeout_s=timeout)
+                    if not slots:
                         break
                     try:
-                        if windows is None:
-                            blk_l[n] = slot.left
-                            blk_r[n] = slot.right
-                        else:
-                            for (x0, y0, x1, y1), src, dst in ((windows[0], slot.left, blk_l),
-                                                               (windows[1], slot.right, blk_r)):
-                                dst[n, y0:y1, x0:x1] = src[y0:y1, x0:x1]
-                        ids[n] = slot.frame_id
-                        t_s[n] = slot.ts_left_ns * 1e-9 if slot.ts_left_ns else slot.frame_id / fps
-                        arrival[n] = slot.arrival_ns
+                        for slot in slots:
+                            if windows is None:
+                                blk_l[n] = slot.left
+                                blk_r[n] = slot.right
+                            else:
+                                (ax0, ay0, ax1, ay1), (bx0, by0, bx1, by1) = windows
+                                blk_l[n, ay0:ay1, ax0:ax1] = slot.left[ay0:ay1, ax0:ax1]
+                                blk_r[n, by0:by1, bx0:bx1] = slot.right[by0:by1, bx0:bx1]
+                            ids[n] = slot.frame_id
+                            t_s[n] = slot.ts_left_ns * 1e-9 if slot.ts_left_ns else slot.frame_id / fps
+                            arrival[n] = slot.arrival_ns
+                            n += 1
                     finally:
-                        slot.release()
-                    n += 1
+                        ring.release_batch(slots)
                     if time.monotonic() >= t_fill:
                         break
                 if n == 0:
                     if ring.finished or (draining and (not acq.is_alive() or now > drain_until)):
                         break
                     continue
+                t_read_ns = time.monotonic_ns()
                 prev = last_frame if last_frame >= 0 else int(ids[0]) - 1
                 steps = np.diff(np.concatenate([[prev], ids[:n]]))
                 counters["pair_gaps"] += int(np.clip(steps - 1, 0, None).sum())
@@ -311,6 +332,9 @@ class Daemon:
                 last_frame = int(ids[n - 1])
                 last_t_s = float(t_s[n - 1])
                 lat.add((done_ns - arrival[:n]) / 1e6)
+                # where a block's latency goes: waiting for its last pair, then decoding it
+                wake.add(np.array([(t_read_ns - arrival[n - 1]) / 1e6]))
+                work.add(np.array([(done_ns - t_read_ns) / 1e6]))
                 emit(records)
                 if view is not None and decoder.last_luminance is not None and svc.images:
                     li, lt, ll, lr = decoder.last_luminance
@@ -325,6 +349,9 @@ class Daemon:
                         boxes_l = np.array([tr.left.bbox(2)], float)
                         boxes_r = np.array([tr.right.bbox(2)], float)
                     view.log_images(last_frame, float(t_s[n - 1]), blk_l[n - 1], blk_r[n - 1], boxes_l, boxes_r)
+            if _prof is not None:
+                _prof.disable()
+                _prof.dump_stats(os.environ["ISCD_PROFILE"])
             records = decoder.finish()
             emit(records)
             final = stats_record(True)

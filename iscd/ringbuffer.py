@@ -555,6 +555,64 @@ class StereoRing:
             time.sleep(min(nap, left))
             nap = min(nap * 2, 5e-4)
 
+    def read_batch(self, max_n: int, timeout_s: float = 0.0) -> list[ReadSlot]:
+        """Up to ``max_n`` queued pairs, oldest first, each held until released: the first
+        as :meth:`read` (waiting up to ``timeout_s`` s), the others that are queued already
+        taken under one lock (at most ``max_held`` held in all). Empty if none came."""
+        first = self.read(timeout_s)
+        if first is None:
+            return []
+        out = [first]
+        if max_n > 1 and self._hdr[_H_W] > self._hdr[_H_R]:
+            self._lock()
+            try:
+                hdr = self._hdr
+                held = int(self._held.sum())
+                while len(out) < max_n and held < self.max_held:
+                    r = int(hdr[_H_R])
+                    if int(hdr[_H_W]) <= r:
+                        break
+                    idx = np.flatnonzero(self._tags == r)
+                    if idx.size != 1:
+                        raise RingError(f"ring {self.name!r}: pair {r} not found (corrupted?)")
+                    k = int(idx[0])
+                    self._held[k] = 1
+                    held += 1
+                    hdr[_H_R] = r + 1
+                    hdr[_H_CONSUMED] += 1
+                    img = self._images[k]
+                    left, right = img[0], img[1]
+                    left.flags.writeable = False
+                    right.flags.writeable = False
+                    out.append(ReadSlot(self, k, r, self._meta[k].tolist(), left, right))
+            finally:
+                self._unlock()
+        return out
+
+    def release_batch(self, slots: list[ReadSlot]) -> None:
+        """:meth:`release` of several slots under one lock (idempotent per slot)."""
+        todo = [s for s in slots if not s._released]
+        if not todo:
+            return
+        if self._closed:
+            for s in todo:
+                s._released = True
+            return
+        for s in todo:
+            if s._ring is not self:
+                raise RingError("release of a slot read from another ring handle")
+        self._lock()
+        try:
+            for s in todo:
+                s._released = True
+                s.left = s.right = None  # type: ignore[assignment]
+                k = s.index
+                if self._held[k] and self._tags[k] == s.seq:
+                    self._held[k] = 0
+                    self._tags[k] = FREE
+        finally:
+            self._unlock()
+
     def release(self, slot: ReadSlot) -> None:
         """Give a read slot back (idempotent)."""
         if slot._released:

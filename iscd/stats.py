@@ -66,12 +66,16 @@ class CpuMeter:
 
     def __init__(self) -> None:
         self._last: dict[int, tuple[float, float]] = {}
+        self.shares: dict[int, float] = {}
+        """per process id, its CPU share (cores) between the last two samples"""
 
     def sample(self, pids: list[int]) -> tuple[float, int]:
-        """(CPU share since the last sample, total RSS bytes) of ``pids``."""
+        """(CPU share since the last sample, total RSS bytes) of ``pids``; each process's
+        own share is left in :attr:`shares`."""
         now = time.monotonic()
         share = 0.0
         rss_total = 0
+        self.shares = {}
         for pid in pids:
             if not os.path.exists(f"/proc/{pid}/stat"):  # gone (stopped): no share, no negative jump
                 self._last.pop(pid, None)
@@ -80,6 +84,8 @@ class CpuMeter:
             rss_total += rss
             prev = self._last.get(pid)
             if prev is not None and now > prev[0]:
-                share += (cpu - prev[1]) / (now - prev[0])
+                one = (cpu - prev[1]) / (now - prev[0])
+                self.shares[pid] = round(one, 3)
+                share += one
             self._last[pid] = (now, cpu)
         return round(share, 3), rss_total

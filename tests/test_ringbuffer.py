@@ -398,3 +398,34 @@ def test_segment_is_removed_when_its_creator_is_killed() -> None:
         if proc.poll() is None:
             proc.kill()
         proc.communicate(timeout=10)
+
+
+def test_read_batch_takes_what_is_queued_and_releases_it_at_once(make_ring: Callable[..., StereoRing]) -> None:
+    """read_batch: the queued pairs oldest first under one lock (at most max_n, at most
+    max_held held), the same pixels and metadata as one read at a time; release_batch
+    frees them all (idempotent); an empty ring gives [] after the timeout."""
+    ring = make_ring(capacity=8, max_held=4)
+    for i in range(6):
+        ring.write(pattern(i, (8, 6), 0), pattern(i, (8, 6), 1), frame_id=100 + i, arrival_ns=10 + i)
+    got = ring.read_batch(16)
+    assert [s.frame_id for s in got] == [100, 101, 102, 103]  # max_held = 4
+    assert [s.arrival_ns for s in got] == [10, 11, 12, 13]
+    for k, s in enumerate(got):
+        assert np.array_equal(s.left, pattern(k, (8, 6), 0)) and np.array_equal(s.right, pattern(k, (8, 6), 1))
+        assert not s.left.flags.writeable
+    assert ring.stats().held == 4
+    for i in range(6, 30):  # the producer laps the ring while they are held
+        ring.write(pattern(i, (8, 6), 0), pattern(i, (8, 6), 1), frame_id=100 + i)
+    assert np.array_equal(got[3].left, pattern(3, (8, 6), 0))
+    ring.release_batch(got)
+    ring.release_batch(got)  # idempotent
+    assert ring.stats().held == 0 and all(s.released and s.left is None for s in got)
+    two = ring.read_batch(2)
+    assert [s.frame_id for s in two] == [122, 123]  # the 8 newest were kept
+    ring.release_batch(two)
+    rest = ring.read_batch(16)
+    assert [s.frame_id for s in rest] == [124, 125, 126, 127]
+    ring.release_batch(rest)
+    assert len(ring.read_batch(16)) == 2
+    ring.release_all()
+    assert ring.read_batch(4, timeout_s=0.0) == []
