@@ -92,3 +92,37 @@ def test_light_above_the_background_does_not_see_the_texture_the_spot_moves_over
     plain_on = np.concatenate(plain)[lit]
     above_on = np.concatenate(above)[lit]
     assert above_on.std() < 0.25 * plain_on.std()
+
+
+def test_spot_size_kernel_matches_reference_and_grows_with_the_spot(rendered_default) -> None:
+    """The lit spots' half-maximum area: compiled == reference (the same pixel counts);
+    and a spot drawn twice as wide shows about four times the area."""
+    L, R = rendered_default
+    fl, fr = detect_array(L[:64], 8, 8), detect_array(R[:64], 8, 8)
+    starts = [fl.centers, fr.centers]
+    for bgs in (None, "bg"):
+        b1 = None if bgs is None else [PixelBackground(L.shape[1:]), PixelBackground(L.shape[1:])]
+        b2 = None if bgs is None else [PixelBackground(L.shape[1:]), PixelBackground(L.shape[1:])]
+        i1, i2 = {}, {}
+        follow_and_measure([L[64:96], R[64:96]], starts, 5, [1.2, 1.1], use=grid_sample(8, 8),
+                           info=i1, backgrounds=b1, spot_radius_px=2.0)
+        follow_and_measure_compiled([L[64:96], R[64:96]], starts, 5, [1.2, 1.1], use=grid_sample(8, 8),
+                                    info=i2, backgrounds=b2, spot_radius_px=2.0)
+        np.testing.assert_allclose(i1["spot_area"], i2["spot_area"], rtol=1e-12)
+        assert np.all(i1["spot_area"] > 1)
+    H = W = 40
+    yy, xx = np.mgrid[0:H, 0:W].astype(np.float64)
+    areas = []
+    for s in (1.0, 2.0):
+        fr_ = np.empty((8, H, W), np.uint8)
+        for f in range(8):
+            fr_[f] = np.clip(np.rint(10 + 150 * np.exp(-((xx - 20.3) ** 2 + (yy - 19.6) ** 2) / (2 * s * s))
+                                     * (f % 2)), 0, 255)
+        info: dict = {}
+        c = np.array([[20.3, 19.6]])
+        follow_and_measure_compiled([fr_, fr_], [c, c], 3, [1.0, 1.0], info=info, spot_radius_px=8.0)
+        areas.append(info["spot_area"][0])
+    assert 3.0 < areas[1] / areas[0] < 5.0
+    from iscd.receiver.luminance import area_sigma
+
+    assert abs(area_sigma(areas[1]) - 2.0) < 0.3

@@ -72,14 +72,16 @@ def _follow_kernel(L, R, starts: np.ndarray, half: int, w: float, iterations: in
                    scale: bool, accelerate: bool, sigmas: np.ndarray,
                    out_c: np.ndarray, out_lum: np.ndarray, out_light: np.ndarray,
                    has_bg: bool, bg_l: np.ndarray, bg_r: np.ndarray, st_l: np.ndarray,
-                   st_r: np.ndarray, blk: int, rise: float) -> None:
+                   st_r: np.ndarray, blk: int, rise: float, spot_r: float,
+                   out_area: np.ndarray) -> None:
     """See :func:`follow_and_measure_compiled`. starts (2F, N, 2) px (left frames first);
     lit_ref (2,) the remembered light of a lit LED per camera (< 0: none); sigmas (2,) px.
     Writes out_c (2F, N, 2) px, out_lum (2F, N) DN, out_light (2,). With ``has_bg`` the
     per-pixel backgrounds bg_l/bg_r (H, W) float32 and their stamps st_l/st_r (H, W) are
     first updated with the block's patches (:class:`~iscd.receiver.luminance.PixelBackground`,
     block number ``blk``, ``rise`` DN) and the centroids and luminance use the light above
-    them."""
+    them. With ``spot_r`` > 0 out_area (2,) gets the lit spots' mean half-maximum area
+    within spot_r px of their refined centres (:func:`~iscd.receiver.luminance.half_max_area`)."""
     F = L.shape[0]
     N = starts.shape[1]
     n = sel.size
@@ -294,6 +296,48 @@ def _follow_kernel(L, R, starts: np.ndarray, half: int, w: float, iterations: in
                     v = cc[q, i, k] + step - c0[q, i, k]
                     v = min(max(v, -max_px), max_px)
                     cc[q, i, k] = c0[q, i, k] + v
+    # ---- the lit spots' size: pixels above half the peak near each refined centre
+    out_area[0] = math.nan
+    out_area[1] = math.nan
+    if spot_r > 0:
+        r2 = spot_r * spot_r
+        for g in range(2):
+            fr = L if g == 0 else R
+            bgi = bg_l if g == 0 else bg_r
+            tot_a = 0.0
+            n_a = 0
+            for f in range(F):
+                q = g * F + f
+                for j in range(n):
+                    if not lit[q, j]:
+                        continue
+                    i = sel[j]
+                    xa, ya = x0[q, i], y0[q, i]
+                    cx, cy = cc[q, i, 0], cc[q, i, 1]
+                    m = pmin[q, j]
+                    peak = -math.inf
+                    for a in range(K):
+                        dy = ya + a - cy
+                        for b in range(K):
+                            dx = xa + b - cx
+                            if dx * dx + dy * dy <= r2:
+                                v = float(fr[f, ya + a, xa + b]) - (float(bgi[ya + a, xa + b]) if has_bg else m)
+                                peak = max(peak, v)
+                    if not peak > 0:
+                        continue
+                    cnt = 0
+                    for a in range(K):
+                        dy = ya + a - cy
+                        for b in range(K):
+                            dx = xa + b - cx
+                            if dx * dx + dy * dy <= r2:
+                                v = float(fr[f, ya + a, xa + b]) - (float(bgi[ya + a, xa + b]) if has_bg else m)
+                                if v > 0.5 * peak:
+                                    cnt += 1
+                    tot_a += cnt
+                    n_a += 1
+            if n_a > 0:
+                out_area[g] = tot_a / n_a
     # ---- Gaussian-weighted luminance of every LED at its refined position
     for g in range(2):
         fr = L if g == 0 else R
@@ -329,7 +373,7 @@ def _warm_args() -> tuple:
     stamp = np.zeros((16, 16), np.int64)
     return (fr, fr, st, 3, 3.0, 3, np.arange(2), np.full(2, -1.0), 0.25, 1.5, True, True,
             np.ones(2), np.empty((4, 2, 2)), np.empty((4, 2)), np.empty(2),
-            True, bg, bg.copy(), stamp, stamp.copy(), 1, 0.25)
+            True, bg, bg.copy(), stamp, stamp.copy(), 1, 0.25, 2.0, np.empty(2))
 
 
 def _warm_args16() -> tuple:
@@ -352,7 +396,8 @@ _NO_STAMP = np.zeros((1, 1), np.int64)
 def follow_and_measure_compiled(frames: list[np.ndarray], starts: list[np.ndarray], size: int,
                                 sigmas: list[float], use: np.ndarray | None = None,
                                 iterations: int = 3, lit_light: np.ndarray | None = None,
-                                info: dict | None = None, backgrounds: list | None = None, *,
+                                info: dict | None = None, backgrounds: list | None = None,
+                                spot_radius_px: float | None = None, *,
                                 lit_share: float | None = None, max_px: float = 1.5,
                                 scale: bool = True, accelerate: bool = True
                                 ) -> tuple[list[np.ndarray], list[np.ndarray]]:
@@ -364,8 +409,9 @@ def follow_and_measure_compiled(frames: list[np.ndarray], starts: list[np.ndarra
     use: indices of the LEDs whose centroids steer (all by default); lit_light: per camera
     the light of a lit LED from earlier blocks; info: gets ``"light"`` (2,);
     backgrounds: per camera a :class:`~iscd.receiver.luminance.PixelBackground` (updated in
-    place, as the reference does). Returns per camera the refined centres (F, N, 2) px
-    and the luminance (F, N) DN.
+    place, as the reference does); spot_radius_px: also ``info["spot_area"]`` (2,) px^2, the
+    lit spots' half-maximum area. Returns per camera the refined centres (F, N, 2) px and
+    the luminance (F, N) DN.
     """
     from iscd.receiver.luminance import LIT_SHARE, patch_half
 
@@ -384,7 +430,7 @@ def follow_and_measure_compiled(frames: list[np.ndarray], starts: list[np.ndarra
         from iscd.receiver.luminance import follow_and_measure  # repeats its edge pixels
 
         return follow_and_measure([L, R], starts, size, sigmas, use, iterations, lit_light, info,
-                                  backgrounds)
+                                  backgrounds, spot_radius_px)
     st = np.empty((2 * F,) + np.shape(starts[0])[-2:], np.float64)
     st[:F] = np.asarray(starts[0], dtype=np.float64)
     st[F:] = np.asarray(starts[1], dtype=np.float64)
@@ -411,9 +457,13 @@ def follow_and_measure_compiled(frames: list[np.ndarray], starts: list[np.ndarra
         bgs = tuple(b.bg for b in backgrounds)
         sts = tuple(b.stamp for b in backgrounds)
         blk, rise = backgrounds[0].block, backgrounds[0].rise_dn
+    area = np.empty(2)
+    spot_r = -1.0 if spot_radius_px is None else float(min(spot_radius_px, half))
     _follow_kernel(L, R, st, half, float(size), iterations, sel, ref, lit_share, max_px, scale,
                    accelerate, np.array(sigmas, dtype=np.float64).reshape(2), c, lum, light,
-                   has_bg, bgs[0], bgs[1], sts[0], sts[1], blk, rise)
+                   has_bg, bgs[0], bgs[1], sts[0], sts[1], blk, rise, spot_r, area)
     if info is not None:
         info["light"] = light
+        if spot_radius_px is not None:
+            info["spot_area"] = area
     return [c[:F], c[F:]], [lum[:F], lum[F:]]

@@ -204,7 +204,8 @@ def refine_in_patches(p: Patches, centres: np.ndarray, size: int = 3, iterations
                       scale: bool = True, max_px: float = 1.5, groups: int = 1,
                       use: np.ndarray | None = None, accelerate: bool = True,
                       lit_light: np.ndarray | None = None, info: dict | None = None,
-                      bg_pix: np.ndarray | None = None) -> np.ndarray:
+                      bg_pix: np.ndarray | None = None, spot_radius_px: float | None = None
+                      ) -> np.ndarray:
     """:func:`refine_centres` on patches gathered around ``centres`` (F, N, 2) px (the
     patches must reach size / 2 + max_px px around them). ``groups``: the frames are that
     many equal runs from different cameras (their light levels differ), each with its own
@@ -218,7 +219,9 @@ def refine_in_patches(p: Patches, centres: np.ndarray, size: int = 3, iterations
     with this block's 90th percentile per group (``"light"``), to keep as the next block's
     ``lit_light``. ``bg_pix``: the per-pixel background of each patch (F, N, K, K) DN
     (:class:`PixelBackground`); the centroids are then taken of the light above it instead
-    of above each patch's darkest pixel (a textured background then pulls no centroid)."""
+    of above each patch's darkest pixel (a textured background then pulls no centroid).
+    ``spot_radius_px``: also measure the lit spots' size (:func:`half_max_area`, into
+    ``info["spot_area"]``, per group) within this radius of their refined centres."""
     w = _window(size)[0]
     c0 = np.asarray(centres, dtype=np.float64)
     F, N = c0.shape[:2]
@@ -276,7 +279,41 @@ def refine_in_patches(p: Patches, centres: np.ndarray, size: int = 3, iterations
         prev = (d.copy(), sc.copy())
         step = d[:, None, :] + sc[:, None, None] * (cc - ctr[:, None, :])
         cc = c0 + np.clip(cc + step - c0, -max_px, max_px)
+    if info is not None and spot_radius_px is not None:
+        info["spot_area"] = half_max_area(img, xs, ys, cc[:, sel], lit, groups, spot_radius_px)
     return cc
+
+
+def half_max_area(img: np.ndarray, xs: np.ndarray, ys: np.ndarray, centres: np.ndarray,
+                  lit: np.ndarray, groups: int, radius_px: float) -> np.ndarray:
+    """Mean area (px^2) above half its peak of the lit spots, per group (camera): (groups,).
+
+    img: (F, n, K, K) light above the background; xs, ys: (F, n, K) pixel coordinates;
+    centres (F, n, 2) px; lit (F, n). Per lit spot, the pixels within ``radius_px`` of its
+    centre (an array's neighbours stay out) above half the brightest of them are counted;
+    NaN for a group without a lit spot. A spot whose core clips has a wide plateau at its
+    peak, so its half-maximum area is that of the plateau and its rim: the window that
+    reaches the unsaturated wings. ``sqrt(area / pi) / 1.1774`` is the sigma of a Gaussian
+    with that half-maximum area (FWHM = 2.3548 sigma)."""
+    F, n = img.shape[:2]
+    d2 = (xs - centres[..., 0:1])[..., None, :] ** 2 + (ys - centres[..., 1:2])[..., :, None] ** 2
+    inside = d2 <= radius_px * radius_px  # (F, n, K, K)
+    v = np.where(inside, img, -np.inf)
+    peak = v.reshape(F, n, -1).max(-1)  # (F, n)
+    area = (v > 0.5 * peak[..., None, None]).sum(axis=(-2, -1)).astype(np.float64)
+    ok = lit & (peak > 0)
+    Fg = F // groups
+    out = np.full(groups, np.nan)
+    for g in range(groups):
+        a, m = area[g * Fg:(g + 1) * Fg], ok[g * Fg:(g + 1) * Fg]
+        if m.any():
+            out[g] = float(a[m].mean())
+    return out
+
+
+def area_sigma(area_px2: float | np.ndarray) -> float | np.ndarray:
+    """Sigma (px) of the Gaussian whose half-maximum area is ``area_px2`` (px^2)."""
+    return np.sqrt(np.asarray(area_px2, dtype=np.float64) / np.pi) / 1.1774
 
 
 LIT_SHARE = 0.25
@@ -310,7 +347,8 @@ def grid_sample(rows: int, cols: int, per_axis: int = 4) -> np.ndarray:
 def follow_and_measure(frames: list[np.ndarray], starts: list[np.ndarray], size: int,
                        sigmas: list[float], use: np.ndarray | None = None, iterations: int = 3,
                        lit_light: np.ndarray | None = None, info: dict | None = None,
-                       backgrounds: list["PixelBackground"] | None = None
+                       backgrounds: list["PixelBackground"] | None = None,
+                       spot_radius_px: float | None = None
                        ) -> tuple[list[np.ndarray], list[np.ndarray]]:
     """Follow the LEDs and measure their luminance in each camera, in one vectorized pass.
 
@@ -325,6 +363,8 @@ def follow_and_measure(frames: list[np.ndarray], starts: list[np.ndarray], size:
     patches (:meth:`PixelBackground.update`); the centroids and the luminance are then
     of the light above it (the luminance: the Gaussian-weighted mean of ``pixel -
     background``, which a textured background moving under the window does not change).
+    spot_radius_px: measure the lit spots' half-maximum area too (``info["spot_area"]``
+    (2,) px^2, :func:`half_max_area`) within this radius (at most the patch's half-size).
     """
     F = frames[0].shape[0]
     # the Gaussian reaches 3.5 sigma on every side however the LED sits in its patch (a
@@ -342,7 +382,8 @@ def follow_and_measure(frames: list[np.ndarray], starts: list[np.ndarray], size:
             raise ValueError(f"backgrounds: one per camera ({len(frames)}), got {len(backgrounds)}")
         bg_pix = np.concatenate([b.update(q) for b, q in zip(backgrounds, ps)])
     c = refine_in_patches(p, np.concatenate(st), size, iterations, groups=len(frames), use=use,
-                          lit_light=lit_light, info=info, bg_pix=bg_pix)
+                          lit_light=lit_light, info=info, bg_pix=bg_pix,
+                          spot_radius_px=None if spot_radius_px is None else min(spot_radius_px, half))
     sig = np.repeat(np.asarray(sigmas, dtype=np.float64), F)
     if bg_pix is None:
         lum = gauss_in_patches(p, c, sig)
