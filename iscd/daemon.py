@@ -319,8 +319,10 @@ class Daemon:
                 # falling behind: shed work in the policy's order so that no packet is lost
                 svc = overload.service(ring.stats().queued / ring.capacity)
                 try:
+                    # the block's ranges first; its demodulation hand-off and tracking update
+                    # after they are out (finish_block below)
                     records = decoder.push(ids[:n].copy(), t_s[:n].copy(), blk_l[:n], blk_r[:n],
-                                           ranging_every=svc.ranging_every, per_led=svc.per_led)
+                                           ranging_every=svc.ranging_every, per_led=svc.per_led, defer=True)
                 except Exception:  # a decoder bug on odd frames must not stop the service
                     counters["decode_errors"] += 1
                     log.exception("decoding frames %d..%d failed; the decoder restarts acquisition",
@@ -336,6 +338,13 @@ class Daemon:
                 wake.add(np.array([(t_read_ns - arrival[n - 1]) / 1e6]))
                 work.add(np.array([(done_ns - t_read_ns) / 1e6]))
                 emit(records)
+                try:
+                    emit(decoder.finish_block())  # packets that came back; the blocks still in the buffers
+                except Exception:  # as a failed push
+                    counters["decode_errors"] += 1
+                    log.exception("finishing frames %d..%d failed; the decoder restarts acquisition",
+                                  int(ids[0]), int(ids[n - 1]))
+                    decoder.restart()
                 if view is not None and decoder.last_luminance is not None and svc.images:
                     li, lt, ll, lr = decoder.last_luminance
                     view.log_luminance(li, lt, ll, lr)

@@ -189,6 +189,8 @@ class StreamDecoder:
         self._since_fit = 0
         self._last_id: int | None = None
         self.last_luminance: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = None
+        self._deferred: tuple[np.ndarray, ...] | None = None
+        """the rest of a block pushed with ``defer=True`` (see :meth:`finish_block`)"""
         """(ids, t_s, lum_left, lum_right) of the last block decoded (for live views)."""
         self._blk_l: list[np.ndarray] = []
         self._blk_r: list[np.ndarray] = []
@@ -294,7 +296,8 @@ class StreamDecoder:
 
     # ------------------------------------------------------------------ main entry
     def push(self, frame_ids: np.ndarray, t_s: np.ndarray, left: np.ndarray, right: np.ndarray,
-             *, ranging: bool = True, ranging_every: int = 1, per_led: bool = True) -> list[dict]:
+             *, ranging: bool = True, ranging_every: int = 1, per_led: bool = True,
+             defer: bool = False) -> list[dict]:
         """Process a block of stereo frames; returns the records it produced.
 
         frame_ids: (n,) int (left-camera frame ids of the pairs); t_s: (n,) exposure start,
@@ -303,11 +306,23 @@ class StreamDecoder:
         skips the range measurement for this block, ``ranging_every=k`` ranges only the
         frames whose id is a multiple of k (counted in ``counters["ranging_skipped"]``),
         ``per_led=False`` skips the per-LED ranges (``counters["led_ranges_shed"]``).
+
+        ``defer=True`` (the daemon): return the block's range records as soon as they are
+        measured and leave the rest of the block -- handing its luminance to the
+        demodulation, the tracking update, the packets that came back -- to
+        :meth:`finish_block`, which must be called (with ``left``/``right`` untouched)
+        before the next push; the same steps in the same order among themselves, so the
+        same records (packets then come out of :meth:`finish_block`). The ranges do not
+        depend on those steps; their latency then does not include them.
         """
+        if self._deferred is not None:  # a caller that did not finish the last block
+            pending = self.finish_block()
+        else:
+            pending = []
         n = len(frame_ids)
         if n == 0:
-            return []
-        records: list[dict] = []
+            return pending
+        records: list[dict] = pending
         if self.track is None:
             got = self._acquire(frame_ids, t_s, left, right)
             if got is None:
@@ -322,19 +337,8 @@ class StreamDecoder:
         self.counters["frames_decoded"] += n
         lum_l, lum_r = self._luminance(frame_ids, left, right)
         self.last_luminance = (frame_ids, t_s, lum_l, lum_r)
-        # a long gap (a stalled camera, a burst of drops) restarts the packet search
-        prev = np.concatenate([[self._last_id if self._last_id is not None else frame_ids[0] - 1], frame_ids[:-1]])
-        cuts = np.flatnonzero(frame_ids - prev > self.settings.reset_gap_frames)
-        bounds = [0, *cuts.tolist(), n]
-        for a, b in zip(bounds[:-1], bounds[1:]):
-            if a in cuts:
-                self._reset_assembler()
-                self.counters["assembler_resets"] += 1
-                tr.since_frame = int(frame_ids[a])  # the header wait starts again
-                tr.frames_since_header = 0
-            if b > a:
-                records += self._demod(frame_ids[a:b], t_s[a:b], lum_l[a:b], lum_r[a:b])
-        self._last_id = int(frame_ids[-1])
+        if not defer:
+            records += self._demod_block(frame_ids, t_s, lum_l, lum_r)
         ranged = np.arange(n) if ranging_every <= 1 else np.flatnonzero(frame_ids % int(ranging_every) == 0)
         if self.ranger is not None and (not ranging or ranged.size == 0):
             self.counters["ranging_skipped"] += n
@@ -355,8 +359,48 @@ class StreamDecoder:
                 records += self._per_led(frame_ids, t_s, left, right)
             elif self.led_ranger is not None:
                 self.counters["led_ranges_shed"] += int(np.sum(frame_ids % self.per_led_every == 0))
+        if defer:
+            self._deferred = (frame_ids, t_s, lum_l, lum_r, left, right)
+            return records
         self._retrack(frame_ids, left, right)
         return self._collect() + records
+
+    def finish_block(self) -> list[dict]:
+        """The rest of a block pushed with ``defer=True``: its luminance handed to the
+        demodulation, the tracking update; returns the packet records that are ready
+        (none if nothing was deferred)."""
+        if self._deferred is None:
+            return []
+        frame_ids, t_s, lum_l, lum_r, left, right = self._deferred
+        self._deferred = None
+        if self.track is None:  # restarted in between
+            return self._collect()
+        records = self._demod_block(frame_ids, t_s, lum_l, lum_r)
+        self._retrack(frame_ids, left, right)
+        return self._collect() + records
+
+    def _demod_block(self, frame_ids: np.ndarray, t_s: np.ndarray, lum_l: np.ndarray,
+                     lum_r: np.ndarray) -> list[dict]:
+        """A block's luminance to the packet assembler; a long gap (a stalled camera, a
+        burst of drops) restarts the packet search first. Returns the packet records
+        decoded synchronously (none with a worker)."""
+        tr = self.track
+        assert tr is not None
+        n = len(frame_ids)
+        records: list[dict] = []
+        prev = np.concatenate([[self._last_id if self._last_id is not None else frame_ids[0] - 1], frame_ids[:-1]])
+        cuts = np.flatnonzero(frame_ids - prev > self.settings.reset_gap_frames)
+        bounds = [0, *cuts.tolist(), n]
+        for a, b in zip(bounds[:-1], bounds[1:]):
+            if a in cuts:
+                self._reset_assembler()
+                self.counters["assembler_resets"] += 1
+                tr.since_frame = int(frame_ids[a])  # the header wait starts again
+                tr.frames_since_header = 0
+            if b > a:
+                records += self._demod(frame_ids[a:b], t_s[a:b], lum_l[a:b], lum_r[a:b])
+        self._last_id = int(frame_ids[-1])
+        return records
 
     def _per_led(self, frame_ids: np.ndarray, t_s: np.ndarray, left: np.ndarray, right: np.ndarray) -> list[dict]:
         """``range_leds`` records ([ranging] per_led): one range per LED of the array on the
@@ -396,6 +440,9 @@ class StreamDecoder:
 
     def finish(self) -> list[dict]:
         """End of stream: decode what the assembler still holds."""
+        if self._deferred is not None:
+            pending = self.finish_block()
+            return pending + self.finish()
         if self._worker is not None:
             self._pending.append((self._worker.submit("flush"), 0))
             out = self._collect(wait=True)
@@ -423,6 +470,7 @@ class StreamDecoder:
         """Drop the track and every per-track buffer: acquisition starts again (the daemon
         calls it after a decoding error so that one bad block cannot wedge the decoder)."""
         self.track = None
+        self._deferred = None
         self._blk_l.clear()
         self._blk_r.clear()
         self._acc = None

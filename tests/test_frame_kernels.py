@@ -230,14 +230,16 @@ def test_frames_smaller_than_a_patch_take_the_reference_path() -> None:
 def test_block_ranging_in_one_call_matches_the_reference(rendered_default, fits) -> None:
     """StereoRanger's compiled path (block_minima + range_block: projections, noise, SNR,
     correlation and range in one call) against its numpy reference on rendered blocks,
-    the running background carried over five blocks: ranges and disparities 1e-7 px / m
-    (measured: identical), the same valid frames, SNR 1e-6 relative."""
+    the running background carried over five blocks: disparities 1e-5 px (measured 1.4e-7),
+    ranges 1e-6 relative, their sigma 1e-4 relative (a residual-phase variance: measured
+    1.2e-6),
+    correlation quality 1e-6 (the reference sums partly in float32: measured 3.5e-8), the
+    same valid frames, SNR 1e-6 relative."""
     from iscd.ranging.project_kernel import block_minima
     from iscd.stereo_range import StereoRanger
 
     L, R = rendered_default
     fl, fr = fits
-    cal = None
     from calibration.io import StereoCalibration
 
     cal = StereoCalibration.ideal(default_config().camera)
@@ -247,11 +249,11 @@ def test_block_ranging_in_one_call_matches_the_reference(rendered_default, fits)
         rb = b.measure(L[s:s + 16], R[s:s + 16], fl, fr)
         np.testing.assert_array_equal(ra.valid, rb.valid)
         assert ra.valid.any()
-        np.testing.assert_allclose(ra.disparity_px, rb.disparity_px, rtol=0, atol=1e-7)
-        np.testing.assert_allclose(ra.z_m, rb.z_m, rtol=0, atol=1e-7, equal_nan=True)
-        np.testing.assert_allclose(ra.sigma_m, rb.sigma_m, rtol=1e-6, atol=1e-9, equal_nan=True)
+        np.testing.assert_allclose(ra.disparity_px, rb.disparity_px, rtol=0, atol=1e-5)  # measured 1.4e-7
+        np.testing.assert_allclose(ra.z_m, rb.z_m, rtol=1e-6, atol=0, equal_nan=True)
+        np.testing.assert_allclose(ra.sigma_m, rb.sigma_m, rtol=1e-4, equal_nan=True)  # measured 1.2e-6
         np.testing.assert_allclose(ra.snr, rb.snr, rtol=1e-6, atol=1e-6)
-        np.testing.assert_allclose(ra.quality, rb.quality, rtol=0, atol=1e-9)
+        np.testing.assert_allclose(ra.quality, rb.quality, rtol=0, atol=1e-6)  # measured 3.5e-8
     # both patches' minima in one call, also across the image edge (0 outside)
     for x0l, x0r, y0 in ((200, 170, 210), (-5, 480, -3)):
         ml, mr = block_minima(L[64:80], R[64:80], x0l, x0r, y0, 40, 50)
@@ -260,3 +262,27 @@ def test_block_ranging_in_one_call_matches_the_reference(rendered_default, fits)
             ya, yb, xa, xb = max(0, y0), min(512, y0 + 40), max(0, x0), min(512, x0 + 50)
             pad[:, ya - y0:yb - y0, xa - x0:xb - x0] = fr_[:, ya:yb, xa:xb]
             np.testing.assert_array_equal(m, pad.min(axis=0))
+
+
+def test_deferred_block_tail_gives_the_same_records(rendered_default) -> None:
+    """push(defer=True) + finish_block() (the daemon: ranges out before the demodulation
+    hand-off and the tracking update) gives exactly the records of push() (as a set; the
+    packets come out of finish_block), the same tracking and the same luminance."""
+    from iscd.pipeline import StreamDecoder
+
+    L, R = rendered_default
+    ids = np.arange(L.shape[0])
+    out = {}
+    for defer in (False, True):
+        dec = StreamDecoder(default_config())
+        recs = []
+        for s in range(0, L.shape[0], 16):
+            recs += dec.push(ids[s:s + 16], ids[s:s + 16] / 1000.0, L[s:s + 16], R[s:s + 16], defer=defer)
+            if defer:
+                recs += dec.finish_block()
+        recs += dec.finish()
+        out[defer] = (sorted(repr(r) for r in recs), dec.track, dec.last_luminance[2], dec.counters)
+    (ra, ta, la, ca), (rb, tb, lb, cb) = out[False], out[True]
+    assert ra == rb and any("'range'" in r for r in ra)
+    assert ta == tb and ca == cb
+    np.testing.assert_array_equal(la, lb)
