@@ -308,8 +308,9 @@ class StreamDecoder:
         ``per_led=False`` skips the per-LED ranges (``counters["led_ranges_shed"]``).
 
         ``defer=True`` (the daemon): return the block's range records as soon as they are
-        measured and leave the rest of the block -- handing its luminance to the
-        demodulation, the tracking update, the packets that came back -- to
+        measured and leave the rest of the block -- following the LEDs and measuring their
+        luminance, handing it to the demodulation, the tracking update, the packets that
+        came back -- to
         :meth:`finish_block`, which must be called (with ``left``/``right`` untouched)
         before the next push; the same steps in the same order among themselves, so the
         same records (packets then come out of :meth:`finish_block`). The ranges do not
@@ -335,9 +336,14 @@ class StreamDecoder:
         frame_ids = np.asarray(frame_ids, dtype=np.int64)
         t_s = np.asarray(t_s, dtype=np.float64)
         self.counters["frames_decoded"] += n
-        lum_l, lum_r = self._luminance(frame_ids, left, right)
-        self.last_luminance = (frame_ids, t_s, lum_l, lum_r)
+        # deferred, the following and luminance wait for finish_block too (the ranges do
+        # not use them; per-LED ranges do: then they run here)
+        lum_l = lum_r = None
+        if not (defer and (self.led_ranger is None or not per_led)):
+            lum_l, lum_r = self._luminance(frame_ids, left, right)
+            self.last_luminance = (frame_ids, t_s, lum_l, lum_r)
         if not defer:
+            assert lum_l is not None and lum_r is not None
             records += self._demod_block(frame_ids, t_s, lum_l, lum_r)
         ranged = np.arange(n) if ranging_every <= 1 else np.flatnonzero(frame_ids % int(ranging_every) == 0)
         if self.ranger is not None and (not ranging or ranged.size == 0):
@@ -346,12 +352,12 @@ class StreamDecoder:
             self.counters["ranging_skipped"] += n - ranged.size
             rl, rr = (left, right) if ranged.size == n else (left[ranged], right[ranged])
             res = self.ranger.measure(rl, rr, tr.left, tr.right)
-            for k, i in enumerate(ranged):
-                if math.isfinite(res.z_m[k]):
-                    records.append({"type": "range", "tx": self.tx_index, "frame": int(frame_ids[i]),
-                                    "t_s": float(t_s[i]), "z_m": float(res.z_m[k]),
-                                    "disparity_px": float(res.disparity_px[k]),
-                                    "sigma_m": float(res.sigma_m[k])})
+            z, dsp, sg = res.z_m.tolist(), res.disparity_px.tolist(), res.sigma_m.tolist()
+            fid, ts = frame_ids.tolist(), t_s.tolist()
+            for k, i in enumerate(ranged.tolist()):
+                if math.isfinite(z[k]):
+                    records.append({"type": "range", "tx": self.tx_index, "frame": fid[i], "t_s": ts[i],
+                                    "z_m": z[k], "disparity_px": dsp[k], "sigma_m": sg[k]})
             self.counters["ranges"] += int(np.isfinite(res.z_m).sum())
             if self.kalman is not None:
                 records += self._filtered(frame_ids[ranged], t_s[ranged], res.z_m, res.sigma_m)
@@ -366,8 +372,9 @@ class StreamDecoder:
         return self._collect() + records
 
     def finish_block(self) -> list[dict]:
-        """The rest of a block pushed with ``defer=True``: its luminance handed to the
-        demodulation, the tracking update; returns the packet records that are ready
+        """The rest of a block pushed with ``defer=True``: the LEDs followed and their
+        luminance measured (unless per-LED ranges needed them in :meth:`push`), handed to
+        the demodulation, the tracking update; returns the packet records that are ready
         (none if nothing was deferred)."""
         if self._deferred is None:
             return []
@@ -375,6 +382,9 @@ class StreamDecoder:
         self._deferred = None
         if self.track is None:  # restarted in between
             return self._collect()
+        if lum_l is None:
+            lum_l, lum_r = self._luminance(frame_ids, left, right)
+            self.last_luminance = (frame_ids, t_s, lum_l, lum_r)
         records = self._demod_block(frame_ids, t_s, lum_l, lum_r)
         self._retrack(frame_ids, left, right)
         return self._collect() + records
