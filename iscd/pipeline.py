@@ -34,7 +34,7 @@ from iscd.airinterface import AirInterface
 from iscd.config import Config, build_section
 from iscd.demod_pipe import PipeDemodWorker as DemodWorker
 from iscd.receiver.follow_kernel import follow_and_measure_compiled
-from iscd.receiver.luminance import PixelBackground, follow_and_measure, grid_sample
+from iscd.receiver.luminance import PixelBackground, area_sigma, follow_and_measure, grid_sample
 from iscd.receiver.detect import GridFit, detect_array, light_map, match_stereo, track_box, track_on_light
 from iscd.receiver.track_kernel import LightAccumulator, track_on_light_compiled
 from iscd.receiver.packets import Packet, PacketAssembler
@@ -62,6 +62,7 @@ class PipelineSettings:
     ranging: bool = field(default=True, metadata={"doc": "measure the range every frame"})
     background: bool = field(default=False, metadata={"doc": "luminance and centroids of the light above a per-pixel background (each pixel's least value in the frames its LEDs were dark): a textured background under a window that moves with the LED then cancels"})
     window_scale: float = field(default=1.0, metadata={"lo": 0.5, "hi": 4.0, "doc": "luminance window relative to the spot-matched Gaussian (roi_sigma_px = -1): wider reaches the unsaturated wings of a spot whose core clips"})
+    window_follows_spot: bool = field(default=False, metadata={"doc": "the luminance window follows the spot's measured size (its half-maximum area, smoothed over ~10 blocks) times window_scale, instead of the size at acquisition grown with the array"})
     background_rise_dn: float = field(default=0.25, metadata={"lo": 0, "doc": "how fast the per-pixel background follows a background that brightens, DN per block"})
 
 
@@ -201,6 +202,7 @@ class StreamDecoder:
         """per camera, the LED centres (N, 2) px refined in the last decoded frame"""
         self._lit_light: np.ndarray | None = None
         self._backgrounds: list[PixelBackground] | None = None
+        self._spot_area: np.ndarray | None = None
         """per camera, the box light of a lit LED (following ignores LEDs far below it)"""
         self._win: tuple[tuple[int, int, int, int], tuple[int, int, int, int]] = ((0, 0, 0, 0), (0, 0, 0, 0))
         self._new_assembler()
@@ -488,6 +490,7 @@ class StreamDecoder:
         self._followed = [None, None]
         self._lit_light = None
         self._backgrounds = None
+        self._spot_area = None
         self._since_fit = 0
         self._acq_l.clear()
         self._acq_r.clear()
@@ -554,11 +557,18 @@ class StreamDecoder:
         if self.settings.background and self._backgrounds is None:
             rise = self.settings.background_rise_dn
             self._backgrounds = [PixelBackground(left.shape[1:], rise), PixelBackground(right.shape[1:], rise)]
+        sigmas = [float(np.clip(sig * g, 0.6, max(sig, self.MAX_SIGMA_PX))) for sig, g in zip(tr.roi_sigma, growth)]
+        spot_r = None
+        if self.settings.window_follows_spot:
+            sigmas = self._spot_window(tr, growth, sigmas)
+            # measure within half a pitch of each LED (an array's neighbours stay out)
+            spot_r = 0.5 * tr.left.pitch_px * max(growth) if self.rows * self.cols > 1 else 8.0
         (c_l, c_r), (lum_l, lum_r) = follow(
-            [left, right], starts, box,
-            [float(np.clip(sig * g, 0.6, max(sig, self.MAX_SIGMA_PX))) for sig, g in zip(tr.roi_sigma, growth)],
+            [left, right], starts, box, sigmas,
             use=grid_sample(self.rows, self.cols), lit_light=self._lit_light, info=info,
-            backgrounds=self._backgrounds)
+            backgrounds=self._backgrounds, spot_radius_px=spot_r)
+        if spot_r is not None:
+            self._fold_spot_area(info["spot_area"])
         # the light of a lit LED, held over dark stretches (halves in ~5 s of darkness)
         light = info["light"]
         self._lit_light = light if self._lit_light is None else np.maximum(light, self.LIT_DECAY * self._lit_light)
@@ -568,6 +578,41 @@ class StreamDecoder:
 
     MAX_SIGMA_PX = 4.0
     """Largest Gaussian luminance window, px (an array seen from close by)."""
+
+    SPOT_SMOOTHING = 0.1
+    """Share of a block's measured spot area in the running one (``window_follows_spot``):
+    the window changes over ~10 blocks, smoothly, never in one jump mid-packet."""
+
+    def _fold_spot_area(self, area: np.ndarray) -> None:
+        """Fold one block's half-maximum areas (2,) px^2 into the running ones."""
+        a = np.asarray(area, dtype=np.float64)
+        if self._spot_area is None:
+            self._spot_area = np.where(np.isfinite(a), a, np.nan)
+            return
+        k = self.SPOT_SMOOTHING
+        old = self._spot_area
+        new = np.where(np.isfinite(a), np.where(np.isfinite(old), (1 - k) * old + k * a, a), old)
+        self._spot_area = new
+
+    def _spot_window(self, tr: _Track, growth: list[float], sigmas: list[float]) -> list[float]:
+        """Per camera the Gaussian window that follows the measured spot: ``window_scale``
+        times the sigma of its running half-maximum area (:func:`iscd.receiver.luminance.
+        area_sigma`), in an array at most (pitch - 0.8) / 4 (the pitch grown as the array);
+        ``sigmas`` (the acquisition's, grown) until a lit spot has been measured."""
+        if self._spot_area is None:
+            return sigmas
+        out = []
+        for side, (s0, g) in enumerate(zip(sigmas, growth)):
+            a = self._spot_area[side]
+            if not np.isfinite(a):
+                out.append(s0)
+                continue
+            s = self.settings.window_scale * float(area_sigma(a))
+            fit = tr.left if side == 0 else tr.right
+            if self.rows * self.cols > 1 and fit.pitch_px > 0:
+                s = min(s, (fit.pitch_px * g - 0.8) / 4.0)
+            out.append(float(np.clip(s, 0.6, self.MAX_SIGMA_PX)))
+        return out
 
     def _growth(self, starts: list[np.ndarray]) -> list[float]:
         """Per camera how much the array's image has grown since acquisition (its spread
@@ -674,6 +719,7 @@ class StreamDecoder:
         self._followed = [None, None]
         self._lit_light = None
         self._backgrounds = None
+        self._spot_area = None
         self.track = _Track(left=fl, right=fr, first_score=min(fl.score, fr.score),
                             roi_radius=(self._roi_radius(fl), self._roi_radius(fr)),
                             roi_sigma=(self._roi_sigma(fl), self._roi_sigma(fr)),

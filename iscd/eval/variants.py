@@ -30,8 +30,11 @@ VARIANTS: dict[str, dict[str, Any]] = {
     "background_w15": {"background": True, "window_scale": 1.5},
     "spot": {"background": True, "window_follows_spot": True},
     "spot_w15": {"background": True, "window_follows_spot": True, "window_scale": 1.5},
+    "ic4": {"receiver": {"ic_iterations": 4}},
+    "window48": {"receiver": {"channel_window_symbols": 48}},
+    "window192": {"receiver": {"channel_window_symbols": 192}},
 }
-"""``[tracking]`` keys of each variant."""
+"""``[tracking]`` keys of each variant (and ``[receiver]`` keys under ``"receiver"``)."""
 
 CASES: dict[str, tuple[float, float, float]] = {
     "still45": (45.0, 0.0, 0.3),
@@ -42,9 +45,10 @@ CASES: dict[str, tuple[float, float, float]] = {
 """Case -> (start distance m, closing speed m/s, vibration RMS px)."""
 
 
-def scene_config(case: str, seed: int):  # -> Config
+def scene_config(case: str, seed: int, randomize: bool = True):  # -> Config
     """The randomized config of ``case`` for ``seed`` (the physics seed is 1000 + seed +
-    100 x the case's index, so cases never share a draw)."""
+    100 x the case's index, so cases never share a draw); ``randomize=False``: the
+    simulator's default physics with the case's motion (0.05 px air jitter)."""
     from iscd.config import default_config
     from iscd.sim.presets import override, single_led
     from iscd.sim.randomize import randomized
@@ -52,6 +56,9 @@ def scene_config(case: str, seed: int):  # -> Config
     d0, speed, vib = CASES[case]
     base = override(single_led(default_config(), d0, seed=seed), camera={"f_number_right": 4.0},
                     scene={"distractors": []})
+    if not randomize:
+        return override(base, scene={"speed_mps": speed, "vibration_px": vib, "jitter_px": 0.05,
+                                     "min_distance_m": 25.0})
     return randomized(base, 1000 + seed + 100 * list(CASES).index(case),
                       motion={"distance_m": d0, "speed_mps": speed, "vibration_px": vib,
                               "min_distance_m": 25.0})
@@ -71,7 +78,10 @@ def run_scene(cfg, variants: Sequence[str], packets: int = 2, block: int = 32) -
     decs: dict[str, tuple[StreamDecoder, list[dict]]] = {}
     for v in variants:
         c = _decoder_cfg(cfg, ReceiverMode("both", "both"))
-        c = c.replace(extra={**c.extra, "tracking": {**c.extra["tracking"], **VARIANTS[v]}})
+        keys = dict(VARIANTS[v])
+        rx = keys.pop("receiver", {})
+        c = c.replace(extra={**c.extra, "tracking": {**c.extra["tracking"], **keys},
+                             "receiver": {**dict(c.extra.get("receiver", {})), **rx}})
         decs[v] = (StreamDecoder(c), [])
     L = np.empty((block, sc.height, sc.width), np.uint8)
     R = np.empty_like(L)
@@ -99,6 +109,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--cases", default=",".join(CASES), help=f"comma-separated, of {', '.join(CASES)}")
     ap.add_argument("--seeds", default="1,2,3,4", help="comma-separated scene seeds")
     ap.add_argument("--variants", default=",".join(VARIANTS), help=f"comma-separated, of {', '.join(VARIANTS)}")
+    ap.add_argument("--default-physics", action="store_true",
+                    help="the simulator's default physics instead of randomized draws")
     a = ap.parse_args(argv)
     try:
         cases = [c for c in a.cases.split(",") if c]
@@ -114,7 +126,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     total = {v: 0 for v in variants}
     for case in cases:
         for seed in seeds:
-            cfg = scene_config(case, seed)
+            cfg = scene_config(case, seed, randomize=not a.default_physics)
             res = run_scene(cfg, variants)
             for v, (ok, _) in res.items():
                 total[v] += ok
