@@ -145,20 +145,25 @@ def test_refine_clock_matches_reference() -> None:
             assert a.p == pytest.approx(b.p, rel=1e-9)
 
 
-def test_refine_clock_matches_reference_with_a_dark_gap() -> None:
-    """Exposure 0.9 frames, boundaries starting in the dark gap and drifting into the
-    windows: the period search (:func:`iscd.receiver.timing._clock_cost` on a grid) and the
-    Gauss-Newton steps agree in the kernel and the reference."""
+def _gap_setup():
+    """Exposure 0.9 frames; boundaries start in the dark gap and drift (-150 ppm) into the
+    windows: (luminance, clock at the true phase with the nominal period, true levels, model)."""
     air = AirInterface(levels=8, n_leds=3, data_symbols=200)
     rec = synth_recording(air, [SynthCamera(peak_dn=80), SynthCamera(peak_dn=20)], n_packets=1,
                           phase_s=0.000948, drift_ppm=-150.0, seed=9, exposure_s=0.9e-3)
     clock = SymbolClock(rec.packet_starts_s[0] * 1000.0, 2.0)
     truth = rec.levels[7:7 + air.packet_symbols].astype(np.int64) - 1
     y, lv = clean_samples(rec.L, clock, 0.9, truth, 0)
-    model = estimate_iscd(y, lv, 8, kind="t", nu=8.0)
+    return np.ascontiguousarray(rec.L), clock, truth, estimate_iscd(y, lv, 8, kind="t", nu=8.0)
+
+
+def test_refine_clock_matches_reference_with_a_dark_gap() -> None:
+    """The period search (:func:`iscd.receiver.timing._clock_cost` on a grid) and the
+    Gauss-Newton steps agree in the kernel and the reference."""
+    L, clock, truth, model = _gap_setup()
     for fit_p in (True, False):
-        a, na = refine_clock(rec.L, clock, 0.9, truth, 0, model, 2.0, 6e-4, fit_p=fit_p)
-        b, nb = refine_clock_reference(rec.L, clock, 0.9, truth, 0, model, 2.0, 6e-4, fit_p=fit_p)
+        a, na = refine_clock(L, clock, 0.9, truth, 0, model, 2.0, 6e-4, fit_p=fit_p)
+        b, nb = refine_clock_reference(L, clock, 0.9, truth, 0, model, 2.0, 6e-4, fit_p=fit_p)
         assert na == nb and (na > 0 or not fit_p)
         assert a.u0 == pytest.approx(b.u0, rel=1e-9, abs=1e-9)
         assert a.p == pytest.approx(b.p, rel=1e-9)
@@ -168,15 +173,9 @@ def test_clock_cost_matches_reference() -> None:
     from iscd.receiver.channel import ChannelTrack
     from iscd.receiver.timing import _clock_cost, clock_cost_reference
 
-    air = AirInterface(levels=8, n_leds=3, data_symbols=200)
-    rec = synth_recording(air, [SynthCamera(peak_dn=80), SynthCamera(peak_dn=20)], n_packets=1,
-                          phase_s=0.000948, drift_ppm=-150.0, seed=9, exposure_s=0.9e-3)
-    clock = SymbolClock(rec.packet_starts_s[0] * 1000.0, 2.0)
-    truth = rec.levels[7:7 + air.packet_symbols].astype(np.int64) - 1
-    y, lv = clean_samples(rec.L, clock, 0.9, truth, 0)
-    track = ChannelTrack.single(estimate_iscd(y, lv, 8, kind="t", nu=8.0))
+    L, clock, truth, model = _gap_setup()
+    track = ChannelTrack.single(model)
     mu_t, var_t, err_t = track.tables
-    L = np.ascontiguousarray(rec.L)
     for p in (2.0, 2.0003, 1.9996):
         a = _clock_cost(L, 0, L.shape[1], clock.u0, p, 0.9, truth, 0, np.zeros(1, np.int64),
                         mu_t, var_t, err_t, 0.02, 3.0)

@@ -62,6 +62,26 @@ def _percentile90(v: np.ndarray) -> float:
     return s[lo] + (s[hi] - s[lo]) * fr
 
 
+@njit
+def _disc_count(img, bg, has_bg: bool, m: float, xa: int, ya: int, K: int, cx: float, cy: float,
+                r2: float, level: float) -> float:
+    """Over the patch pixels within sqrt(r2) px of (cx, cy), of the light above the
+    background (``bg`` per pixel, else ``m``): the largest value when ``level`` is -inf,
+    else how many exceed ``level``."""
+    best = -math.inf
+    cnt = 0.0
+    for a in range(K):
+        dy = ya + a - cy
+        for b in range(K):
+            dx = xa + b - cx
+            if dx * dx + dy * dy <= r2:
+                v = float(img[ya + a, xa + b]) - (float(bg[ya + a, xa + b]) if has_bg else m)
+                best = max(best, v)
+                if v > level:
+                    cnt += 1.0
+    return best if level == -math.inf else cnt
+
+
 _FAST = {"reassoc", "contract", "nsz", "arcp"}
 """fastmath flags that let LLVM vectorize the sums (reassociation), but keep inf/NaN."""
 
@@ -314,27 +334,10 @@ def _follow_kernel(L, R, starts: np.ndarray, half: int, w: float, iterations: in
                     i = sel[j]
                     xa, ya = x0[q, i], y0[q, i]
                     cx, cy = cc[q, i, 0], cc[q, i, 1]
-                    m = pmin[q, j]
-                    peak = -math.inf
-                    for a in range(K):
-                        dy = ya + a - cy
-                        for b in range(K):
-                            dx = xa + b - cx
-                            if dx * dx + dy * dy <= r2:
-                                v = float(fr[f, ya + a, xa + b]) - (float(bgi[ya + a, xa + b]) if has_bg else m)
-                                peak = max(peak, v)
+                    peak = _disc_count(fr[f], bgi, has_bg, pmin[q, j], xa, ya, K, cx, cy, r2, -math.inf)
                     if not peak > 0:
                         continue
-                    cnt = 0
-                    for a in range(K):
-                        dy = ya + a - cy
-                        for b in range(K):
-                            dx = xa + b - cx
-                            if dx * dx + dy * dy <= r2:
-                                v = float(fr[f, ya + a, xa + b]) - (float(bgi[ya + a, xa + b]) if has_bg else m)
-                                if v > 0.5 * peak:
-                                    cnt += 1
-                    tot_a += cnt
+                    tot_a += _disc_count(fr[f], bgi, has_bg, pmin[q, j], xa, ya, K, cx, cy, r2, 0.5 * peak)
                     n_a += 1
             if n_a > 0:
                 out_area[g] = tot_a / n_a

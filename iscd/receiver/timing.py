@@ -259,6 +259,40 @@ def _response(track: ChannelTrack, k: np.ndarray, q: np.ndarray, dl: np.ndarray,
     return a + f * slope, slope, var
 
 
+@njit(error_model="numpy")
+def _segment_of(starts: np.ndarray, k: int) -> int:
+    """``searchsorted(starts, k, "right") - 1``, clipped: the channel model of symbol k."""
+    J = starts.shape[0]
+    seg = J - 1
+    for jj in range(J):
+        if starts[jj] > k:
+            seg = jj - 1
+            break
+    return min(max(seg, 0), J - 1)
+
+
+@njit(error_model="numpy")
+def _response_at(mu_t: np.ndarray, var_t: np.ndarray, err_t: np.ndarray, seg: int, c: int, i: int,
+                 q: float, dl: float, ts_e: float, straddle: bool) -> tuple[float, float, float]:
+    """Response, slope (per unit of q) and variance of camera c, LED i at fractional level
+    q in channel model ``seg`` (element by element :func:`_response`); a ``straddle``-ing
+    frame's variance is widened by the boundary uncertainty and the interpolation error."""
+    M = mu_t.shape[3]
+    q0 = int(min(max(np.floor(q), 0.0), M - 2.0))
+    f = q - q0
+    a = mu_t[seg, c, i, q0]
+    slope = mu_t[seg, c, i, q0 + 1] - a
+    va = var_t[seg, c, i, q0]
+    var = va + f * (var_t[seg, c, i, q0 + 1] - va)
+    if straddle:
+        gain = (mu_t[seg, c, i, M - 1] - mu_t[seg, c, i, 0]) / max(M - 1, 1)
+        tv = ts_e * gain * dl
+        var = var + tv * tv
+        ee = err_t[seg, c, i, int(min(max(q, 0.0), M - 2.0))]
+        var = var + ee * ee
+    return a + f * slope, slope, var
+
+
 def _warm_clock() -> tuple:
     C, n, N, M = 2, 12, 2, 3
     tab = np.ones((1, C, N, M))
@@ -280,8 +314,6 @@ def _clock_sums(L: np.ndarray, n_lo: int, n_hi: int, u0: float, p: float, e: flo
     pairwise order (agreement ~1e-13 relative)."""
     C = L.shape[0]
     S, N = lev.shape
-    J = starts.shape[0]
-    M = mu_t.shape[3]
     n_sel = 0
     used = 0
     h00 = 0.0
@@ -298,12 +330,7 @@ def _clock_sums(L: np.ndarray, n_lo: int, n_hi: int, u0: float, p: float, e: flo
         if not (alpha > 0.0 and alpha < 1.0 and k >= k_first and k + 1 < k_first + S):
             continue
         n_sel += 1
-        seg = J - 1
-        for jj in range(J):  # searchsorted(starts, k, "right") - 1, clipped
-            if starts[jj] > k:
-                seg = jj - 1
-                break
-        seg = min(max(seg, 0), J - 1)
+        seg = _segment_of(starts, k)
         dk = float(k + 1) - kc
         for i in range(N):
             la = lev[k - k_first, i]
@@ -311,24 +338,13 @@ def _clock_sums(L: np.ndarray, n_lo: int, n_hi: int, u0: float, p: float, e: flo
             if la < 0 or lb < 0 or la == lb:
                 continue
             q = alpha * la + (1 - alpha) * lb
-            q0 = int(min(max(np.floor(q), 0.0), M - 2.0))
-            f = q - q0
-            se = int(min(max(q, 0.0), M - 2.0))
             dl = la - lb
             for c in range(C):
                 obs = L[c, fr, i]
                 if not np.isfinite(obs):
                     continue
-                a = mu_t[seg, c, i, q0]
-                slope = mu_t[seg, c, i, q0 + 1] - a
-                va = var_t[seg, c, i, q0]
-                var = va + f * (var_t[seg, c, i, q0 + 1] - va)
-                gain = (mu_t[seg, c, i, M - 1] - mu_t[seg, c, i, 0]) / max(M - 1, 1)
-                tv = ts_e * gain * dl
-                var = var + tv * tv
-                ee = err_t[seg, c, i, se]
-                var = var + ee * ee
-                r = obs - (a + f * slope)
+                mu, slope, var = _response_at(mu_t, var_t, err_t, seg, c, i, q, dl, ts_e, True)
+                r = obs - mu
                 g = -slope * (dl / e)
                 w = 1.0 / var
                 z = abs(r) * np.sqrt(w)
@@ -363,8 +379,6 @@ def _clock_cost(L: np.ndarray, n_lo: int, n_hi: int, u0: float, p: float, e: flo
     :func:`clock_cost_reference` (sums in frame order)."""
     C = L.shape[0]
     S, N = lev.shape
-    J = starts.shape[0]
-    M = mu_t.shape[3]
     ts_e = timing_sigma / e
     tot = 0.0
     for fr in range(n_lo, n_hi):
@@ -375,35 +389,18 @@ def _clock_cost(L: np.ndarray, n_lo: int, n_hi: int, u0: float, p: float, e: flo
         clean = alpha >= 1.0
         if not (k >= k_first and (k < k_first + S if clean else k + 1 < k_first + S)):
             continue
-        seg = J - 1
-        for jj in range(J):
-            if starts[jj] > k:
-                seg = jj - 1
-                break
-        seg = min(max(seg, 0), J - 1)
+        seg = _segment_of(starts, k)
         for i in range(N):
             la = lev[k - k_first, i]
             lb = la if clean else lev[k + 1 - k_first, i]
             if la < 0 or lb < 0:
                 continue
             q = alpha * la + (1 - alpha) * lb
-            q0 = int(min(max(np.floor(q), 0.0), M - 2.0))
-            f = q - q0
-            se = int(min(max(q, 0.0), M - 2.0))
-            dl = la - lb
             for c in range(C):
                 obs = L[c, fr, i]
                 if not np.isfinite(obs):
                     continue
-                a = mu_t[seg, c, i, q0]
-                va = var_t[seg, c, i, q0]
-                mu = a + f * (mu_t[seg, c, i, q0 + 1] - a)
-                var = va + f * (var_t[seg, c, i, q0 + 1] - va)
-                if not clean:
-                    gain = (mu_t[seg, c, i, M - 1] - mu_t[seg, c, i, 0]) / max(M - 1, 1)
-                    tv = ts_e * gain * dl
-                    ee = err_t[seg, c, i, se]
-                    var = var + tv * tv + ee * ee
+                mu, _, var = _response_at(mu_t, var_t, err_t, seg, c, i, q, la - lb, ts_e, not clean)
                 z = abs(obs - mu) / np.sqrt(var)
                 tot += z * z if z <= huber else 2.0 * huber * z - huber * huber
     return tot
