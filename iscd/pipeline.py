@@ -179,6 +179,8 @@ class StreamDecoder:
         self.air = AirInterface.from_config(cfg.transmitter)
         self.rx_cfg = receiver_config(cfg)
         self.rows, self.cols = cfg.transmitter.rows, cfg.transmitter.cols
+        self._use = grid_sample(self.rows, self.cols)
+        """the LEDs whose centroids steer the following (fixed by the array's shape)"""
         self.fps = cfg.camera.fps
         self.packet_frames = self.air.period_symbols * self.fps / cfg.transmitter.symbol_rate_hz
         self.track: _Track | None = None
@@ -542,13 +544,17 @@ class StreamDecoder:
         assert tr is not None
         starts = []
         for side in (0, 1):
-            start = self.led_centres(side, frame_ids)
+            # the grid's prediction for the block's first frame decides; the whole block's
+            # is made only when it is used (the same values row by row)
+            first = self.led_centres(side, frame_ids[:1])
             prev = self._followed[side]
             fit = tr.left if side == 0 else tr.right
             limit = max(self.FOLLOW_MAX_PX, 0.5 * fit.pitch_px)
-            if prev is not None and prev.shape == start.shape[1:] and \
-                    float(np.abs(prev.mean(0) - start[0].mean(0)).max()) <= limit:
+            if prev is not None and prev.shape == first.shape[1:] and \
+                    float(np.abs(prev.mean(0) - first[0].mean(0)).max()) <= limit:
                 start = prev  # where the LEDs were in the last frame
+            else:
+                start = self.led_centres(side, frame_ids)
             starts.append(start)
         growth = self._growth(starts)
         box = 2 * max(1, int(round(max(tr.roi_radius) * max(growth)))) + 1
@@ -565,7 +571,7 @@ class StreamDecoder:
             spot_r = 0.5 * tr.left.pitch_px * max(growth) if self.rows * self.cols > 1 else 8.0
         (c_l, c_r), (lum_l, lum_r) = follow(
             [left, right], starts, box, sigmas,
-            use=grid_sample(self.rows, self.cols), lit_light=self._lit_light, info=info,
+            use=self._use, lit_light=self._lit_light, info=info,
             backgrounds=self._backgrounds, spot_radius_px=spot_r)
         if spot_r is not None:
             self._fold_spot_area(info["spot_area"])
