@@ -39,6 +39,7 @@ from __future__ import annotations
 import dataclasses
 import logging
 import multiprocessing
+import signal
 import os
 import threading
 import time
@@ -479,7 +480,10 @@ def _watch_parent(stop: Any) -> None:
 def _process_main(factory: CameraFactory, ring: StereoRing,
                   settings: tuple[CameraSettings | None, CameraSettings | None],
                   options: AcquisitionOptions, stop: Any, log_level: int) -> None:
-    """Entry point of the spawned worker (``ring`` arrives attached by name)."""
+    """Entry point of the spawned worker (``ring`` arrives attached by name). SIGINT is
+    ignored: Ctrl-C reaches the whole process group, and the daemon stops this worker
+    itself (``stop``), after its final records."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
     logging.basicConfig(level=log_level,
                         format="%(asctime)s %(levelname)s %(processName)s %(name)s: %(message)s")
     threading.Thread(target=_watch_parent, args=(stop,), daemon=True,

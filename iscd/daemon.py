@@ -87,7 +87,10 @@ class Daemon:
         self.records_written = 0
         self.extra_outputs: list[Any] = []
 
-    def request_stop(self, *_: object) -> None:
+    def request_stop(self, signum: object = None, *_: object) -> None:
+        """Stop after the frames in hand (SIGTERM/SIGINT handler; also callable)."""
+        if isinstance(signum, int) and not self._stop:
+            log.info("%s: stopping (the final records follow)", signal.Signals(signum).name)
         self._stop = True
 
     # ------------------------------------------------------------------ helpers

@@ -57,7 +57,11 @@ whole packet's time (1.3 s) for each packet, they have a millisecond per frame."
 
 def _init() -> None:
     import os
+    import signal
 
+    # Ctrl-C reaches the whole process group: the daemon stops this worker itself (it
+    # closes the pipe), so the worker ignores SIGINT instead of dying with a traceback
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
     try:
         os.nice(WORKER_NICE)
     except OSError:  # not permitted (some containers): run at normal priority
