@@ -61,6 +61,7 @@ class PipelineSettings:
     roi_sigma_px: float = field(default=-1.0, metadata={"lo": -1.0, "hi": 8.0, "doc": "luminance window: Gaussian weights of this RMS radius, px; -1 = matched to the spot (its FWHM / 2.355, at most (pitch - 0.8) / 4 in an array)"})
     ranging: bool = field(default=True, metadata={"doc": "measure the range every frame"})
     background: bool = field(default=False, metadata={"doc": "luminance and centroids of the light above a per-pixel background (each pixel's least value in the frames its LEDs were dark): a textured background under a window that moves with the LED then cancels"})
+    lit_background: bool = field(default=True, metadata={"doc": "judge which LEDs are lit (they steer the following) on the light above the per-pixel background held across blocks, not on each block's own minimum: a short block (a decoder that has caught up, a small [daemon] block) then judges as well as a long one"})
     window_scale: float = field(default=1.0, metadata={"lo": 0.5, "hi": 4.0, "doc": "luminance window relative to the spot-matched Gaussian (roi_sigma_px = -1): wider reaches the unsaturated wings of a spot whose core clips"})
     window_follows_spot: bool = field(default=False, metadata={"doc": "the luminance window follows the spot's measured size (its half-maximum area, smoothed over ~10 blocks) times window_scale, instead of the size at acquisition grown with the array"})
     background_rise_dn: float = field(default=0.25, metadata={"lo": 0, "doc": "how fast the per-pixel background follows a background that brightens, DN per block"})
@@ -560,7 +561,7 @@ class StreamDecoder:
         box = 2 * max(1, int(round(max(tr.roi_radius) * max(growth)))) + 1
         info: dict[str, np.ndarray] = {}
         follow = follow_and_measure_compiled if self.compiled else follow_and_measure
-        if self.settings.background and self._backgrounds is None:
+        if (self.settings.background or self.settings.lit_background) and self._backgrounds is None:
             rise = self.settings.background_rise_dn
             self._backgrounds = [PixelBackground(left.shape[1:], rise), PixelBackground(right.shape[1:], rise)]
         sigmas = [float(np.clip(sig * g, 0.6, max(sig, self.MAX_SIGMA_PX))) for sig, g in zip(tr.roi_sigma, growth)]
@@ -572,7 +573,7 @@ class StreamDecoder:
         (c_l, c_r), (lum_l, lum_r) = follow(
             [left, right], starts, box, sigmas,
             use=self._use, lit_light=self._lit_light, info=info,
-            backgrounds=self._backgrounds, spot_radius_px=spot_r)
+            backgrounds=self._backgrounds, spot_radius_px=spot_r, subtract=self.settings.background)
         if spot_r is not None:
             self._fold_spot_area(info["spot_area"])
         # the light of a lit LED, held over dark stretches (halves in ~5 s of darkness)

@@ -92,15 +92,15 @@ def _follow_kernel(L, R, starts: np.ndarray, half: int, w: float, iterations: in
                    scale: bool, accelerate: bool, sigmas: np.ndarray,
                    out_c: np.ndarray, out_lum: np.ndarray, out_light: np.ndarray,
                    has_bg: bool, bg_l: np.ndarray, bg_r: np.ndarray, st_l: np.ndarray,
-                   st_r: np.ndarray, blk: int, rise: float, spot_r: float,
+                   st_r: np.ndarray, blk: int, rise: float, bg_lum: bool, spot_r: float,
                    out_area: np.ndarray) -> None:
     """See :func:`follow_and_measure_compiled`. starts (2F, N, 2) px (left frames first);
     lit_ref (2,) the remembered light of a lit LED per camera (< 0: none); sigmas (2,) px.
     Writes out_c (2F, N, 2) px, out_lum (2F, N) DN, out_light (2,). With ``has_bg`` the
     per-pixel backgrounds bg_l/bg_r (H, W) float32 and their stamps st_l/st_r (H, W) are
     first updated with the block's patches (:class:`~iscd.receiver.luminance.PixelBackground`,
-    block number ``blk``, ``rise`` DN) and the centroids and luminance use the light above
-    them. With ``spot_r`` > 0 out_area (2,) gets the lit spots' mean half-maximum area
+    block number ``blk``, ``rise`` DN) and which LEDs are lit is judged on the light above
+    them; with ``bg_lum`` the centroids and luminance use that light too. With ``spot_r`` > 0 out_area (2,) gets the lit spots' mean half-maximum area
     within spot_r px of their refined centres (:func:`~iscd.receiver.luminance.half_max_area`)."""
     F = L.shape[0]
     N = starts.shape[1]
@@ -181,6 +181,20 @@ def _follow_kernel(L, R, starts: np.ndarray, half: int, w: float, iterations: in
                 for f in range(F):
                     q = g * F + f
                     shown[q, j] += K * K * pmin[q, j] - sb
+        if has_bg:  # the light above the held per-pixel background instead
+            bgi = bg_l if g == 0 else bg_r
+            for j in range(n):
+                i = sel[j]
+                for f in range(F):
+                    q = g * F + f
+                    xa, ya = x0[q, i], y0[q, i]
+                    sv = 0.0
+                    for a in range(K):
+                        row = fr[f, ya + a, xa:xa + K]
+                        brow = bgi[ya + a, xa:xa + K]
+                        for b in range(K):
+                            sv += float(row[b]) - float(brow[b])
+                    shown[q, j] = sv
         per = _percentile90(shown[g * F:(g + 1) * F].ravel())
         out_light[g] = per
         ref = per if lit_ref[g] < 0 else max(per, lit_ref[g])
@@ -233,7 +247,7 @@ def _follow_kernel(L, R, starts: np.ndarray, half: int, w: float, iterations: in
                     row = fr[f, ya + a, xa:xa + K]
                     ra = 0.0
                     rx = 0.0
-                    if has_bg:  # light above each pixel's background
+                    if bg_lum:  # light above each pixel's background
                         brow = bgi[ya + a, xa:xa + K]
                         for b in range(b0, b1):
                             v = float(row[b]) - float(brow[b])
@@ -334,10 +348,10 @@ def _follow_kernel(L, R, starts: np.ndarray, half: int, w: float, iterations: in
                     i = sel[j]
                     xa, ya = x0[q, i], y0[q, i]
                     cx, cy = cc[q, i, 0], cc[q, i, 1]
-                    peak = _disc_count(fr[f], bgi, has_bg, pmin[q, j], xa, ya, K, cx, cy, r2, -math.inf)
+                    peak = _disc_count(fr[f], bgi, bg_lum, pmin[q, j], xa, ya, K, cx, cy, r2, -math.inf)
                     if not peak > 0:
                         continue
-                    tot_a += _disc_count(fr[f], bgi, has_bg, pmin[q, j], xa, ya, K, cx, cy, r2, 0.5 * peak)
+                    tot_a += _disc_count(fr[f], bgi, bg_lum, pmin[q, j], xa, ya, K, cx, cy, r2, 0.5 * peak)
                     n_a += 1
             if n_a > 0:
                 out_area[g] = tot_a / n_a
@@ -357,7 +371,7 @@ def _follow_kernel(L, R, starts: np.ndarray, half: int, w: float, iterations: in
                 for a in range(K):
                     row = fr[f, ya + a, xa:xa + K]
                     r = 0.0
-                    if has_bg:
+                    if bg_lum:
                         brow = bgi[ya + a, xa:xa + K]
                         for b in range(K):
                             r += (float(row[b]) - float(brow[b])) * wx[b]
@@ -376,7 +390,7 @@ def _warm_args() -> tuple:
     stamp = np.zeros((16, 16), np.int64)
     return (fr, fr, st, 3, 3.0, 3, np.arange(2), np.full(2, -1.0), 0.25, 1.5, True, True,
             np.ones(2), np.empty((4, 2, 2)), np.empty((4, 2)), np.empty(2),
-            True, bg, bg.copy(), stamp, stamp.copy(), 1, 0.25, 2.0, np.empty(2))
+            True, bg, bg.copy(), stamp, stamp.copy(), 1, 0.25, True, 2.0, np.empty(2))
 
 
 def _warm_args16() -> tuple:
@@ -400,7 +414,7 @@ def follow_and_measure_compiled(frames: list[np.ndarray], starts: list[np.ndarra
                                 sigmas: list[float], use: np.ndarray | None = None,
                                 iterations: int = 3, lit_light: np.ndarray | None = None,
                                 info: dict | None = None, backgrounds: list | None = None,
-                                spot_radius_px: float | None = None, *,
+                                spot_radius_px: float | None = None, subtract: bool = True, *,
                                 lit_share: float | None = None, max_px: float = 1.5,
                                 scale: bool = True, accelerate: bool = True
                                 ) -> tuple[list[np.ndarray], list[np.ndarray]]:
@@ -412,7 +426,7 @@ def follow_and_measure_compiled(frames: list[np.ndarray], starts: list[np.ndarra
     use: indices of the LEDs whose centroids steer (all by default); lit_light: per camera
     the light of a lit LED from earlier blocks; info: gets ``"light"`` (2,);
     backgrounds: per camera a :class:`~iscd.receiver.luminance.PixelBackground` (updated in
-    place, as the reference does); spot_radius_px: also ``info["spot_area"]`` (2,) px^2, the
+    place, as the reference does; ``subtract`` as there); spot_radius_px: also ``info["spot_area"]`` (2,) px^2, the
     lit spots' half-maximum area. Returns per camera the refined centres (F, N, 2) px and
     the luminance (F, N) DN.
     """
@@ -433,7 +447,7 @@ def follow_and_measure_compiled(frames: list[np.ndarray], starts: list[np.ndarra
         from iscd.receiver.luminance import follow_and_measure  # repeats its edge pixels
 
         return follow_and_measure([L, R], starts, size, sigmas, use, iterations, lit_light, info,
-                                  backgrounds, spot_radius_px)
+                                  backgrounds, spot_radius_px, subtract)
     st = np.empty((2 * F,) + np.shape(starts[0])[-2:], np.float64)
     st[:F] = np.asarray(starts[0], dtype=np.float64)
     st[F:] = np.asarray(starts[1], dtype=np.float64)
@@ -464,7 +478,7 @@ def follow_and_measure_compiled(frames: list[np.ndarray], starts: list[np.ndarra
     spot_r = -1.0 if spot_radius_px is None else float(min(spot_radius_px, half))
     _follow_kernel(L, R, st, half, float(size), iterations, sel, ref, lit_share, max_px, scale,
                    accelerate, np.array(sigmas, dtype=np.float64).reshape(2), c, lum, light,
-                   has_bg, bgs[0], bgs[1], sts[0], sts[1], blk, rise, spot_r, area)
+                   has_bg, bgs[0], bgs[1], sts[0], sts[1], blk, rise, has_bg and subtract, spot_r, area)
     if info is not None:
         info["light"] = light
         if spot_radius_px is not None:

@@ -204,8 +204,8 @@ def refine_in_patches(p: Patches, centres: np.ndarray, size: int = 3, iterations
                       scale: bool = True, max_px: float = 1.5, groups: int = 1,
                       use: np.ndarray | None = None, accelerate: bool = True,
                       lit_light: np.ndarray | None = None, info: dict | None = None,
-                      bg_pix: np.ndarray | None = None, spot_radius_px: float | None = None
-                      ) -> np.ndarray:
+                      bg_pix: np.ndarray | None = None, spot_radius_px: float | None = None,
+                      subtract: bool = True) -> np.ndarray:
     """:func:`refine_centres` on patches gathered around ``centres`` (F, N, 2) px (the
     patches must reach size / 2 + max_px px around them). ``groups``: the frames are that
     many equal runs from different cameras (their light levels differ), each with its own
@@ -218,8 +218,9 @@ def refine_in_patches(p: Patches, centres: np.ndarray, size: int = 3, iterations
     -- that percentile is noise, and noise would walk the centres away). ``info``: filled
     with this block's 90th percentile per group (``"light"``), to keep as the next block's
     ``lit_light``. ``bg_pix``: the per-pixel background of each patch (F, N, K, K) DN
-    (:class:`PixelBackground`); the centroids are then taken of the light above it instead
-    of above each patch's darkest pixel (a textured background then pulls no centroid).
+    (:class:`PixelBackground`, held across blocks): which LEDs are lit is then judged on the
+    light above it, and (``subtract``) the centroids are taken of that light instead of the
+    light above each patch's darkest pixel (a textured background then pulls no centroid).
     ``spot_radius_px``: also measure the lit spots' size (:func:`half_max_area`, into
     ``info["spot_area"]``, per group) within this radius of their refined centres."""
     w = _window(size)[0]
@@ -232,7 +233,10 @@ def refine_in_patches(p: Patches, centres: np.ndarray, size: int = 3, iterations
     # over the block (a textured background cancels there, so a dark frame shows nothing),
     # against a quarter of a lit LED's (this block's 90th percentile, or what earlier
     # blocks showed: in a block where every LED is dark that percentile is noise)
-    shown = (pix - _background(pix, p.x0[:, sel], p.y0[:, sel], groups)).sum(axis=(-2, -1))
+    if bg_pix is None:
+        shown = (pix - _background(pix, p.x0[:, sel], p.y0[:, sel], groups)).sum(axis=(-2, -1))
+    else:
+        shown = (pix.astype(np.float64) - bg_pix[:, sel]).sum(axis=(-2, -1))
     per = np.percentile(shown.reshape(groups, -1), 90, axis=1)  # (groups,)
     if info is not None:
         info["light"] = per
@@ -240,7 +244,7 @@ def refine_in_patches(p: Patches, centres: np.ndarray, size: int = 3, iterations
     lit = shown >= np.repeat(LIT_SHARE * ref, F // groups)[:, None]
     # the centroids: light above the patch's darkest pixel (a spot that moves within the
     # block keeps its shape there)
-    if bg_pix is None:
+    if bg_pix is None or not subtract:
         img = pix - pix.reshape(F, n, -1).min(-1)[..., None, None]
     else:
         img = pix - bg_pix[:, sel]
@@ -348,7 +352,7 @@ def follow_and_measure(frames: list[np.ndarray], starts: list[np.ndarray], size:
                        sigmas: list[float], use: np.ndarray | None = None, iterations: int = 3,
                        lit_light: np.ndarray | None = None, info: dict | None = None,
                        backgrounds: list["PixelBackground"] | None = None,
-                       spot_radius_px: float | None = None
+                       spot_radius_px: float | None = None, subtract: bool = True
                        ) -> tuple[list[np.ndarray], list[np.ndarray]]:
     """Follow the LEDs and measure their luminance in each camera, in one vectorized pass.
 
@@ -360,9 +364,11 @@ def follow_and_measure(frames: list[np.ndarray], starts: list[np.ndarray], size:
     centres (F, N, 2) px and the luminance (F, N) DN.
 
     backgrounds: per camera a :class:`PixelBackground`, first updated with this block's
-    patches (:meth:`PixelBackground.update`); the centroids and the luminance are then
-    of the light above it (the luminance: the Gaussian-weighted mean of ``pixel -
-    background``, which a textured background moving under the window does not change).
+    patches (:meth:`PixelBackground.update`); which LEDs are lit is then judged on the light
+    above it (it holds across blocks, so a short block judges as well as a long one), and
+    with ``subtract`` the centroids and the luminance are of that light too (the
+    luminance: the Gaussian-weighted mean of ``pixel - background``, which a textured
+    background moving under the window does not change).
     spot_radius_px: measure the lit spots' half-maximum area too (``info["spot_area"]``
     (2,) px^2, :func:`half_max_area`) within this radius (at most the patch's half-size).
     """
@@ -383,9 +389,10 @@ def follow_and_measure(frames: list[np.ndarray], starts: list[np.ndarray], size:
         bg_pix = np.concatenate([b.update(q) for b, q in zip(backgrounds, ps)])
     c = refine_in_patches(p, np.concatenate(st), size, iterations, groups=len(frames), use=use,
                           lit_light=lit_light, info=info, bg_pix=bg_pix,
-                          spot_radius_px=None if spot_radius_px is None else min(spot_radius_px, half))
+                          spot_radius_px=None if spot_radius_px is None else min(spot_radius_px, half),
+                          subtract=subtract)
     sig = np.repeat(np.asarray(sigmas, dtype=np.float64), F)
-    if bg_pix is None:
+    if bg_pix is None or not subtract:
         lum = gauss_in_patches(p, c, sig)
     else:
         lum = gauss_in_patches(Patches(pix=pix - bg_pix, x0=p.x0, y0=p.y0), c, sig)
