@@ -187,9 +187,13 @@ class StreamDecoder:
         self.track: _Track | None = None
         self.excluded: list[tuple[tuple[int, int, int, int], int]] = []
         """(bbox, until frame id) of rejected candidates."""
-        self._acq_l: deque[np.ndarray] = deque(maxlen=self.settings.acquire_frames)
-        self._acq_r: deque[np.ndarray] = deque(maxlen=self.settings.acquire_frames)
-        self._acq_ids: deque[tuple[int, float]] = deque(maxlen=self.settings.acquire_frames)
+        # room for a detection attempt's frames plus one more block of any size up to
+        # acquire_frames: a block that does not divide acquire_frames loses none of the
+        # frames collected since the last attempt (a first header among them)
+        keep = 2 * self.settings.acquire_frames
+        self._acq_l: deque[np.ndarray] = deque(maxlen=keep)
+        self._acq_r: deque[np.ndarray] = deque(maxlen=keep)
+        self._acq_ids: deque[tuple[int, float]] = deque(maxlen=keep)
         self._since_fit = 0
         self._last_id: int | None = None
         self.last_luminance: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = None
@@ -704,7 +708,7 @@ class StreamDecoder:
             self._acq_l.append(np.array(left[i]))
             self._acq_r.append(np.array(right[i]))
             self._acq_ids.append((int(frame_ids[i]), float(t_s[i])))
-        if len(self._acq_l) < self._acq_l.maxlen:  # type: ignore[operator]
+        if len(self._acq_l) < self.settings.acquire_frames:
             return None
         L = np.stack(self._acq_l)
         R = np.stack(self._acq_r)
