@@ -247,6 +247,49 @@ def project_points(cal: StereoCalibration, points_left_m: np.ndarray, which: Whi
     return img.reshape(-1, 2)
 
 
+def scale_calibration(cal: StereoCalibration, width: int, height: int,
+                      rtol: float = 0.005) -> StereoCalibration:
+    """``cal`` for images resampled to ``width`` x ``height`` px (the same view at another
+    resolution, e.g. 2x2 binning): fx, cx of both cameras scale by s = width / cal.image_width,
+    fy, cy by height / cal.image_height, about pixel centres (``c' = (c + 0.5) s - 0.5``);
+    distortion (in normalised coordinates), R and T are unchanged; the rectification is
+    recomputed. Refuses (:class:`CalibrationError`) a change of aspect ratio by more than
+    ``rtol``: that is a crop or another sensor mode, not a resampling, and needs a new
+    calibration."""
+    width, height = int(width), int(height)
+    if width <= 0 or height <= 0:
+        raise CalibrationError(f"cannot scale a calibration to {width}x{height} px")
+    sx, sy = width / cal.image_width, height / cal.image_height
+    if abs(sx / sy - 1.0) > rtol:
+        raise CalibrationError(
+            f"cannot scale a calibration for {cal.image_width}x{cal.image_height} px to "
+            f"{width}x{height} px: the aspect ratio differs (a crop or another sensor mode); "
+            f"recalibrate at {width}x{height}")
+
+    def scaled(M: np.ndarray) -> np.ndarray:
+        out = np.array(M, dtype=np.float64, copy=True)
+        out[0, 0] *= sx
+        out[0, 1] *= sx
+        out[0, 2] = (out[0, 2] + 0.5) * sx - 0.5
+        out[1, 1] *= sy
+        out[1, 2] = (out[1, 2] + 0.5) * sy - 0.5
+        return out
+
+    base = replace(cal, image_width=width, image_height=height, M1=scaled(cal.M1), M2=scaled(cal.M2),
+                   R1=None, R2=None, P1=None, P2=None, Q=None, E=None, F=None)
+    return base.with_rectification()
+
+
+def check_image_size(cal: StereoCalibration, width: int, height: int, source: str = "calibration") -> None:
+    """Raise :class:`CalibrationError` naming both sizes unless ``cal`` is for ``width`` x
+    ``height`` px images (a calibration of another size gives wrong ranges without a word:
+    the principal point and focal length in px are those of the other size)."""
+    if cal.image_size != (int(width), int(height)):
+        raise CalibrationError(
+            f"{source}: calibration is for {cal.image_width}x{cal.image_height} px images but the "
+            f"camera is {int(width)}x{int(height)} px")
+
+
 # ---------------------------------------------------------------------- file I/O
 def dumps_calibration(cal: StereoCalibration) -> str:
     """The calibration as OpenCV FileStorage YAML text."""

@@ -89,6 +89,32 @@ def simulated_producer() -> str | None:
     return found[0] if found else None
 
 
+_LIBRARY_MAGIC = (b"\x7fELF", b"MZ", b"\xcf\xfa\xed\xfe", b"\xce\xfa\xed\xfe", b"\xca\xfe\xba\xbe")
+"""First bytes of a shared library: ELF (Linux), PE (Windows), Mach-O (macOS)."""
+
+
+def check_producer(path: str) -> None:
+    """Raise :class:`CameraError` unless ``path`` is a GenTL producer: a shared library
+    (by its first bytes) that loads and exports ``GCInitLib``. harvesters itself accepts
+    any file silently and then lists no camera."""
+    try:
+        with open(path, "rb") as f:
+            head = f.read(4)
+    except OSError as e:
+        raise CameraError(f"GenTL producer {path!r}: cannot read: {e.strerror or e}") from None
+    if not head.startswith(_LIBRARY_MAGIC):
+        raise CameraError(f"{path}: not a GenTL producer (.cti): not a shared library")
+    import ctypes
+
+    try:
+        lib = ctypes.CDLL(os.path.abspath(path))
+    except OSError as e:
+        raise CameraError(f"{path}: not a GenTL producer (.cti): cannot load it: "
+                          f"{' '.join(str(e).split())}") from None
+    if not hasattr(lib, "GCInitLib"):
+        raise CameraError(f"{path}: not a GenTL producer (.cti): it does not export GCInitLib")
+
+
 def find_producers(producer: str | None = None) -> list[str]:
     """The GenTL producer files to use.
 
@@ -104,6 +130,7 @@ def find_producers(producer: str | None = None) -> list[str]:
             return [sim]
         if not os.path.isfile(producer):
             raise CameraError(f"GenTL producer {producer!r} not found")
+        check_producer(producer)
         return [os.path.abspath(producer)]
     out: list[str] = []
     for entry in os.environ.get(ENV_VAR, "").split(os.pathsep):

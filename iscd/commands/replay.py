@@ -29,7 +29,15 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("left", help="left-camera recording (or a simulate output folder)")
     p.add_argument("right", nargs="?", help="right-camera recording")
     p.add_argument("--config", help="TOML config with the [transmitter] the recording shows")
-    p.add_argument("--calibration", help="stereo calibration YAML (default: the ideal rig of [camera])")
+    p.add_argument("--calibration", help="stereo calibration YAML (default: the ideal rig of [camera]); it must "
+                                          "be for the recording's image size, else it is refused")
+    p.add_argument("--scale-calibration", action="store_true",
+                   help="use a calibration made at another resolution of the same view (binning): its "
+                        "focal lengths and principal points are scaled to the recording's size "
+                        "(same aspect ratio only)")
+    p.add_argument("--allow-mismatch", action="store_true",
+                   help="decode even when the recording's size or frame rate differ from [camera] "
+                        "(a warning instead of an error)")
     p.add_argument("--out", required=True, help="JSON Lines output file")
     p.add_argument("--block", type=int, default=64, help="frames per processing block (default 64)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
@@ -47,6 +55,28 @@ def _resolve(args: argparse.Namespace) -> tuple[Path, Path, str | None, str | No
     return left, Path(args.right), args.config, args.calibration
 
 
+def config_mismatch(rec: object, camera: object) -> tuple[list[str], list[str]]:
+    """What differs between a recording and the config's [camera], as (refuse, warn) lists of
+    phrases. The size and the frame rate refuse: the decoder takes frames per symbol from
+    camera.fps and the ideal rig from camera.width/height, so a recording that differs decodes
+    nothing (or ranges wrongly) without a word. The bit depth only warns: the decoder works
+    on the pixel values as they are (an unknown fps, e.g. a PNG folder without sidecar, is
+    not compared)."""
+    refuse: list[str] = []
+    warn: list[str] = []
+    w, h = rec.width, rec.height  # type: ignore[attr-defined]
+    cw, ch = camera.width, camera.height  # type: ignore[attr-defined]
+    if (w, h) != (cw, ch):
+        refuse.append(f"size {w}x{h} px vs camera.width x height {cw}x{ch}")
+    fps, cfps = rec.fps, camera.fps  # type: ignore[attr-defined]
+    if fps and abs(fps / cfps - 1.0) > 1e-3:
+        refuse.append(f"frame rate {fps:g} fps vs camera.fps {cfps:g}")
+    bits, cbits = rec.bit_depth, camera.bit_depth  # type: ignore[attr-defined]
+    if bits != cbits:
+        warn.append(f"bit depth {bits}-bit vs camera.bit_depth {cbits}-bit")
+    return refuse, warn
+
+
 def run(args: argparse.Namespace) -> int:
     from calibration.io import CalibrationError, load_calibration
     from iscd import config as C
@@ -60,7 +90,7 @@ def run(args: argparse.Namespace) -> int:
         raise UserError("--config is required (the transmitter's rows, cols and levels must be known)")
     cfg = C.load(cfg_path)
     try:
-        cal = load_calibration(cal_path) if cal_path else None
+        cal = load_calibration(cal_path) if cal_path else None  # fail early, before the recordings
     except CalibrationError as e:
         raise UserError(str(e)) from None
     if args.block < 2:
@@ -76,6 +106,17 @@ def run(args: argparse.Namespace) -> int:
         print(f"iscd replay: warning: {w.message}", file=sys.stderr)
     if (left.width, left.height) != (right.width, right.height):
         raise UserError(f"left is {left.width}x{left.height} px but right is {right.width}x{right.height} px")
+    refuse, warn = config_mismatch(left, cfg.camera)
+    if refuse and not args.allow_mismatch:
+        raise UserError(f"{lpath}: the recording differs from the config: {'; '.join(refuse + warn)}; "
+                        f"set [camera] to match the recording, or pass --allow-mismatch to decode anyway")
+    for w in refuse + warn:
+        print(f"iscd replay: warning: {lpath}: the recording differs from the config: {w}", file=sys.stderr)
+    if cal is not None:
+        from iscd.commands.run import checked_calibration
+
+        cal, _ = checked_calibration(cal_path, left.width, left.height, scale=args.scale_calibration,
+                                     what="the recording's size")
     li, ri = match_frames(left.frame_ids, right.frame_ids)
     if li.size == 0:
         raise UserError(f"{lpath} and {rpath} share no frame ids: not a stereo pair")
@@ -98,12 +139,17 @@ def run(args: argparse.Namespace) -> int:
         for s in range(0, li.size, args.block):
             lsel, rsel = li[s:s + args.block], ri[s:s + args.block]
             contiguous = lsel[-1] - lsel[0] == len(lsel) - 1 and rsel[-1] - rsel[0] == len(rsel) - 1
-            if contiguous:
-                L = left.read(int(lsel[0]), int(lsel[-1]) + 1)
-                R = right.read(int(rsel[0]), int(rsel[-1]) + 1)
-            else:
-                L = np.stack([left[int(i)] for i in lsel])
-                R = np.stack([right[int(i)] for i in rsel])
+            try:
+                if contiguous:
+                    L = left.read(int(lsel[0]), int(lsel[-1]) + 1)
+                    R = right.read(int(rsel[0]), int(rsel[-1]) + 1)
+                else:
+                    L = np.stack([left[int(i)] for i in lsel])
+                    R = np.stack([right[int(i)] for i in rsel])
+            except RecordingError as e:  # a corrupt frame part-way (the records so far are kept)
+                if progress is not None:
+                    progress.close()
+                raise UserError(str(e)) from None
             ids = left.frame_ids[lsel]
             ts = left.timestamps_ns[lsel]
             t_s = ts * 1e-9 if np.any(ts) else ids / fps

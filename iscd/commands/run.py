@@ -4,8 +4,23 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
+import os
 import sys
+import tempfile
+from pathlib import Path
 from typing import Any
+
+
+def positive_seconds(text: str) -> float:
+    """argparse type of ``--duration``: a finite number of seconds > 0 (not nan, not inf)."""
+    try:
+        v = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number of seconds, got {text!r}") from None
+    if not math.isfinite(v) or v <= 0:
+        raise argparse.ArgumentTypeError(f"expected a finite number of seconds > 0, got {text!r}")
+    return v
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -21,9 +36,15 @@ def register(sub: argparse._SubParsersAction) -> None:
         epilog="Examples: iscd run --duration 10 --out run.jsonl;  "
                "iscd run --config /etc/iscd/iscd.toml --out /var/lib/iscd/iscd.jsonl --save live.rrd")
     p.add_argument("--config", help="TOML config file (default: the embedded mock-rig config; see 'iscd config --describe')")
-    p.add_argument("--duration", type=float, help="stop after this many seconds (default: run until stopped)")
+    p.add_argument("--duration", type=positive_seconds,
+                   help="stop after this many seconds, a finite number > 0 (default: run until stopped)")
     p.add_argument("--out", help="JSON Lines output file (rotated at [daemon] rotate_mb)")
-    p.add_argument("--calibration", help="stereo calibration YAML (default: the ideal rig of [camera])")
+    p.add_argument("--calibration", help="stereo calibration YAML (default: the ideal rig of [camera]); it must "
+                                          "be for the [camera] width x height, else it is refused")
+    p.add_argument("--scale-calibration", action="store_true",
+                   help="use a calibration made at another resolution of the same view (binning): its "
+                        "focal lengths and principal points are scaled to [camera] width x height "
+                        "(same aspect ratio only)")
     p.add_argument("--socket", metavar="ENDPOINT",
                    help="also publish records on a ZeroMQ PUB socket, e.g. tcp://127.0.0.1:5556")
     g = p.add_argument_group("Rerun live view (optional)")
@@ -48,26 +69,93 @@ class _Console:
         pass
 
 
+def check_out_path(path: str, what: str = "--out") -> None:
+    """Raise UserError (one line) unless a JSON Lines file can be written at ``path``: its
+    folder exists or can be made, and the file can be created (or appended to). Leaves no
+    file behind (a folder it had to make stays, as the daemon would make it)."""
+    from iscd.cli import UserError
+
+    p = Path(path)
+    if p.is_dir():
+        raise UserError(f"{what} {path}: is a folder; give a file name such as run.jsonl")
+    try:
+        p.parent.mkdir(parents=True, exist_ok=True)
+        if p.exists():
+            with open(p, "ab"):
+                pass
+        else:
+            fd, tmp = tempfile.mkstemp(prefix=f".{p.name}.", suffix=".check", dir=p.parent)
+            os.close(fd)
+            os.unlink(tmp)
+    except OSError as e:
+        raise UserError(f"{what} {path}: cannot write there: {e.strerror or e}") from None
+
+
+def checked_calibration(path: str, width: int, height: int, *, scale: bool, what: str) -> tuple[Any, bool]:
+    """(calibration, scaled): the calibration at ``path`` for ``width`` x ``height`` images
+    (scaled to it with ``scale``, then ``scaled`` is True), or UserError naming the file and,
+    for a size mismatch, both sizes."""
+    from calibration.io import CalibrationError, check_image_size, load_calibration, scale_calibration
+    from iscd.cli import UserError
+
+    try:
+        cal = load_calibration(path)
+        if cal.image_size == (width, height):
+            return cal, False
+        if not scale:
+            try:
+                check_image_size(cal, width, height, path)
+            except CalibrationError as e:
+                raise CalibrationError(
+                    f"{e} ({what}); recalibrate at {width}x{height}, or pass --scale-calibration if "
+                    f"the images are the same view resampled") from None
+        scaled = scale_calibration(cal, width, height)
+    except CalibrationError as e:
+        msg = str(e)
+        raise UserError(msg if msg.startswith(str(path)) else f"{path}: {msg}") from None
+    print(f"iscd: calibration {path} for {cal.image_width}x{cal.image_height} px scaled to "
+          f"{width}x{height} px (--scale-calibration)", file=sys.stderr)
+    return scaled, True
+
+
 def run(args: argparse.Namespace) -> int:
     from iscd import config as C
-    from iscd.cli import UserError
-    from iscd.daemon import Daemon
+    from iscd.daemon import Daemon, DaemonSettings
 
     from drivers.registry import check_stereo_config
 
     cfg = C.load(args.config)
     C.check_extra_sections(cfg)
     check_stereo_config(cfg)  # refuse a bad camera/board config before spawning anything
-    if args.duration is not None and args.duration <= 0:
-        raise UserError("--duration must be > 0 seconds")
+    # the inputs the daemon would only read after starting its processes are checked here
+    settings = C.build_section(DaemonSettings, dict(cfg.extra.get("daemon", {})), "daemon")
+    out = args.out or settings.out or None
+    if out:
+        check_out_path(out, "--out" if args.out else "daemon.out")
+    cal_path = args.calibration or settings.calibration or None
+    tmp_dir = None
+    if cal_path:
+        cal, scaled = checked_calibration(cal_path, cfg.camera.width, cfg.camera.height,
+                                          scale=args.scale_calibration, what="[camera] width/height")
+        if scaled:
+            # the daemon reads a calibration file: hand it the scaled one
+            from calibration.io import save_calibration
+
+            tmp_dir = tempfile.TemporaryDirectory(prefix="iscd-cal-")
+            cal_path = str(Path(tmp_dir.name) / "scaled.yml")
+            save_calibration(cal, cal_path)
     rerun = None
     if args.connect is not None or args.serve or args.save:
         rerun = {"connect": args.connect, "serve": args.serve, "save": args.save}
-    d = Daemon(cfg, out=args.out, duration_s=args.duration, rerun=rerun, socket=args.socket,
-               calibration=args.calibration)
-    if not getattr(args, "quiet", False):
-        d.extra_outputs = [_Console()]
-    final = d.run()
+    try:
+        d = Daemon(cfg, out=out, duration_s=args.duration, rerun=rerun, socket=args.socket,
+                   calibration=cal_path)
+        if not getattr(args, "quiet", False):
+            d.extra_outputs = [_Console()]
+        final = d.run()
+    finally:
+        if tmp_dir is not None:
+            tmp_dir.cleanup()
     print(json.dumps({k: final.get(k) for k in ("pairs_decoded", "frames_dropped", "packets_ok",
                                                  "packets_bad", "ranges", "latency_ms_p50",
                                                  "latency_ms_p99")}))

@@ -266,8 +266,12 @@ class RerunView:
         """A SPEC section 7 record (``range``, ``packet``, ``stats``) or one of the project's
         (``range_leds``, ``range_filtered``); other types are ignored."""
         kind = record.get("type")
-        frame = int(record.get("frame", 0))
-        t_s = float(record.get("t_s", frame / self.fps))
+        # a record may carry null frame / t_s (the first stats record, before any frame): the
+        # frame falls back to the last one seen, the time to frame / fps
+        f_v, t_v = record.get("frame"), record.get("t_s")
+        frame = int(f_v) if f_v is not None else getattr(self, "_last_frame", 0)
+        t_s = float(t_v) if t_v is not None else max(frame, 0) / self.fps
+        self._last_frame = frame
         tx = int(record.get("tx", 0))
         fr, ts = np.array([frame], np.int64), np.array([t_s])
         if kind == "range":

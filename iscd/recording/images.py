@@ -14,9 +14,11 @@ increase (``left_000052.png`` -> 52), else 0, 1, 2, ... An optional sidecar
 
 from __future__ import annotations
 
+import contextlib
 import json
 import re
 import struct
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -28,6 +30,7 @@ from iscd.recording.base import Recording, RecordingError
 EXTENSIONS = (".png", ".tif", ".tiff", ".pgm", ".bmp")
 SIDECAR = "recording.json"
 _NUM = re.compile(r"(\d+)")
+PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 
 
 def natural_key(name: str) -> list[Any]:
@@ -45,7 +48,7 @@ def list_frames(folder: Path) -> list[Path]:
 def ids_from_names(files: list[Path]) -> np.ndarray:
     """Last number of each file stem if all have one and they strictly increase, else 0..n-1."""
     nums = [_NUM.findall(p.stem) for p in files]
-    if files and all(nums):
+    if files and all(nums) and all(len(n[-1].lstrip("0")) <= 18 for n in nums):  # fit int64
         ids = np.array([int(n[-1]) for n in nums], dtype=np.int64)
         if ids.size < 2 or np.all(np.diff(ids) > 0):
             return ids
@@ -56,17 +59,75 @@ def _png_size(path: Path) -> tuple[int, int] | None:
     """(width, height) from a PNG's IHDR chunk, or None if it is not a PNG."""
     with open(path, "rb") as f:
         head = f.read(24)
-    if len(head) == 24 and head[:8] == b"\x89PNG\r\n\x1a\n" and head[12:16] == b"IHDR":
+    if len(head) == 24 and head[:8] == PNG_SIGNATURE and head[12:16] == b"IHDR":
         w, h = struct.unpack(">II", head[16:24])
         return int(w), int(h)
     return None
 
 
-def load_grey(path: Path) -> np.ndarray:
-    """One image file as a (height, width) uint8/uint16 grey array, or RecordingError."""
-    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+MAX_FILE_BYTES = 1 << 30
+"""Largest frame file read (1 GiB): a frame of the largest camera (8192 x 8192 x 16-bit) is
+128 MiB uncompressed."""
+MAX_PIXELS = 8192 * 8192
+"""Largest PNG frame decoded (px, the largest [camera] size), checked in the IHDR before
+decoding: a small file may claim a huge size. Other formats are bounded by OpenCV's own
+limit (OPENCV_IO_MAX_IMAGE_PIXELS, 2**30 px by default)."""
+
+
+@contextlib.contextmanager
+def _opencv_quiet() -> Iterator[None]:
+    """OpenCV's own log lines (libpng/libtiff errors on a corrupt file) off for the block:
+    the reader reports a bad frame as one RecordingError line instead."""
+    logging = getattr(getattr(cv2, "utils", None), "logging", None)
+    if logging is None:  # pragma: no cover - very old OpenCV
+        yield
+        return
+    old = logging.getLogLevel()
+    logging.setLogLevel(logging.LOG_LEVEL_SILENT)
+    try:
+        yield
+    finally:
+        logging.setLogLevel(old)
+
+
+def decode_grey(data: bytes, path: Path) -> np.ndarray:
+    """An encoded image (PNG/TIFF/PGM/BMP bytes) as a (height, width) uint8/uint16 grey
+    array, or RecordingError naming ``path``; nothing is printed."""
+    if not data:
+        raise RecordingError(path, "cannot read image (empty file)")
+    if len(data) >= 24 and data[:8] == PNG_SIGNATURE and data[12:16] == b"IHDR":
+        w, h = struct.unpack(">II", data[16:24])
+        if w * h > MAX_PIXELS:
+            raise RecordingError(path, f"PNG claims {w}x{h} px, more than the largest camera's "
+                                       f"{MAX_PIXELS} px")
+    buf = np.frombuffer(data, dtype=np.uint8)
+    with _opencv_quiet():
+        try:
+            img = cv2.imdecode(buf, cv2.IMREAD_UNCHANGED)
+        except cv2.error as e:  # e.g. a claimed size above OpenCV's pixel limit
+            msg = " ".join(str(e).split())[-160:]
+            raise RecordingError(path, f"cannot read image (corrupt or unsupported: {msg})") from None
     if img is None:
         raise RecordingError(path, "cannot read image (unreadable, corrupt or not an image)")
+    return _to_grey(img, path)
+
+
+def load_grey(path: Path) -> np.ndarray:
+    """One image file as a (height, width) uint8/uint16 grey array, or RecordingError
+    (read as bytes and decoded in memory with OpenCV's messages off: :func:`decode_grey`)."""
+    try:
+        with open(path, "rb") as f:
+            data = f.read(MAX_FILE_BYTES + 1)
+    except OSError as e:
+        raise RecordingError(path, f"cannot read: {e.strerror or e}") from None
+    if len(data) > MAX_FILE_BYTES:
+        raise RecordingError(path, f"frame file larger than {MAX_FILE_BYTES >> 20} MiB")
+    return decode_grey(data, path)
+
+
+def _to_grey(img: np.ndarray, path: Path) -> np.ndarray:
+    if img.ndim not in (2, 3) or img.size == 0:
+        raise RecordingError(path, f"unsupported image of shape {img.shape}")
     if img.ndim == 3:
         if img.shape[2] == 1:
             img = img[:, :, 0]
