@@ -153,6 +153,12 @@ class AirInterface:
             raise AirInterfaceError(
                 f"expected ({self.data_symbols}, {self.n_leds}) data levels, got {lv.shape}")
         k = self.bits_per_symbol
+        if lv.dtype.kind not in "iub":  # floats (NaN, inf) or objects: clip before the cast
+            try:
+                lv = np.nan_to_num(np.asarray(lv, dtype=np.float64), nan=1.0, posinf=self.levels, neginf=1.0)
+            except (TypeError, ValueError):
+                raise AirInterfaceError(f"data levels must be numbers, got dtype {lv.dtype}") from None
+            lv = np.clip(lv, 1, self.levels)
         l = np.clip(lv.astype(np.int64), 1, self.levels).reshape(-1) - 1
         values = gray_encode(l)
         bits = ((values[:, None] >> np.arange(k - 1, -1, -1)[None, :]) & 1).astype(np.uint8).reshape(-1)
