@@ -18,7 +18,8 @@ from iscd.receiver.luminance import (PixelBackground, follow_and_measure, gather
                                      grid_sample)
 
 
-def test_the_kernel_keeps_the_same_background_as_the_reference(rendered_default) -> None:
+@pytest.mark.parametrize("subtract", [True, False])
+def test_the_kernel_keeps_the_same_background_as_the_reference(rendered_default, subtract: bool) -> None:
     L, R = rendered_default
     fl, fr = detect_array(L[:64], 8, 8), detect_array(R[:64], 8, 8)
     assert fl is not None and fr is not None
@@ -30,9 +31,11 @@ def test_the_kernel_keeps_the_same_background_as_the_reference(rendered_default)
         starts = [fl.centers + rng.normal(0, 0.3, 2), fr.centers + rng.normal(0, 0.3, 2)]
         fr_l, fr_r = L[a:a + 16], R[a:a + 16]
         (a_l, a_r), (la, ra) = follow_and_measure([fr_l, fr_r], starts, 5, [1.2, 1.1],
-                                                  use=grid_sample(8, 8), backgrounds=ref)
+                                                  use=grid_sample(8, 8), backgrounds=ref,
+                                                  subtract=subtract)
         (b_l, b_r), (lb, rb) = follow_and_measure_compiled([fr_l, fr_r], starts, 5, [1.2, 1.1],
-                                                           use=grid_sample(8, 8), backgrounds=fast)
+                                                           use=grid_sample(8, 8), backgrounds=fast,
+                                                           subtract=subtract)
         for x, y in ((a_l, b_l), (a_r, b_r)):
             assert np.abs(x - y).max() < 1e-4
         for x, y in ((la, lb), (ra, rb)):

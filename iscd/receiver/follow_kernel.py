@@ -119,14 +119,17 @@ def _follow_kernel(L, R, starts: np.ndarray, half: int, w: float, iterations: in
                 x0[g * F + f, i] = min(max(xa, 0), W - K)
                 y0[g * F + f, i] = min(max(ya, 0), H - K)
     # ---- the per-pixel backgrounds: relaxed once per block, then lowered to every pixel
-    # any LED's patch shows in this block
+    # the LEDs' patches show in this block (all LEDs when the luminance uses it, else only
+    # the selected ones, whose lit judgement alone needs it)
     if has_bg:
+        nb = N if bg_lum else n
         for g in range(2):
             fr = L if g == 0 else R
             bgi = bg_l if g == 0 else bg_r
             sti = st_l if g == 0 else st_r
             for f in range(F):
-                for i in range(N):
+                for jb in range(nb):
+                    i = jb if bg_lum else sel[jb]
                     xa, ya = x0[g * F + f, i], y0[g * F + f, i]
                     for a in range(K):
                         row = fr[f, ya + a, xa:xa + K]

@@ -386,7 +386,14 @@ def follow_and_measure(frames: list[np.ndarray], starts: list[np.ndarray], size:
     if backgrounds is not None:
         if len(backgrounds) != len(frames):
             raise ValueError(f"backgrounds: one per camera ({len(frames)}), got {len(backgrounds)}")
-        bg_pix = np.concatenate([b.update(q) for b, q in zip(backgrounds, ps)])
+        if subtract:
+            bg_pix = np.concatenate([b.update(q) for b, q in zip(backgrounds, ps)])
+        else:  # only the LEDs whose lit judgement needs it (the kernel does the same)
+            sel = np.arange(N) if use is None else np.asarray(use, dtype=np.intp)
+            bg_pix = np.full(pix.shape, np.nan, np.float32)
+            for k, (b, q) in enumerate(zip(backgrounds, ps)):
+                part = b.update(Patches(pix=q.pix[:, sel], x0=q.x0[:, sel], y0=q.y0[:, sel]))
+                bg_pix[k * F:(k + 1) * F, sel] = part
     c = refine_in_patches(p, np.concatenate(st), size, iterations, groups=len(frames), use=use,
                           lit_light=lit_light, info=info, bg_pix=bg_pix,
                           spot_radius_px=None if spot_radius_px is None else min(spot_radius_px, half),
