@@ -13,6 +13,7 @@ everything else (indexing, iteration, blocks, ``info()``, context manager) lives
 from __future__ import annotations
 
 import abc
+import math
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -31,6 +32,33 @@ class RecordingError(Exception):
 
 class RecordingWarning(UserWarning):
     """A recording was readable but not quite whole (e.g. a partial trailing record)."""
+
+
+def header_number(value: object, key: str, *, integer: bool = False, lo: float | None = None,
+                  hi: float | None = None) -> float | int:
+    """A number from a recording's header or sidecar, checked: a real int/float (not a
+    bool), finite, within ``[lo, hi]``; ``integer`` also requires an integral value (an int,
+    or a float such as 512.0). Raises ValueError naming ``key`` (readers turn it into
+    RecordingError)."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise ValueError(f"{key} must be a number, got {value!r:.40}")
+    if integer:
+        if isinstance(value, float):
+            if not math.isfinite(value) or value != int(value):
+                raise ValueError(f"{key} must be an integer, got {value!r}")
+        out: float | int = int(value)
+    else:
+        try:
+            out = float(value)
+        except OverflowError:
+            raise ValueError(f"{key} is out of range: {str(value)[:20]}...") from None
+        if not math.isfinite(out):
+            raise ValueError(f"{key} must be finite, got {value!r}")
+    if (lo is not None and out < lo) or (hi is not None and out > hi):
+        shown = str(out) if len(str(out)) <= 24 else str(out)[:20] + "..."
+        raise ValueError(f"{key} must be in {lo:g}..{hi:g}, got {shown}" if hi is not None
+                         else f"{key} must be >= {lo:g}, got {shown}")
+    return out
 
 
 class Recording(abc.ABC):

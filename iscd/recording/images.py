@@ -18,6 +18,7 @@ import contextlib
 import json
 import re
 import struct
+import zlib
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -25,7 +26,7 @@ from typing import Any
 import cv2
 import numpy as np
 
-from iscd.recording.base import Recording, RecordingError
+from iscd.recording.base import Recording, RecordingError, header_number
 
 EXTENSIONS = (".png", ".tif", ".tiff", ".pgm", ".bmp")
 SIDECAR = "recording.json"
@@ -90,16 +91,69 @@ def _opencv_quiet() -> Iterator[None]:
         logging.setLogLevel(old)
 
 
+_PNG_CHANNELS = {0: 1, 2: 3, 3: 1, 4: 2, 6: 4}
+
+
+def check_png(data: bytes, path: Path) -> None:
+    """Check a PNG's structure before libpng sees it (libpng prints its errors on stderr
+    itself, past OpenCV's log level): chunk lengths within the file, every chunk's CRC,
+    IHDR first with a size of at most :data:`MAX_PIXELS`, IDAT data that inflates to
+    exactly the image's size (bounded: a zip bomb stops at that size), IEND last.
+    Raises RecordingError naming what is wrong."""
+    n = len(data)
+    pos = 8
+    ihdr: tuple[int, int, int, int, int] | None = None
+    idat = zlib.decompressobj()
+    inflated = 0
+    expected = 0
+    seen_iend = False
+    while pos < n:
+        if pos + 12 > n:
+            raise RecordingError(path, f"corrupt PNG: truncated chunk at byte {pos}")
+        length, ctype = struct.unpack(">I4s", data[pos:pos + 8])
+        end = pos + 8 + length
+        if end + 4 > n:
+            raise RecordingError(path, f"corrupt PNG: chunk {ctype!r} runs past the end of the file")
+        body = data[pos + 8:end]
+        (crc,) = struct.unpack(">I", data[end:end + 4])
+        if zlib.crc32(ctype + body) != crc:
+            raise RecordingError(path, f"corrupt PNG: CRC error in chunk {ctype!r} at byte {pos}")
+        if ihdr is None:
+            if ctype != b"IHDR" or length != 13:
+                raise RecordingError(path, "corrupt PNG: does not start with an IHDR chunk")
+            w, h, depth, color, _, _, interlace = struct.unpack(">IIBBBBB", body)
+            if w * h > MAX_PIXELS or w == 0 or h == 0:
+                raise RecordingError(path, f"PNG claims {w}x{h} px (at most {MAX_PIXELS} px are read)")
+            if color not in _PNG_CHANNELS or depth not in (1, 2, 4, 8, 16):
+                raise RecordingError(path, f"corrupt PNG: colour type {color}, bit depth {depth}")
+            ihdr = (w, h, depth, color, interlace)
+            row = (w * _PNG_CHANNELS[color] * depth + 7) // 8 + 1
+            expected = h * row if not interlace else 2 * h * row + 64  # Adam7: bounded above
+        elif ctype == b"IDAT":
+            try:
+                out = idat.decompress(body, max(expected - inflated, 0) + 1)
+            except zlib.error as e:
+                raise RecordingError(path, f"corrupt PNG: bad image data ({e})") from None
+            inflated += len(out)
+            if inflated > expected or idat.unconsumed_tail:
+                raise RecordingError(path, "corrupt PNG: more image data than its size")
+        elif ctype == b"IEND":
+            seen_iend = True
+            break
+        pos = end + 4
+    if ihdr is None or not seen_iend:
+        raise RecordingError(path, "corrupt PNG: truncated (no IEND chunk)")
+    if not idat.eof or (not ihdr[4] and inflated != expected):
+        raise RecordingError(path, "corrupt PNG: image data incomplete")
+
+
 def decode_grey(data: bytes, path: Path) -> np.ndarray:
     """An encoded image (PNG/TIFF/PGM/BMP bytes) as a (height, width) uint8/uint16 grey
     array, or RecordingError naming ``path``; nothing is printed."""
     if not data:
         raise RecordingError(path, "cannot read image (empty file)")
-    if len(data) >= 24 and data[:8] == PNG_SIGNATURE and data[12:16] == b"IHDR":
-        w, h = struct.unpack(">II", data[16:24])
-        if w * h > MAX_PIXELS:
-            raise RecordingError(path, f"PNG claims {w}x{h} px, more than the largest camera's "
-                                       f"{MAX_PIXELS} px")
+    if data[:8] == PNG_SIGNATURE:
+        check_png(data, path)
     buf = np.frombuffer(data, dtype=np.uint8)
     with _opencv_quiet():
         try:
@@ -155,8 +209,8 @@ def _read_sidecar(folder: Path) -> dict[str, Any]:
             if data.get(key) is not None:
                 v = data[key]
                 if isinstance(v, bool) or not isinstance(v, (int, float)) or not v > 0:
-                    raise ValueError(f"{key} must be a number > 0, got {v!r}")
-                out[key] = float(v)
+                    raise ValueError(f"{key} must be a number > 0, got {v!r:.40}")
+                out[key] = float(header_number(v, key, lo=0))
         if data.get("camera") is not None:
             out["camera"] = str(data["camera"])
         if data.get("bit_depth") is not None:
@@ -165,8 +219,8 @@ def _read_sidecar(folder: Path) -> dict[str, Any]:
                 raise ValueError(f"bit_depth must be an integer 1..16, got {v!r}")
             out["bit_depth"] = v
         return out
-    except (OSError, UnicodeDecodeError, ValueError) as e:
-        raise RecordingError(p, f"bad sidecar: {e}") from None
+    except (OSError, UnicodeDecodeError, ValueError, RecursionError) as e:
+        raise RecordingError(p, f"bad sidecar: {type(e).__name__ if isinstance(e, RecursionError) else e}") from None
 
 
 class ImageFolderRecording(Recording):

@@ -35,7 +35,7 @@ from typing import Any
 
 import numpy as np
 
-from iscd.recording.base import Recording, RecordingError, RecordingWarning
+from iscd.recording.base import Recording, RecordingError, RecordingWarning, header_number
 
 MAGIC = b"ISCR\r\n\x1a\n"
 VERSION = 1
@@ -46,6 +46,8 @@ RECORD_HEADER = struct.Struct("<qq")  # frame_id, timestamp_ns
 SUFFIX = ".iscr"
 
 _DTYPES = {"uint8": np.dtype("<u1"), "uint16": np.dtype("<u2")}
+MAX_SIDE = 65535
+"""Largest frame width or height read, px (a header may claim anything)."""
 
 
 def record_dtype(width: int, height: int, dtype: str | np.dtype) -> np.dtype:
@@ -275,6 +277,8 @@ def read_header(path: str | Path) -> tuple[dict[str, Any], int, int]:
             raise ValueError("not a JSON object")
     except (UnicodeDecodeError, ValueError) as e:
         raise RecordingError(p, f"corrupt .iscr metadata: {e}") from None
+    except RecursionError:
+        raise RecordingError(p, "corrupt .iscr metadata: nested too deeply") from None
     return meta, int(doff), int(rsize)
 
 
@@ -288,16 +292,22 @@ class IscrRecording(Recording):
         meta, self.data_offset, self.record_size = read_header(self.path)
         self.metadata = meta
         try:
-            self.width, self.height = int(meta["width"]), int(meta["height"])
-            dtype_name = str(meta["dtype"])
-            if dtype_name not in _DTYPES:
-                raise ValueError(f"unsupported dtype {dtype_name!r}")
+            self.width = int(header_number(meta["width"], "width", integer=True, lo=1, hi=MAX_SIDE))
+            self.height = int(header_number(meta["height"], "height", integer=True, lo=1, hi=MAX_SIDE))
+            dtype_name = meta["dtype"]
+            if not isinstance(dtype_name, str) or dtype_name not in _DTYPES:
+                raise ValueError(f"unsupported dtype {dtype_name!r:.40}")
             self.dtype = np.dtype(dtype_name)
-            self.bit_depth = int(meta.get("bit_depth") or 8 * self.dtype.itemsize)
-            self.fps = None if meta.get("fps") is None else float(meta["fps"])
-            self.exposure_s = None if meta.get("exposure_s") is None else float(meta["exposure_s"])
-            self.camera = None if meta.get("camera") is None else str(meta["camera"])
-        except (KeyError, TypeError, ValueError) as e:
+            nbits = 8 * self.dtype.itemsize
+            bd = meta.get("bit_depth")
+            self.bit_depth = nbits if bd is None else int(header_number(bd, "bit_depth", integer=True, lo=1, hi=nbits))
+            fps, exp = meta.get("fps"), meta.get("exposure_s")
+            self.fps = None if fps is None else float(header_number(fps, "fps", lo=1e-9))
+            self.exposure_s = None if exp is None else float(header_number(exp, "exposure_s", lo=0))
+            self.camera = None if meta.get("camera") is None else str(meta["camera"])[:200]
+        except KeyError as e:
+            raise RecordingError(self.path, f"corrupt .iscr metadata: missing {e}") from None
+        except (TypeError, ValueError) as e:
             raise RecordingError(self.path, f"corrupt .iscr metadata: {e}") from None
         self._rec_dtype = record_dtype(self.width, self.height, self.dtype)
         if self._rec_dtype.itemsize != self.record_size:

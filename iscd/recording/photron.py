@@ -17,6 +17,7 @@ are ``index / fps`` (ns from the first saved frame).
 
 from __future__ import annotations
 
+import math
 import os
 import warnings
 import xml.etree.ElementTree as ET
@@ -88,9 +89,10 @@ def _number(value: Any) -> float | None:
     if value is None or value == "":
         return None
     try:
-        return float(Fraction(str(value).strip()))
-    except (ValueError, ZeroDivisionError):
+        out = float(Fraction(str(value).strip()))
+    except (ValueError, ZeroDivisionError, OverflowError):
         return None
+    return out if math.isfinite(out) else None
 
 
 def parse_header(header: Path) -> dict[str, Any]:
@@ -135,8 +137,10 @@ def parse_header(header: Path) -> dict[str, Any]:
         extra.update({"date": cih.get("Date"), "color_type": color_type,
                       "recorded_frames": cih.get("Original Total Frame"),
                       "comment": cih.get("Comment Text") or ""})
-    except (KeyError, TypeError, ValueError, ET.ParseError) as e:
+    except (KeyError, TypeError, ValueError, OverflowError, ET.ParseError) as e:
         raise RecordingError(header, f"cannot parse Photron header: {type(e).__name__}: {e}") from None
+    if abs(fields["start_frame"]) > 2**62:
+        raise RecordingError(header, f"cannot parse Photron header: start frame {fields['start_frame']} out of range")
     fields["extra"] = extra
     return fields
 
