@@ -364,8 +364,22 @@ def _read_storage(text: str, source: str) -> "cv2.FileStorage":
     return fs
 
 
+MAX_CALIBRATION_BYTES = 1 << 20
+"""Largest calibration file read (1 MiB; a real one is about 3 KiB)."""
+MAX_MATRIX_SIDE = 64
+"""Largest rows/cols a matrix may claim (the largest real one is 4x4 or 1x14): checked in the
+text before OpenCV parses it, which would allocate rows*cols first."""
+_SIZE_CLAIM = re.compile(r"(?m)^\s*(rows|cols)\s*:\s*([-+]?\d+)")
+
+
 def loads_calibration(text: str, source: str = "<string>") -> StereoCalibration:
     """Parse FileStorage YAML text (see :func:`load_calibration`)."""
+    if len(text) > MAX_CALIBRATION_BYTES:
+        raise CalibrationError(f"{source}: larger than {MAX_CALIBRATION_BYTES >> 10} KiB: not a calibration file")
+    for m in _SIZE_CLAIM.finditer(text):
+        if not 0 < int(m.group(2)) <= MAX_MATRIX_SIDE:
+            raise CalibrationError(f"{source}: a matrix claims {m.group(1)}: {m.group(2)} "
+                                   f"(expected 1..{MAX_MATRIX_SIDE})")
     if not text.lstrip().startswith("%YAML"):
         text = "%YAML:1.0\n" + text
     fs = _read_storage(text, source)
@@ -385,7 +399,10 @@ def loads_calibration(text: str, source: str = "<string>") -> StereoCalibration:
         if k not in keys:
             continue
         node = fs.getNode(k)
-        mat = node.mat() if node.isMap() else None
+        try:
+            mat = node.mat() if node.isMap() else None
+        except (cv2.error, SystemError):  # e.g. data shorter than rows x cols
+            mat = None
         if mat is None:
             raise CalibrationError(f"{source}: {k}: expected an opencv-matrix")
         kw[k] = mat
@@ -418,6 +435,8 @@ def load_calibration(path: str | Path) -> StereoCalibration:
     line) when the file is missing, unreadable, malformed or lacks a required key."""
     p = Path(path)
     try:
+        if p.is_file() and p.stat().st_size > MAX_CALIBRATION_BYTES:
+            raise CalibrationError(f"{p}: larger than {MAX_CALIBRATION_BYTES >> 10} KiB: not a calibration file")
         text = p.read_text(encoding="utf-8")
     except FileNotFoundError:
         raise CalibrationError(f"{p}: calibration file not found") from None

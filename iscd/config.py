@@ -389,6 +389,8 @@ def loads(text: str, source: str = "<string>") -> Config:
         data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as e:
         raise ConfigError(f"{source}: not valid TOML: {e}") from None
+    except RecursionError:  # arrays/tables nested thousands deep
+        raise ConfigError(f"{source}: not valid TOML: nested too deeply") from None
     return config_from_dict(data)
 
 

@@ -1,0 +1,196 @@
+"""Property-based fuzzing (hypothesis) of the two text files a user hands iscd: the TOML
+config (:func:`iscd.config.loads` plus :func:`iscd.config.check_extra_sections`, as ``iscd
+run`` does) and the stereo calibration (:func:`calibration.io.loads_calibration`). Any text
+gives a value or the module's own error (:class:`~iscd.config.ConfigError`,
+:class:`~calibration.io.CalibrationError`), whose message is one line.
+
+Bounds: config texts of up to ~40 keys drawn from the real schema (every section and key, plus
+unknown ones) with values of every TOML type (integers up to 2**70, NaN, inf, strings,
+arrays, tables); calibration texts up to ~4 KiB, made by mutating a valid file (numbers,
+matrix sizes up to 10**9 claimed, types, deleted lines) or raw. CI runs a few dozen
+derandomized cases per target; ``ISCD_FUZZ_EXAMPLES=N`` for a long run (docs/hardening.md).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import os
+import typing
+
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, example, given, settings
+from hypothesis import strategies as st
+
+from calibration.io import CalibrationError, StereoCalibration, dumps_calibration, loads_calibration
+from iscd import config as C
+
+_LONG = os.environ.get("ISCD_FUZZ_EXAMPLES")
+
+
+def fuzz(ci_examples: int) -> settings:
+    """``ci_examples`` derandomized cases in CI, ISCD_FUZZ_EXAMPLES random ones in a long run."""
+    if _LONG:
+        return settings(max_examples=int(_LONG), deadline=None, database=None,
+                        suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large])
+    return settings(max_examples=ci_examples, deadline=None, database=None, derandomize=True,
+                    suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large])
+
+
+# --------------------------------------------------------------------------- a tiny TOML writer
+def _toml_value(v: object) -> str:
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, int):
+        return str(v)
+    if isinstance(v, float):
+        if math.isnan(v):
+            return "nan"
+        if math.isinf(v):
+            return "inf" if v > 0 else "-inf"
+        return repr(v)
+    if isinstance(v, str):
+        return json.dumps(v)  # a TOML basic string is a JSON string for these characters
+    if isinstance(v, list):
+        return "[" + ", ".join(_toml_value(x) for x in v) + "]"
+    if isinstance(v, dict):
+        return "{" + ", ".join(f"{json.dumps(k)} = {_toml_value(x)}" for k, x in v.items()) + "}"
+    raise TypeError(type(v))
+
+
+def to_toml(doc: dict[str, dict[str, object]]) -> str:
+    """``{section: {key: value}}`` as TOML text (values inline)."""
+    return "".join(f"[{name}]\n" + "".join(f"{json.dumps(k)} = {_toml_value(v)}\n" for k, v in table.items())
+                   for name, table in doc.items())
+
+
+def _schema() -> dict[str, list[str]]:
+    out: dict[str, list[str]] = {}
+    hints = typing.get_type_hints(C.Config)
+    for f in dataclasses.fields(C.Config):
+        if f.name != "extra" and dataclasses.is_dataclass(hints[f.name]):
+            out[f.name] = [g.name for g in dataclasses.fields(hints[f.name])]
+    for name in C.EXTRA_SECTION_CLASSES:
+        cls = C._extra_class(name)
+        out[name] = [g.name for g in dataclasses.fields(cls)] if cls is not None else []
+    return out
+
+
+SCHEMA = _schema()
+scalars = st.one_of(
+    st.integers(-3, 3000), st.integers(-2**63, 2**63 - 1), st.floats(allow_nan=True, allow_infinity=True),
+    st.floats(-1e6, 1e6), st.booleans(), st.text(max_size=12),
+    st.sampled_from(["mock", "genicam", "v4l2", "texture", "text", "hex", "file", "left", "right", "master",
+                     "", "/proc/nope", "iscd"]))
+values = st.recursive(scalars, lambda c: st.lists(c, max_size=3) | st.dictionaries(st.text(max_size=6), c, max_size=3),
+                      max_leaves=5)
+
+
+@st.composite
+def config_docs(draw: st.DrawFn) -> dict[str, dict[str, object]]:
+    doc: dict[str, dict[str, object]] = {}
+    for name in draw(st.lists(st.sampled_from([*SCHEMA, "nosuch"]), max_size=5, unique=True)):
+        keys = SCHEMA.get(name, []) + ["bogus"]
+        table: dict[str, object] = {}
+        for k in draw(st.lists(st.sampled_from(keys), max_size=8, unique=True)):
+            table[k] = draw(values)
+        doc[name] = table
+    return doc
+
+
+def _load_config(text: str) -> None:
+    try:
+        cfg = C.loads(text, "fuzz.toml")
+        C.check_extra_sections(cfg)
+    except C.ConfigError as e:
+        assert "\n" not in str(e).strip(), str(e)
+
+
+@fuzz(250)
+@given(config_docs())
+@example({"camera": {"fps": 1e-320}})
+@example({"camera": {"fps": 2**63 - 1, "exposure_s": 1e-300}})
+@example({"transmitter": {"symbol_rate_hz": 1e308, "pwm_hz": 1e308}})
+@example({"scene": {"distance_m": 1e308}})
+def test_config_loader(doc: dict[str, dict[str, object]]) -> None:
+    _load_config(to_toml(doc))
+
+
+@fuzz(80)
+@given(st.text(max_size=400))
+@example("[camera]\nfps = 1e400\n")
+@example("a = " + "[" * 2000 + "]" * 2000)
+def test_config_loader_raw_text(text: str) -> None:
+    _load_config(text)
+
+
+# --------------------------------------------------------------------------- calibration
+GOOD = dumps_calibration(StereoCalibration.from_parameters(512, 512, 3500.0, baseline_m=0.25))
+GOOD_LINES = GOOD.splitlines()
+tokens = st.sampled_from(["0", "-1", "1e400", "nan", ".nan", "inf", "-.inf", "1e-320", "3", "9", "1000000000",
+                          "abc", "[", "]", "{", "}", '"x"', "d", "f", "i", "u", "!!opencv-matrix", ":", "- ",
+                          "2147483648", "-2147483649", "0x10", "%YAML:1.0", "---", "&a", "*a"])
+
+
+@st.composite
+def calibration_texts(draw: st.DrawFn) -> str:
+    lines = list(GOOD_LINES)
+    for _ in range(draw(st.integers(0, 6))):
+        i = draw(st.integers(0, len(lines) - 1))
+        op = draw(st.sampled_from(["replace_token", "delete", "duplicate", "size", "truncate"]))
+        if op == "delete":
+            del lines[i]
+        elif op == "duplicate":
+            lines.insert(i, lines[i])
+        elif op == "truncate":
+            lines[i] = lines[i][: draw(st.integers(0, len(lines[i])))]
+        elif op == "size":  # claim another matrix size
+            key = draw(st.sampled_from(["rows", "cols"]))
+            lines = [ln.replace(f"{key}: 3", f"{key}: {draw(st.sampled_from(['0', '1', '4', '1000', '1000000000', '-3']))}")
+                     if f"{key}: 3" in ln and draw(st.booleans()) else ln for ln in lines]
+        else:
+            parts = lines[i].split(" ")
+            j = draw(st.integers(0, len(parts) - 1))
+            parts[j] = draw(tokens)
+            lines[i] = " ".join(parts)
+        if not lines:
+            break
+    return "\n".join(lines) + "\n"
+
+
+def _load_cal(text: str) -> None:
+    try:
+        cal = loads_calibration(text, "fuzz.yml")
+    except CalibrationError as e:
+        assert "\n" not in str(e), str(e)
+        return
+    assert cal.is_rectified and cal.image_width > 0 and cal.image_height > 0
+    assert np.isfinite(cal.focal_px)
+
+
+@fuzz(250)
+@given(calibration_texts())
+@example(GOOD.replace("rows: 3", "rows: 1000000000", 1))
+@example(GOOD.replace("image_width: 512", "image_width: 99999999999", 1))
+def test_calibration_reader(text: str) -> None:
+    _load_cal(text)
+
+
+@fuzz(80)
+@given(st.text(max_size=400))
+@example("M1: !!opencv-matrix\n  rows: 100000\n  cols: 100000\n  dt: d\n  data: [1]\n")
+def test_calibration_reader_raw_text(text: str) -> None:
+    _load_cal(text)
+
+
+def test_calibration_file_size_is_bounded(tmp_path: "os.PathLike[str]") -> None:
+    from pathlib import Path
+
+    from calibration.io import MAX_CALIBRATION_BYTES, load_calibration
+
+    p = Path(tmp_path) / "big.yml"
+    p.write_text(GOOD + "#" * (MAX_CALIBRATION_BYTES + 1))
+    with pytest.raises(CalibrationError, match="larger than"):
+        load_calibration(p)
