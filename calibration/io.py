@@ -372,10 +372,37 @@ text before OpenCV parses it, which would allocate rows*cols first."""
 _SIZE_CLAIM = re.compile(r"(?m)^\s*(rows|cols)\s*:\s*([-+]?\d+)")
 
 
+_NUM = r"[-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?|[-+]?\.(?:inf|Inf|INF|nan|NaN|NAN)"
+_NUMLIST = rf"(?:{_NUM})(?:\s*,\s*(?:{_NUM}))*\s*,?"
+_SCALAR = rf"(?:{_NUM})|\"[^\"\\\x00-\x1f]*\"|'[^'\x00-\x1f]*'|[A-Za-z0-9_.+-][A-Za-z0-9_.+\-/, ]*"
+_LINE = re.compile("|".join([
+    r"\s*(?:#.*)?",  # blank, comment
+    r"%YAML[: ]\d+\.\d+", r"---", r"\.\.\.",
+    rf"[A-Za-z_][A-Za-z0-9_]*:(?:\s+(?:{_SCALAR}|!!opencv-matrix))?\s*",  # top-level key
+    r"\s+(?:rows|cols):\s+[-+]?\d+\s*", r"\s+dt:\s+[a-z0-9]{1,8}\s*",
+    rf"\s+data:\s+\[\s*(?:{_NUMLIST})?\s*\]?\s*",  # a matrix's data, maybe continued
+    rf"\s+(?:{_NUMLIST})\s*\]?\s*", r"\s+\]\s*",
+]))
+
+
+def _check_grammar(text: str, source: str) -> None:
+    """Refuse, in Python, text outside the YAML subset that OpenCV writes for a calibration
+    (ASCII; top-level ``key: scalar`` or ``key: !!opencv-matrix`` with indented rows, cols,
+    dt and a data list of numbers). OpenCV's FileStorage parser can crash the process (abort,
+    segfault) on malformed input, found by fuzzing: it only ever sees this subset."""
+    if not text.isascii():
+        raise CalibrationError(f"{source}: not an OpenCV FileStorage YAML file (non-ASCII characters)")
+    for i, line in enumerate(text.splitlines(), 1):
+        if not _LINE.fullmatch(line.rstrip("\r")):
+            shown = line.strip()[:40]
+            raise CalibrationError(f"{source}: not an OpenCV FileStorage YAML file (line {i}: {shown!r})")
+
+
 def loads_calibration(text: str, source: str = "<string>") -> StereoCalibration:
     """Parse FileStorage YAML text (see :func:`load_calibration`)."""
     if len(text) > MAX_CALIBRATION_BYTES:
         raise CalibrationError(f"{source}: larger than {MAX_CALIBRATION_BYTES >> 10} KiB: not a calibration file")
+    _check_grammar(text, source)
     for m in _SIZE_CLAIM.finditer(text):
         if not 0 < int(m.group(2)) <= MAX_MATRIX_SIDE:
             raise CalibrationError(f"{source}: a matrix claims {m.group(1)}: {m.group(2)} "

@@ -181,6 +181,7 @@ def test_calibration_reader(text: str) -> None:
 @fuzz(80)
 @given(st.text(max_size=400))
 @example("M1: !!opencv-matrix\n  rows: 100000\n  cols: 100000\n  dt: d\n  data: [1]\n")
+@example("%YAML:1.0\n\U0010bd28")  # the last text before OpenCV's parser crashed the fuzz run (SIGSEGV/abort)
 def test_calibration_reader_raw_text(text: str) -> None:
     _load_cal(text)
 
@@ -194,3 +195,20 @@ def test_calibration_file_size_is_bounded(tmp_path: "os.PathLike[str]") -> None:
     p.write_text(GOOD + "#" * (MAX_CALIBRATION_BYTES + 1))
     with pytest.raises(CalibrationError, match="larger than"):
         load_calibration(p)
+
+
+def test_calibration_text_outside_opencv_subset_never_reaches_opencv(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Regression: OpenCV's FileStorage parser aborted/segfaulted the whole fuzz run on malformed
+    text (not reproducible alone: heap state). Such text is refused in Python, before cv2."""
+    import calibration.io as io
+
+    def boom(text: str, source: str) -> object:
+        raise AssertionError("OpenCV's parser was reached")
+
+    monkeypatch.setattr(io, "_read_storage", boom)
+    for text in ("%YAML:1.0\n\U0010bd28", "image_width: [1, 2", "a: b: c\n", "M1: !!opencv-matrix\n  rows: {x\n",
+                 "%YAML:1.0\nimage_width: 512\n\x00\n"):
+        with pytest.raises(CalibrationError, match="not an OpenCV FileStorage YAML file"):
+            loads_calibration(text, "t.yml")
+    with pytest.raises(AssertionError, match="reached"):
+        loads_calibration(GOOD, "t.yml")  # a good file does reach it
