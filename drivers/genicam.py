@@ -301,7 +301,12 @@ class _NodeWriter:
             # round down onto the increment grid (never above the request or the maximum)
             v = int(lo + math.floor((v - lo) / inc) * inc) if math.isfinite(lo) else int(v)
         if v != value:
-            log.info("%s: %s %g clamped to %g (range %g..%g)", self.camera, name, value, v, lo, hi)
+            # rounding onto the increment grid is routine; a device that cannot come within 1 %
+            # of the request (e.g. AcquisitionFrameRate 1000 on a 200 fps camera) is said loudly
+            far = abs(v - value) > 0.01 * max(abs(value), 1e-12)
+            log.log(logging.WARNING if far else logging.INFO, "%s: %s %g clamped to %g (range %g..%g)%s",
+                    self.camera, name, value, v, lo, hi,
+                    ": the device cannot do what the config asks" if far else "")
         return self._set(name, node, v)
 
     def boolean(self, name: str, value: bool) -> bool:
