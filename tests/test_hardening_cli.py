@@ -467,3 +467,18 @@ def test_genicam_frame_rate_clamp_is_a_warning(caplog: pytest.LogCaptureFixture)
     assert acc.fps < 1000
     rec = [r for r in caplog.records if "AcquisitionFrameRate" in r.getMessage()]
     assert rec and rec[0].levelno == logging.WARNING and "cannot do" in rec[0].getMessage()
+
+
+def test_replay_real_photron_with_the_default_config_says_what_differs(
+        capsys: pytest.CaptureFixture[str]) -> None:
+    """Issue 16 item 10 as reported: the real 384x384 / 30 000 fps / 12-bit Photron recording
+    with the 512x512 / 1000 fps / 8-bit default config."""
+    ball = REPO.parent / "shared" / "data" / "photron" / "ball_12bit.cihx"
+    if not ball.is_file():
+        pytest.skip(f"needs {ball} (the project's shared data beside the checkout), which is absent")
+    cfg = REPO / "iscd" / "data" / "default.toml"
+    rc, _, err = _cli(capsys, "replay", str(ball), str(ball), "--config", str(cfg), "--out", "/dev/null",
+                      "--no-progress")
+    assert rc == 2
+    line = _one_error_line(err, "replay")
+    assert "384x384" in line and "512x512" in line and "30000 fps" in line and "12-bit" in line
