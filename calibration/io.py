@@ -392,10 +392,78 @@ def _check_grammar(text: str, source: str) -> None:
     segfault) on malformed input, found by fuzzing: it only ever sees this subset."""
     if not text.isascii():
         raise CalibrationError(f"{source}: not an OpenCV FileStorage YAML file (non-ASCII characters)")
-    for i, line in enumerate(text.splitlines(), 1):
-        if not _LINE.fullmatch(line.rstrip("\r")):
+    lines = [ln.rstrip("\r") for ln in text.splitlines()]
+    for i, line in enumerate(lines, 1):
+        if not _LINE.fullmatch(line):
             shown = line.strip()[:40]
             raise CalibrationError(f"{source}: not an OpenCV FileStorage YAML file (line {i}: {shown!r})")
+    _check_matrices(lines, source)
+
+
+_DT = ("d", "f", "i", "u", "c", "s", "w")
+
+
+def _check_matrices(lines: list[str], source: str) -> None:
+    """Every ``!!opencv-matrix`` block has exactly one ``rows``, ``cols``, ``dt`` (one
+    channel: d f i u c s w) and a closed ``data`` list of exactly rows x cols numbers, and
+    indented lines appear only inside such a block. OpenCV reads a block lacking one of them
+    from uninitialised memory (a heap corruption that aborted the fuzz run)."""
+    key: str | None = None
+    block: dict[str, object] = {}
+    data: list[str] | None = None
+    closed = False
+
+    def finish() -> None:
+        if key is None:
+            return
+        missing = [k for k in ("rows", "cols", "dt", "data") if k not in block]
+        if missing:
+            raise CalibrationError(f"{source}: {key}: opencv-matrix without {', '.join(missing)}")
+        if not closed:
+            raise CalibrationError(f"{source}: {key}: opencv-matrix data list not closed with ']'")
+        if block["dt"] not in _DT:
+            raise CalibrationError(f"{source}: {key}: unsupported opencv-matrix dt {block['dt']!r}")
+        n = int(block["rows"]) * int(block["cols"])  # type: ignore[call-overload]
+        got = len(data or [])
+        if got != n:
+            raise CalibrationError(f"{source}: {key}: opencv-matrix of {block['rows']}x{block['cols']} "
+                                   f"has {got} values")
+
+    for line in lines:
+        stripped = line.strip()
+        if not stripped or stripped.startswith("#"):
+            continue
+        indented = line[:1].isspace()
+        if not indented:
+            finish()
+            key, block, data, closed = None, {}, None, False
+            m = re.match(r"([A-Za-z_][A-Za-z0-9_]*):\s*!!opencv-matrix\s*$", line)
+            if m:
+                key = m.group(1)
+            continue
+        if key is None:
+            raise CalibrationError(f"{source}: not an OpenCV FileStorage YAML file (indented line "
+                                   f"{stripped[:40]!r} outside a matrix)")
+        name, _, rest = stripped.partition(":")
+        if name in ("rows", "cols", "dt", "data") and rest[:1] in (" ", "\t", ""):
+            if name in block:
+                raise CalibrationError(f"{source}: {key}: opencv-matrix with two {name}")
+            rest = rest.strip()
+            if name == "data":
+                data, closed = [], False
+                rest = rest.lstrip("[")
+            else:
+                block[name] = rest
+                continue
+            block["data"] = True
+        elif data is None or closed:
+            raise CalibrationError(f"{source}: {key}: unexpected line {stripped[:40]!r} in an opencv-matrix")
+        else:
+            rest = stripped
+        if rest.endswith("]"):
+            closed, rest = True, rest[:-1]
+        data.extend(v for v in (t.strip() for t in rest.split(",")) if v)
+    finish()
 
 
 def loads_calibration(text: str, source: str = "<string>") -> StereoCalibration:

@@ -174,6 +174,11 @@ def _load_cal(text: str) -> None:
 @given(calibration_texts())
 @example(GOOD.replace("rows: 3", "rows: 1000000000", 1))
 @example(GOOD.replace("image_width: 512", "image_width: 99999999999", 1))
+@example(GOOD.replace("   cols: 3\n", "   \n", 1))  # found: OpenCV read M1 without cols from the heap: abort
+@example(GOOD.replace("   rows: 3\n", "", 1))
+@example(GOOD.replace("   dt: d\n", "   dt: 3d\n", 1))
+@example(GOOD.replace(" 0., 0., 1. ]", " 0., 0. ]", 1))
+@example(GOOD.replace("data: [ 1., 0., 0., 0., 1., 0., 0., 0., 1. ]", "data: [ 1., 0., 0., 0., 1., 0., 0., 0., 1.", 1))
 def test_calibration_reader(text: str) -> None:
     _load_cal(text)
 
@@ -212,3 +217,23 @@ def test_calibration_text_outside_opencv_subset_never_reaches_opencv(monkeypatch
             loads_calibration(text, "t.yml")
     with pytest.raises(AssertionError, match="reached"):
         loads_calibration(GOOD, "t.yml")  # a good file does reach it
+
+
+@pytest.mark.parametrize("mutation, message", [
+    (("   cols: 3\n", ""), "without cols"),
+    (("   rows: 3\n", ""), "without rows"),
+    (("   dt: d\n", ""), "without dt"),
+    (("   dt: d\n", "   dt: 3d\n"), "unsupported opencv-matrix dt"),
+    ((" 0., 0., 1. ]", " 0., 0. ]"), "has 8 values"),
+])
+def test_malformed_matrix_blocks_are_refused_before_opencv(mutation: tuple[str, str], message: str,
+                                                           monkeypatch: pytest.MonkeyPatch) -> None:
+    """Regression (fuzzer finding): a matrix block without cols made OpenCV read uninitialised
+    memory ("free(): invalid next size", the test process aborted)."""
+    import calibration.io as io
+
+    monkeypatch.setattr(io, "_read_storage", lambda *a: pytest.fail("OpenCV's parser was reached"))
+    text = GOOD.replace(*mutation, 1)
+    assert text != GOOD
+    with pytest.raises(CalibrationError, match=message):
+        loads_calibration(text, "t.yml")
