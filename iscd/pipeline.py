@@ -217,7 +217,7 @@ class StreamDecoder:
                                          "packets_ok": 0, "packets_bad": 0, "ranges": 0,
                                          "frames_decoded": 0, "assembler_resets": 0,
                                          "ranging_skipped": 0, "led_ranges_shed": 0,
-                                         "demod_worker_restarts": 0}
+                                         "demod_worker_restarts": 0, "following_resets": 0}
 
     # ------------------------------------------------------------------ demodulation hook
     def _make_assembler(self) -> PacketAssembler:
@@ -814,6 +814,10 @@ class StreamDecoder:
     LIT_DECAY = 0.998
     """Per block, how much of the remembered light of a lit LED is kept."""
 
+    FOLLOW_LOST_PITCH = 0.75
+    """Followed positions further than this many pitches (RMS) from a grid fit are lost:
+    the fit wins and following restarts from it."""
+
     FOLLOW_TRUST_PX = 1.0
     """A grid fit further than this (RMS over the LEDs) from the LEDs as followed frame by
     frame is replaced by the grid through the followed positions."""
@@ -826,7 +830,17 @@ class StreamDecoder:
         fol = self._followed[side]
         if fol is None or fit.rows * fit.cols < 2 or fol.shape != (fit.rows * fit.cols, 2):
             return fit
-        if float(np.sqrt(((fit.centers - fol) ** 2).sum(1).mean())) <= self.FOLLOW_TRUST_PX:
+        off = float(np.sqrt(((fit.centers - fol) ** 2).sum(1).mean()))
+        if off <= self.FOLLOW_TRUST_PX:
+            return fit
+        if off > self.FOLLOW_LOST_PITCH * fit.pitch_px:
+            # more than most of a pitch: not the fit's sub-pixel lock but following that
+            # walked off (along a blooming column, onto a neighbour's light) and would hold
+            # itself there; the fit of tens of frames' light is right, following restarts
+            log.info("LEDs followed %.1f px from the grid fit (camera %d): following restarts from the fit",
+                     off, side)
+            self._followed[side] = None
+            self.counters["following_resets"] += 1
             return fit
         r, c = np.divmod(np.arange(fit.rows * fit.cols), fit.cols)
         g = np.stack([c, r], 1).astype(np.float64)
