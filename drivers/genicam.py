@@ -140,7 +140,15 @@ def find_producers(producer: str | None = None) -> list[str]:
             out.append(os.path.abspath(entry))
         elif os.path.isdir(entry):
             out.extend(sorted(os.path.abspath(p) for p in glob.glob(os.path.join(entry, "*.cti"))))
-    return list(dict.fromkeys(out))
+    good: list[str] = []
+    for cti in dict.fromkeys(out):
+        try:
+            check_producer(cti)  # harvesters crashes (SIGSEGV) on a library that is not GenTL
+        except CameraError as e:
+            log.warning("%s: skipped: %s", ENV_VAR, e)
+            continue
+        good.append(cti)
+    return good
 
 
 def harvester(producer: str) -> Any:

@@ -8,6 +8,7 @@ The ``iscd run`` checks must happen before the daemon is built: the tests replac
 from __future__ import annotations
 
 import json
+import os
 import subprocess
 import sys
 import types
@@ -482,3 +483,16 @@ def test_replay_real_photron_with_the_default_config_says_what_differs(
     assert rc == 2
     line = _one_error_line(err, "replay")
     assert "384x384" in line and "512x512" in line and "30000 fps" in line and "12-bit" in line
+
+
+def test_devices_env_path_skips_a_file_that_is_not_gentl(tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+                                                         capsys: pytest.CaptureFixture[str]) -> None:
+    """A bogus .cti in GENICAM_GENTL64_PATH is skipped with a warning (harvesters would crash or
+    list nothing), the real producers beside it still list."""
+    from drivers import genicam as gc
+
+    (tmp_path / "bogus.cti").write_text("not a library\n")
+    sim = gc.simulated_producer()
+    path = str(tmp_path) + (os.pathsep + sim if sim else "")
+    monkeypatch.setenv(gc.ENV_VAR, path)
+    assert gc.find_producers() == ([sim] if sim else [])
