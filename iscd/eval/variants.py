@@ -64,7 +64,7 @@ def scene_config(case: str, seed: int, randomize: bool = True):  # -> Config
                               "min_distance_m": 25.0})
 
 
-def run_scene(cfg, variants: Sequence[str], packets: int = 2, block: int = 32) -> dict[str, tuple[int, float]]:
+def run_scene(cfg, variants: Sequence[str], packets: int = 2, block: int = 16) -> dict[str, tuple[int, float]]:
     """Decode ``packets`` whole packets of ``cfg`` with every variant on the same frames;
     returns variant -> (packets delivered bit-exact, SER over the found packets)."""
     from iscd.airinterface import AirInterface
@@ -109,6 +109,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--cases", default=",".join(CASES), help=f"comma-separated, of {', '.join(CASES)}")
     ap.add_argument("--seeds", default="1,2,3,4", help="comma-separated scene seeds")
     ap.add_argument("--variants", default=",".join(VARIANTS), help=f"comma-separated, of {', '.join(VARIANTS)}")
+    ap.add_argument("--block", type=int, default=16, help="pairs per decode step (default 16, the daemon's)")
     ap.add_argument("--default-physics", action="store_true",
                     help="the simulator's default physics instead of randomized draws")
     a = ap.parse_args(argv)
@@ -127,7 +128,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     for case in cases:
         for seed in seeds:
             cfg = scene_config(case, seed, randomize=not a.default_physics)
-            res = run_scene(cfg, variants)
+            res = run_scene(cfg, variants, block=a.block)
             for v, (ok, _) in res.items():
                 total[v] += ok
             o, s = cfg.optics, cfg.scene
