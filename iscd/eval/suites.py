@@ -320,6 +320,9 @@ class EvalPlan:
     hdr_distances: tuple[float, ...] | None = None
     ranging_distances: tuple[float, ...] | None = None
     block: int = 32
+    motion_block: int = 16
+    """pairs per decode step of the motion suite: the daemon's ``[daemon] block_max`` (a
+    moving car is where the block matters: the following judges and clamps per block)"""
     motion_seeds: int | None = None
     """seeds per motion case (default :data:`MOTION_SEEDS`, 1 with ``quick``)"""
     motion_cases: tuple[str, ...] | None = None
@@ -354,7 +357,8 @@ class EvalPlan:
                 "ranging_distances_m": list(p.ranging_distances or ()),
                 **({"motion_seeds": p.motion_seeds, "motion_cases": list(p.motion_cases or ()),
                     "motion_scene": {k: v for k, v in p.motion_scene},
-                    "motion_randomize": p.motion_randomize} if "motion" in p.suites else {})}
+                    "motion_randomize": p.motion_randomize, "motion_block": p.motion_block}
+                   if "motion" in p.suites else {})}
 
 
 def _packet_frames(cfg: Config, packets: int) -> int:
@@ -426,7 +430,7 @@ def jobs(base: Config, plan: EvalPlan, results: EvalResults) -> list[Job]:
                     from iscd.eval.oracle import run_oracle
 
                     row = MotionRow(case, s, run_oracle(cfg, case.packets, mode=ReceiverMode(
-                        "HDR f/4+f/8" if case.leds > 1 else "diversity", "both"), block=p.block,
+                        "HDR f/4+f/8" if case.leds > 1 else "diversity", "both"), block=p.motion_block,
                         progress=progress), note)
                     results.motion.append(row)
                     return [row]
