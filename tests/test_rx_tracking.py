@@ -128,3 +128,29 @@ def test_demodulate_reports_which_channel_it_used() -> None:
     assert res.crc_ok and res.channel == "tracked" and res.quality()["channel_tracked"]
     res0 = demodulate_packet(L, u, air, 1.0, 2.0, 2.0, 2.0 * 300e-6, replace(cfg, channel_window_symbols=0))
     assert res0.channel == "static" and not res0.crc_ok
+
+
+def test_a_steady_lamp_under_vibration_is_not_taken_for_the_led() -> None:
+    """A 25 cm steady lamp at 40 m and a 3 cm LED at 100 m, 0.5 px of rig vibration: the
+    lamp's edges are the most active pixels, but its integrated flux does not change; the
+    one-LED detection takes the LED (it took the lamp before, and the whole approach was
+    lost to a candidate that never sends a header)."""
+    from iscd.config import default_config
+    from iscd.receiver.detect import activity_map, detect_array, find_blobs, flux_modulation
+    from iscd.sim.presets import single_led
+    from iscd.sim.scene import Scene
+
+    cfg = single_led(default_config(), 100.0, vibration_px=0.5, seed=4)
+    assert cfg.scene.distractors  # the default scene's lamp at (2.5, -1.5, 40) m
+    sc = Scene(cfg)
+    L = np.empty((64, sc.height, sc.width), np.uint8)
+    R = np.empty_like(L)
+    for i in range(64):
+        sc.render_pair_into(i, L[i], R[i])
+    tr = sc.truth(np.arange(1))
+    blobs = find_blobs(activity_map(L), L.mean(0, dtype=np.float32))
+    assert abs(blobs[0].x - tr.u_left[0, 0]) > 50  # the most active blob is the lamp
+    fit = detect_array(L, 1, 1)
+    assert fit is not None
+    assert abs(fit.center[0] - tr.u_left[0, 0]) < 2 and abs(fit.center[1] - tr.v_left[0, 0]) < 2
+    assert flux_modulation(L, blobs[0].bbox) < 0.2 < 1.0 < flux_modulation(L, blobs[1].bbox)

@@ -266,6 +266,39 @@ def fit_grid(act: np.ndarray, rows: int, cols: int, region: tuple[int, int, int,
                    score=float(-neg(v)), spot_px=float(spot))
 
 
+MAX_SINGLE_CANDIDATES = 6
+"""Active blobs a one-LED detection looks at (strongest first)."""
+
+MIN_FLUX_MODULATION = 0.5
+"""Least :func:`flux_modulation` of a transmitter candidate: a PWM LED sending data swings
+its flux by about its light or more (levels 1 .. M within any 64 frames; 1.5-2.4 measured),
+a steady lamp under rig vibration by the shot noise of its disc (0.006 for a 25 cm lamp at
+40 m with 0.5 px of vibration), a fragment of its edge by what slides through the box
+(0.26-0.33)."""
+
+
+def flux_modulation(frames: np.ndarray, bbox: tuple[int, int, int, int], pad: int = 4) -> float:
+    """How much the light of a candidate changes, relative to the light itself (0 for a
+    steady light, ~1 for an LED that switches between dark and full).
+
+    The flux is the per-frame sum of the pixels in ``bbox`` grown by ``pad`` px (so the
+    whole spot stays inside while the rig vibrates), minus the box's border pixels' mean
+    per pixel (the background): ``(p95 - p5 of the flux over frames) / max(mean flux, 1 DN)``.
+    frames: (n, H, W); bbox: (x0, y0, x1, y1) px.
+    """
+    f = np.asarray(frames)
+    H, W = f.shape[1:]
+    x0, y0 = max(0, bbox[0] - pad), max(0, bbox[1] - pad)
+    x1, y1 = min(W, bbox[2] + pad), min(H, bbox[3] + pad)
+    box = f[:, y0:y1, x0:x1].astype(np.float64)
+    if box.shape[1] < 3 or box.shape[2] < 3:
+        return 0.0
+    border = np.concatenate([box[:, 0, :], box[:, -1, :], box[:, 1:-1, 0], box[:, 1:-1, -1]], axis=1)
+    flux = box.sum(axis=(1, 2)) - border.mean(axis=1) * box.shape[1] * box.shape[2]
+    lo, hi = np.percentile(flux, [5, 95])
+    return float((hi - lo) / max(float(flux.mean()), 1.0))
+
+
 def detect_array(frames: np.ndarray, rows: int, cols: int, *, exclude: list[tuple[int, int, int, int]] | None = None,
                  ) -> GridFit | None:
     """Find the transmitter (a ``rows x cols`` array, or one LED) in a block of frames.
@@ -284,7 +317,12 @@ def detect_array(frames: np.ndarray, rows: int, cols: int, *, exclude: list[tupl
         return None
     n = rows * cols
     if n == 1:
-        b = blobs[0]
+        # the strongest blob whose light really changes: a steady lamp under vibration
+        # shows pixel activity at its edges, but its integrated flux stays put
+        cands = [b for b in blobs[:MAX_SINGLE_CANDIDATES] if flux_modulation(frames, b.bbox) >= MIN_FLUX_MODULATION]
+        if not cands:
+            return None
+        b = cands[0]
         pad = 3
         return fit_grid(light, 1, 1, region=(b.bbox[0] - pad, b.bbox[1] - pad, b.bbox[2] + pad, b.bbox[3] + pad))
     # group blobs of one array: LEDs of an array are at most ~a pitch apart; a pitch is at
