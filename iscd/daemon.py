@@ -58,6 +58,31 @@ class DaemonSettings:
     restart_backoff_s: float = field(default=1.0, metadata={"lo": 0, "doc": "wait before restarting a dead acquisition"})
 
 
+
+class _UnpairedWatch:
+    """Says, once a stats interval while it lasts, that pairing fails: more than
+    :attr:`SHARE` of the frames that came in since the last stats record found no partner
+    (free-running cameras, a trigger cable off, ids or clocks that do not match)."""
+
+    SHARE = 0.05
+
+    def __init__(self) -> None:
+        self._in = 0
+        self._unpaired = 0
+
+    def check(self, rec: dict[str, Any]) -> bool:
+        a = rec.get("acquisition") or {}
+        unpaired = int(a.get("unpaired_left", 0)) + int(a.get("unpaired_right", 0))
+        frames_in = int(rec.get("frames_in", 0))
+        d_in, d_un = frames_in - self._in, unpaired - self._unpaired
+        self._in, self._unpaired = frames_in, unpaired
+        if d_in > 0 and d_un > self.SHARE * d_in:
+            log.warning("pairing fails: %d of %d frames since the last stats record had no partner "
+                        "(cameras not triggered together? ids or clocks that do not match?)", d_un, d_in)
+            return True
+        return False
+
+
 class Daemon:
     """One run of the daemon (see module docstring)."""
 
@@ -168,6 +193,7 @@ class Daemon:
         t_s = np.zeros(B, np.float64)
         arrival = np.zeros(B, np.int64)
         fps = cfg.camera.fps
+        unpaired_watch = _UnpairedWatch()
         counters = {"pairs_decoded": 0, "pair_gaps": 0, "decode_errors": 0, "acquisition_restarts": 0, "output_errors": 0}
         # the compiled kernels are loaded from the cache (or compiled) before the cameras
         # start and before READY=1: the first frames are not spent compiling
@@ -221,7 +247,10 @@ class Daemon:
                    "frames_in": int(a.frames_left + a.frames_right),
                    # triggers that never reached the decoder as a pair, whatever the cause
                    # (camera buffer, unpaired, ring overflow); the parts follow
-                   "frames_dropped": counters["pair_gaps"],
+                   # (frame ids no pair reached the decoder with; frames left without a
+                   # partner count too, two to an id, when pairing itself fails: cameras
+                   # that are not triggered together give no ids to miss)
+                   "frames_dropped": max(counters["pair_gaps"], (int(a.frames_dropped) + 1) // 2),
                    "unpaired_or_bad": int(a.frames_dropped),
                    "ring_dropped": int(rs.dropped_overflow), "ring_fill": int(rs.queued),
                    "ring_capacity": int(ring.capacity),
@@ -264,6 +293,7 @@ class Daemon:
                 if now >= next_stats:
                     rec = stats_record(False)
                     emit([rec])
+                    unpaired_watch.check(rec)
                     notifier.status(f"pairs {rec['pairs_decoded']} packets ok {rec['packets_ok']} "
                                     f"bad {rec['packets_bad']} dropped {rec['frames_dropped']}")
                     next_stats += st.stats_interval_s

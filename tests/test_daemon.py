@@ -225,3 +225,24 @@ def test_soak_full_rate(tmp_path: Path) -> None:
     assert max(rss) - min(rss) < 50
     cpu = [s["cpu_cores"] for s in stats[10:-1]]
     assert max(cpu) - min(cpu) < 0.5 and max(cpu) < 1.9  # flat, and not both cores
+
+
+def test_failing_pairing_is_said_once_a_stats_interval(caplog) -> None:
+    """Free-running cameras (no common trigger): frames come in, few find a partner. The
+    daemon says so at every stats record while it lasts, and not when pairing works."""
+    import logging
+
+    from iscd.daemon import _UnpairedWatch
+
+    w = _UnpairedWatch()
+
+    def rec(frames_in: int, ul: int, ur: int) -> dict:
+        return {"frames_in": frames_in, "acquisition": {"unpaired_left": ul, "unpaired_right": ur}}
+
+    with caplog.at_level(logging.WARNING, logger="iscd.daemon"):
+        assert not w.check(rec(2000, 1, 0))  # pairing works: 1 of 2000
+        assert w.check(rec(3759, 851, 845))  # 1695 of 1759 without a partner
+        assert w.check(rec(5500, 1700, 1690))
+        assert not w.check(rec(7500, 1701, 1690))  # paired again
+    said = [r for r in caplog.records if "pairing fails" in r.getMessage()]
+    assert len(said) == 2 and "1695 of 1759" in said[0].getMessage()
