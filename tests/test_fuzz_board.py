@@ -11,12 +11,12 @@ deframer's buffer stays <= its max_encoded whatever arrives; packet geometries u
 
 from __future__ import annotations
 
-import os
 import struct
 
 import numpy as np
 import pytest
-from hypothesis import HealthCheck, example, given, settings
+from fuzzing import fuzz
+from hypothesis import example, given
 from hypothesis import strategies as st
 
 from drivers.board import protocol as P
@@ -25,17 +25,8 @@ from iscd.airinterface import AirInterface, AirInterfaceError
 
 pytestmark = pytest.mark.filterwarnings("error::RuntimeWarning")  # e.g. a NaN cast is a finding
 
-_LONG = os.environ.get("ISCD_FUZZ_EXAMPLES")
 
 
-def fuzz(ci_examples: int) -> settings:
-    """Hypothesis settings: ``ci_examples`` derandomized cases in CI, ISCD_FUZZ_EXAMPLES random
-    ones in a long run; no deadline (the machine is shared), no example database."""
-    if _LONG:
-        return settings(max_examples=int(_LONG), deadline=None, database=None,
-                        suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large])
-    return settings(max_examples=ci_examples, deadline=None, database=None, derandomize=True,
-                    suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large])
 
 
 blobs = st.binary(max_size=4096)

@@ -15,51 +15,21 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import math
 import os
 import typing
 
 import numpy as np
 import pytest
-from hypothesis import HealthCheck, example, given, settings
+from fuzzing import fuzz
+from hypothesis import example, given
 from hypothesis import strategies as st
 
 from calibration.io import CalibrationError, StereoCalibration, dumps_calibration, loads_calibration
 from iscd import config as C
-
-_LONG = os.environ.get("ISCD_FUZZ_EXAMPLES")
-
-
-def fuzz(ci_examples: int) -> settings:
-    """``ci_examples`` derandomized cases in CI, ISCD_FUZZ_EXAMPLES random ones in a long run."""
-    if _LONG:
-        return settings(max_examples=int(_LONG), deadline=None, database=None,
-                        suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large])
-    return settings(max_examples=ci_examples, deadline=None, database=None, derandomize=True,
-                    suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large])
+from iscd.sim.tomlout import _scalar as _toml_value  # the project's own TOML scalar writer
 
 
-# --------------------------------------------------------------------------- a tiny TOML writer
-def _toml_value(v: object) -> str:
-    if isinstance(v, bool):
-        return "true" if v else "false"
-    if isinstance(v, int):
-        return str(v)
-    if isinstance(v, float):
-        if math.isnan(v):
-            return "nan"
-        if math.isinf(v):
-            return "inf" if v > 0 else "-inf"
-        return repr(v)
-    if isinstance(v, str):
-        return json.dumps(v)  # a TOML basic string is a JSON string for these characters
-    if isinstance(v, list):
-        return "[" + ", ".join(_toml_value(x) for x in v) + "]"
-    if isinstance(v, dict):
-        return "{" + ", ".join(f"{json.dumps(k)} = {_toml_value(x)}" for k, x in v.items()) + "}"
-    raise TypeError(type(v))
-
-
+# --------------------------------------------------------------------------- TOML text of a table
 def to_toml(doc: dict[str, dict[str, object]]) -> str:
     """``{section: {key: value}}`` as TOML text (values inline)."""
     return "".join(f"[{name}]\n" + "".join(f"{json.dumps(k)} = {_toml_value(v)}\n" for k, v in table.items())

@@ -27,23 +27,16 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
-from hypothesis import HealthCheck, example, given, settings
+from fuzzing import fuzz
+from hypothesis import example, given
 from hypothesis import strategies as st
 
 from iscd.recording import RecordingError, open_recording
 from iscd.recording.iscr import FIXED_HEADER, MAGIC, IscrWriter
 
-_LONG = os.environ.get("ISCD_FUZZ_EXAMPLES")
 MAX_READ_BYTES = 1 << 20
 
 
-def fuzz(ci_examples: int) -> settings:
-    """``ci_examples`` derandomized cases in CI, ISCD_FUZZ_EXAMPLES random ones in a long run."""
-    if _LONG:
-        return settings(max_examples=int(_LONG), deadline=None, database=None,
-                        suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large])
-    return settings(max_examples=ci_examples, deadline=None, database=None, derandomize=True,
-                    suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large])
 
 
 @contextlib.contextmanager
