@@ -14,7 +14,7 @@ from iscd.sim.scene import Scene
 
 def _decode(cfg, frames: np.ndarray, block: int = 16, ranging: bool = False, async_demod: bool | str = False,
             on_block=None) -> tuple[list[dict], StreamDecoder, Scene]:
-    cfg = cfg.replace(extra={**cfg.extra, "tracking": {"ranging": ranging}})
+    cfg = cfg.replace(extra={**cfg.extra, "tracking": {**dict(cfg.extra.get("tracking", {})), "ranging": ranging}})
     scene = Scene(cfg)
     dec = StreamDecoder(cfg, async_demod=async_demod)
     H, W = cfg.camera.height, cfg.camera.width
@@ -307,9 +307,11 @@ def test_close_stops_the_demodulation_worker() -> None:
 def test_any_block_size_decodes_every_packet_from_the_first(block: int) -> None:
     """Blocks that do not divide acquire_frames (12) lose no frame collected before the
     detection (the first packet's header starts at frame ~1), and short blocks (8) judge
-    which LEDs are lit as well as long ones (the per-pixel background is held across
-    blocks): every packet, bit-exact, as with the daemon's usual 16."""
+    which LEDs are lit as well as long ones with the per-pixel background held across
+    blocks (``lit_background``; with each block's own minimum PWM-16 at blocks of 8 got 0
+    of 4 packets): every packet, bit-exact, as with the daemon's usual 16."""
     cfg = override(default_config(), transmitter={"levels": 16})
+    cfg = cfg.replace(extra={**cfg.extra, "tracking": {"lit_background": True}})
     frames = np.arange(0, 2 * 1306 + 40)
     recs, dec, scene = _decode(cfg, frames, block=block)
     pk = [r for r in recs if r["type"] == "packet"]
