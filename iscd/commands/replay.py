@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from iscd.cli import UserError
+from iscd.commands.run import add_calibration_options
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -29,12 +30,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("left", help="left-camera recording (or a simulate output folder)")
     p.add_argument("right", nargs="?", help="right-camera recording")
     p.add_argument("--config", help="TOML config with the [transmitter] the recording shows")
-    p.add_argument("--calibration", help="stereo calibration YAML (default: the ideal rig of [camera]); it must "
-                                          "be for the recording's image size, else it is refused")
-    p.add_argument("--scale-calibration", action="store_true",
-                   help="use a calibration made at another resolution of the same view (binning): its "
-                        "focal lengths and principal points are scaled to the recording's size "
-                        "(same aspect ratio only)")
+    add_calibration_options(p, "the recording's image size")
     p.add_argument("--allow-mismatch", action="store_true",
                    help="decode even when the recording's size or frame rate differ from [camera] "
                         "(a warning instead of an error)")

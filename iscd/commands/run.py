@@ -39,12 +39,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--duration", type=positive_seconds,
                    help="stop after this many seconds, a finite number > 0 (default: run until stopped)")
     p.add_argument("--out", help="JSON Lines output file (rotated at [daemon] rotate_mb)")
-    p.add_argument("--calibration", help="stereo calibration YAML (default: the ideal rig of [camera]); it must "
-                                          "be for the [camera] width x height, else it is refused")
-    p.add_argument("--scale-calibration", action="store_true",
-                   help="use a calibration made at another resolution of the same view (binning): its "
-                        "focal lengths and principal points are scaled to [camera] width x height "
-                        "(same aspect ratio only)")
+    add_calibration_options(p, "the [camera] width x height")
     p.add_argument("--socket", metavar="ENDPOINT",
                    help="also publish records on a ZeroMQ PUB socket, e.g. tcp://127.0.0.1:5556")
     g = p.add_argument_group("Rerun live view (optional)")
@@ -89,6 +84,15 @@ def check_out_path(path: str, what: str = "--out") -> None:
             os.unlink(tmp)
     except OSError as e:
         raise UserError(f"{what} {path}: cannot write there: {e.strerror or e}") from None
+
+
+def add_calibration_options(p: argparse.ArgumentParser, size: str) -> None:
+    """``--calibration`` and ``--scale-calibration`` (run and replay), for images of ``size``."""
+    p.add_argument("--calibration", help="stereo calibration YAML (default: the ideal rig of [camera]); it must "
+                                          f"be for {size}, else it is refused")
+    p.add_argument("--scale-calibration", action="store_true",
+                   help="use a calibration made at another resolution of the same view (binning): its "
+                        f"focal lengths and principal points are scaled to {size} (same aspect ratio only)")
 
 
 def checked_calibration(path: str, width: int, height: int, *, scale: bool, what: str) -> tuple[Any, bool]:
