@@ -258,6 +258,7 @@ class Daemon:
                    "packets_ok": decoder.counters["packets_ok"], "packets_bad": decoder.counters["packets_bad"],
                    "ranges": decoder.counters["ranges"], "ranging_skipped": decoder.counters["ranging_skipped"],
                    "led_ranges_shed": decoder.counters["led_ranges_shed"], **overload.counters,
+                   "following_resets": decoder.counters.get("following_resets", 0),
                    "tracking": decoder.track is not None,
                    "latency_ms_p50": p50, "latency_ms_p99": p99,
                    # per block: its last pair's arrival to the block read, and the decoding

@@ -597,13 +597,9 @@ class StreamDecoder:
     def _fold_spot_area(self, area: np.ndarray) -> None:
         """Fold one block's half-maximum areas (2,) px^2 into the running ones."""
         a = np.asarray(area, dtype=np.float64)
-        if self._spot_area is None:
-            self._spot_area = np.where(np.isfinite(a), a, np.nan)
-            return
+        old = np.full(2, np.nan) if self._spot_area is None else self._spot_area
         k = self.SPOT_SMOOTHING
-        old = self._spot_area
-        new = np.where(np.isfinite(a), np.where(np.isfinite(old), (1 - k) * old + k * a, a), old)
-        self._spot_area = new
+        self._spot_area = np.where(np.isfinite(a), np.where(np.isfinite(old), (1 - k) * old + k * a, a), old)
 
     def _spot_window(self, tr: _Track, growth: list[float], sigmas: list[float]) -> list[float]:
         """Per camera the Gaussian window that follows the measured spot: ``window_scale``

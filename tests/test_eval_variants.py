@@ -17,8 +17,9 @@ def test_scene_configs_are_drawn_per_case_and_seed_and_keep_the_motion() -> None
 def test_bad_arguments_are_one_line_and_exit_2(capsys) -> None:
     assert variants.main(["--cases", "nope"]) == 2
     assert variants.main(["--seeds", "x"]) == 2
+    assert variants.main(["--block", "0"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 2 and all(line.startswith("variants:") for line in err)
+    assert len(err) == 3 and all(line.startswith("variants:") for line in err)
 
 
 def test_a_still_scene_decodes_with_every_variant() -> None:

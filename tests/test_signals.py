@@ -5,8 +5,8 @@
   KeyboardInterrupt tracebacks from the children.
 * ``kill -9`` of the daemon: its children and the shared-memory ring are gone within 2 s.
 
-Each waits for the daemon's own "daemon started" line (no wall-clock race); the timeouts are
-only safety nets for a machine that is very busy.
+Each waits for the daemon's own "transmitter acquired" line (no wall-clock race); the
+timeouts are only safety nets for a machine that is very busy.
 """
 
 from __future__ import annotations
@@ -29,17 +29,17 @@ def _start(tmp_path: Path) -> tuple[subprocess.Popen, Path, Path]:
     err = tmp_path / "stderr.txt"
     proc = subprocess.Popen([sys.executable, "-m", "iscd", "run", "--duration", "60", "--out", str(out)],
                             stdout=subprocess.DEVNULL, stderr=err.open("wb"), start_new_session=True)
+    # the daemon's own lines say when it is decoding: no guess of how long that takes
     deadline = time.monotonic() + 240  # a cold start compiles the kernels first
     while time.monotonic() < deadline:
-        if "daemon started" in err.read_text(errors="replace"):
+        if "transmitter acquired" in err.read_text(errors="replace"):
             break
         if proc.poll() is not None:
             pytest.fail(f"iscd run ended early: {err.read_text(errors='replace')[-2000:]}")
-        time.sleep(0.2)
+        time.sleep(0.2)  # polling the log; the deadline is only a safety net
     else:
         proc.kill()
-        pytest.fail("iscd run did not start")
-    time.sleep(1.5)  # a few blocks decoded
+        pytest.fail("iscd run did not acquire the transmitter")
     return proc, out, err
 
 
@@ -84,6 +84,7 @@ def test_kill_9_leaves_no_process_and_no_ring(tmp_path: Path) -> None:
     kids = _children(proc.pid)
     assert kids, "the daemon runs its acquisition and demodulation in child processes"
     mine = _rings() - before
+    assert mine, "the daemon's shared-memory ring is not in /dev/shm"
     proc.send_signal(signal.SIGKILL)  # the daemon alone, as `kill -9 PID` does
     proc.wait(timeout=10)
     deadline = time.monotonic() + 2.0

@@ -120,6 +120,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     except ValueError as exc:
         print(f"variants: bad --seeds: {exc}", file=sys.stderr)
         return 2
+    if a.block < 1:
+        print(f"variants: --block must be >= 1 pair, got {a.block}", file=sys.stderr)
+        return 2
     bad = [c for c in cases if c not in CASES] + [v for v in variants if v not in VARIANTS]
     if bad:
         print(f"variants: unknown case or variant: {', '.join(bad)}", file=sys.stderr)
