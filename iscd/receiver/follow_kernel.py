@@ -8,7 +8,8 @@ refine_in_patches`, accelerated rounds), then the Gaussian-weighted luminance (e
 with smooth weights, :func:`~iscd.receiver.luminance.gauss_in_patches`) -- in fused loops
 that read each LED's pixels straight out of the frames (no patch copies, no temporaries
 of the size of the block). It works in float64 where the reference works partly in
-float32: the two agree to ~1e-5 px in position and ~1e-5 relative in luminance
+float32 (the luminance's row sums are float32, which doubles their SIMD width): the two
+agree to ~1e-5 px in position and ~1e-5 relative in luminance
 (``tests/test_frame_kernels.py``).
 
 Conventions as in :mod:`iscd.receiver.luminance`: x right, y down, pixel centres at
@@ -147,7 +148,7 @@ def _follow_kernel(L, R, starts: np.ndarray, half: int, w: float, iterations: in
     pmin = np.empty((FF, n))
     shown = np.empty((FF, n))
     lit = np.empty((FF, n), np.bool_)
-    bg = np.empty_like(L[0, :K, :K])  # the frames' dtype: branch-free integer minima vectorize
+    bg = np.empty((K, K), np.int32)
     for g in range(2):
         fr = L if g == 0 else R
         fixed = F > 1
@@ -158,25 +159,26 @@ def _follow_kernel(L, R, starts: np.ndarray, half: int, w: float, iterations: in
                     fixed = False
         for j in range(n):
             i = sel[j]
-            for f in range(F):  # integer arithmetic: exact, and it vectorizes
+            if fixed:
+                xa, ya = x0[g * F, i], y0[g * F, i]
+                for a in range(K):
+                    for b in range(K):
+                        bg[a, b] = np.int32(fr[0, ya + a, xa + b])
+            for f in range(F):
                 q = g * F + f
                 xa, ya = x0[q, i], y0[q, i]
-                m = fr[f, ya, xa]
-                tot = np.int32(0)  # at most K^2 x 65535: fits
+                tot = np.int32(0)
+                m = np.int32(fr[f, ya, xa])
                 for a in range(K):
-                    row = fr[f, ya + a, xa:xa + K]
-                    ba = bg[a]
-                    if fixed and f == 0:
-                        ba[:] = row
                     for b in range(K):
-                        tot += np.int32(row[b])
-                        m = min(m, row[b])
-                    if fixed:
-                        for b in range(K):
-                            ba[b] = min(ba[b], row[b])
+                        v = np.int32(fr[f, ya + a, xa + b])
+                        tot += v
+                        m = min(m, v)
+                        if fixed:
+                            bg[a, b] = min(bg[a, b], v)
                 pmin[q, j] = m
-                shown[q, j] = np.int64(tot) - K * K * np.int64(m)  # light above the patch minimum
-            if fixed:  # light above each pixel's least value over the block
+                shown[q, j] = np.int64(tot) - K * K * np.int64(m)
+            if fixed:
                 sb = 0
                 for a in range(K):
                     for b in range(K):
@@ -218,6 +220,7 @@ def _follow_kernel(L, R, starts: np.ndarray, half: int, w: float, iterations: in
     xw = np.empty(K)
     off = np.empty((n, 2))
     wt = np.empty(n)
+    wx32 = np.empty(K, np.float32)
     for it in range(iterations):
         for q in range(FF):
             for j in range(n):
@@ -371,17 +374,19 @@ def _follow_kernel(L, R, starts: np.ndarray, half: int, w: float, iterations: in
                 swx = _gauss_row(wx, xa - cx, a2, K)
                 swy = _gauss_row(wy, ya - cy, a2, K)
                 s = 0.0
+                for b in range(K):
+                    wx32[b] = np.float32(wx[b])
                 for a in range(K):
                     row = fr[f, ya + a, xa:xa + K]
-                    r = 0.0
+                    r = np.float32(0.0)
                     if bg_lum:
                         brow = bgi[ya + a, xa:xa + K]
                         for b in range(K):
-                            r += (float(row[b]) - float(brow[b])) * wx[b]
+                            r += (np.float32(row[b]) - brow[b]) * wx32[b]
                     else:
                         for b in range(K):
-                            r += float(row[b]) * wx[b]
-                    s += wy[a] * r
+                            r += np.float32(row[b]) * wx32[b]
+                    s += wy[a] * float(r)
                 out_lum[q, i] = s / (swx * swy)
     out_c[:] = cc
 
