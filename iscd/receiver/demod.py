@@ -33,7 +33,7 @@ from iscd.airinterface import HEADER_SYMBOLS, AirInterface
 from iscd.jit import njit
 from iscd.receiver.channel import (ChannelModel, ChannelTrack, IscdChannelSettings,
                                    estimate_dissertation, estimate_iscd)
-from iscd.receiver.decide import CleanCosts, clean_costs, decide_span
+from iscd.receiver.decide import CleanCosts, SpanDecision, clean_costs, decide_span
 from iscd.receiver.settings import ReceiverConfig
 from iscd.receiver.timing import SymbolClock, clean_frame, fine_header, frame_map, refine_clock
 
@@ -397,6 +397,11 @@ def _track(segs: list[tuple[int, int]], models: list[ChannelModel]) -> ChannelTr
     header and training)."""
     return ChannelTrack((0,) + tuple(a for a, _ in segs[1:]), tuple(models))
 
+REUSE_UNCHANGED = True
+"""The final pass's later iterations reuse a stretch's decision when its inputs (channel
+model, clean costs, the levels one symbol either side) are unchanged -- exactly what
+deciding again would give (``tests/test_demod_reuse.py``); False decides every time."""
+
 ChannelOf = Callable[[SymbolClock, int, int], ChannelModel]
 """``channel(clock, a, b)``: a channel model for packet symbols [a, b) (an oracle's)."""
 
@@ -537,6 +542,10 @@ def _demodulate(L: np.ndarray, u_guess: float, air: AirInterface, e: float,
         # (level M) or, when the transmission stops, darkness (level 1)
         edge = (0,) if air.idle_symbols else (0, M - 1)
         pre: list[CleanCosts | None] = [None] * len(segs)
+        # per stretch the decision and the levels it was decided with (its own and one
+        # symbol either side: the straddling frames' neighbours); a later pass whose
+        # inputs are all unchanged would decide the same, so it reuses it (exact)
+        seen: list[tuple[np.ndarray, SpanDecision] | None] = [None] * len(segs)
         before = lev.copy()
         for it in range(cfg.ic_iterations if cfg.straddle else 1):
             if it and tracked and channel is None:  # the channel again where the decisions changed
@@ -549,10 +558,17 @@ def _demodulate(L: np.ndarray, u_guess: float, air: AirInterface, e: float,
                         pre[j] = None
             parts = []
             for j, (a, b) in enumerate(segs):
-                if pre[j] is None:
-                    pre[j] = clean_costs(L, clock, e, a, b, models[j])
-                d = decide_span(L, clock, e, a, b, models[j], lev, 0, cfg.straddle, ts,
-                                cfg.straddle_candidates, pre[j], edge)
+                ctx_lv = lev[max(0, a - 1):min(P, b + 1)]
+                hit = seen[j]
+                if REUSE_UNCHANGED and pre[j] is not None and hit is not None and np.array_equal(hit[0], ctx_lv):
+                    d = hit[1]
+                else:
+                    ctx_before = ctx_lv.copy()
+                    if pre[j] is None:
+                        pre[j] = clean_costs(L, clock, e, a, b, models[j])
+                    d = decide_span(L, clock, e, a, b, models[j], lev, 0, cfg.straddle, ts,
+                                    cfg.straddle_candidates, pre[j], edge)
+                    seen[j] = (ctx_before, d)
                 lev[a:b] = d.levels
                 parts.append(d)
         margins = np.concatenate([d.margin for d in parts])
