@@ -1,4 +1,6 @@
-"""Shared test fixtures: where ../shared is, and the slow-test switch.
+"""Shared test fixtures: where ../shared is, the slow-test switch, a fake clock, and the
+GenICam harvesters' release. The test doubles themselves live in ``fakes.py`` beside this
+file (``from fakes import FakeCamera, wait_until, ...``).
 
 Tests marked ``@pytest.mark.slow`` (soaks, full-length benchmarks) run only with
 ``ISCD_SLOW=1``; CI runs their short forms.
@@ -7,9 +9,13 @@ Tests marked ``@pytest.mark.slow`` (soaks, full-length benchmarks) run only with
 from __future__ import annotations
 
 import os
+import sys
+from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
+
+from fakes import FakeClock
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED = REPO.parent / "shared"
@@ -26,6 +32,25 @@ def shared_path(*parts: str) -> Path:
 @pytest.fixture
 def shared() -> Path:
     return shared_path()
+
+
+@pytest.fixture
+def fake_clock(monkeypatch: pytest.MonkeyPatch) -> FakeClock:
+    """Virtual time: ``fake_clock.install(module)`` makes that module's ``time`` the
+    clock (undone after the test); ``fake_clock.sleep(s)`` / ``advance(s)`` move it."""
+    clock = FakeClock()
+    clock._mp = monkeypatch
+    return clock
+
+
+@pytest.fixture(scope="module")
+def release_harvesters() -> Iterator[None]:
+    """Release the GenICam harvesters (producer handles) after a module's tests; use it
+    with ``pytestmark = pytest.mark.usefixtures("release_harvesters")``."""
+    yield
+    gc = sys.modules.get("drivers.genicam")
+    if gc is not None:
+        gc.release_all()
 
 
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:

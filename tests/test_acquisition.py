@@ -1,6 +1,6 @@
 """Acquisition worker: two cameras -> pairer -> shared-memory ring, with camera faults.
 
-``FakeCamera`` is a small in-test camera on a shared trigger clock: trigger t is exposed at
+``fakes.FakeCamera`` is a small camera on a shared trigger clock: trigger t is exposed at
 ``t0 + t * period`` (its timestamp) and its image is a function of (t, side), so the
 consumer can check every pair it reads against ground truth: both images must show the
 trigger that the timestamps name. Faults are scripted per trigger.
@@ -9,7 +9,6 @@ trigger that the timestamps name. Faults are scripted per trigger.
 from __future__ import annotations
 
 import functools
-import math
 import os
 import time
 from collections.abc import Callable, Iterator
@@ -17,117 +16,15 @@ from collections.abc import Callable, Iterator
 import numpy as np
 import pytest
 
-from drivers.base import Camera, CameraError, CameraLost, CameraSettings, CameraTimeout, Frame
+from drivers.base import Camera, CameraError, CameraSettings, Frame
+from fakes import PATTERN_SHAPE, FakeCamera, fake_rig, wait_until
+from fakes import pattern_image as image
 from iscd.acquisition import (Acquisition, AcquisitionOptions, AcquisitionProcess,
                               AcquisitionStats)
 from iscd.ringbuffer import ReadSlot, StereoRing
 
 pytestmark = pytest.mark.skipif(not os.path.isdir("/dev/shm"), reason="needs Linux /dev/shm")
-SHAPE = (16, 24)
-
-
-def image(t: int, side: str, shape: tuple[int, int] = SHAPE) -> np.ndarray:
-    base = np.arange(shape[0] * shape[1], dtype=np.int64).reshape(shape)
-    return ((base * (3 if side == "left" else 5) + t * 7) % 256).astype(np.uint8)
-
-
-class FakeCamera(Camera):
-    """A camera of a rig whose trigger t fires at ``t0_ns + t * period_ns``.
-
-    script: trigger -> fault, each fired once when that trigger is next:
-      ``timeout`` (a CameraTimeout first), ``error`` (a CameraError first), ``lost``
-      (CameraLost: the camera is gone; ``open_failures`` opens fail, then it restarts at
-      the current trigger, its ids from 0 if ``reset_ids``), ``boom`` (a RuntimeError, a
-      driver bug), ``bad`` (this trigger's image has the wrong size).
-    period_ns = 0: frames come as fast as they are read.
-    """
-
-    def __init__(self, name: str, n: int, t0_ns: int, period_ns: int, *,
-                 script: dict[int, str] | None = None, open_failures: int = 0,
-                 reset_ids: bool = False) -> None:
-        self.name = name
-        self.n, self.t0_ns, self.period_ns = n, t0_ns, period_ns
-        self.script = dict(script or {})
-        self.open_failures = open_failures
-        self.reset_ids = reset_ids
-        self.cursor = 0
-        self.id_base = 0
-        self.state = "closed"
-        self.injected_timeouts = 0
-        self.exhausted_timeouts = 0
-        self.configured: list[CameraSettings] = []
-        self.opens = 0
-
-    @property
-    def exhausted(self) -> bool:
-        return self.cursor >= self.n
-
-    def open(self) -> None:
-        if self.state == "lost" and self.open_failures > 0:
-            self.open_failures -= 1
-            raise CameraError(f"{self.name}: device not found")
-        self.opens += 1
-        if self.state == "lost" and self.period_ns:  # triggers fired meanwhile are gone
-            now_t = math.ceil((time.monotonic_ns() - self.t0_ns) / self.period_ns)
-            if self.reset_ids:
-                self.id_base = max(self.cursor, now_t)
-            self.cursor = max(self.cursor, now_t)
-        self.state = "open"
-
-    def configure(self, settings: CameraSettings) -> CameraSettings:
-        self.configured.append(settings)
-        return settings
-
-    def start(self) -> None:
-        self.state = "running"
-
-    def stop(self) -> None:
-        if self.state == "running":
-            self.state = "open"
-
-    def close(self) -> None:
-        if self.state != "lost":
-            self.state = "closed"
-
-    def read(self, timeout_s: float = 1.0) -> Frame:
-        if self.state != "running":
-            raise CameraError(f"{self.name}: not running ({self.state})")
-        t = self.cursor
-        if t >= self.n:
-            time.sleep(timeout_s)
-            self.exhausted_timeouts += 1
-            raise CameraTimeout(f"{self.name}: no more frames")
-        fault = self.script.pop(t, None)
-        if fault == "timeout":
-            self.injected_timeouts += 1
-            raise CameraTimeout(f"{self.name}: injected timeout")
-        if fault == "error":
-            raise CameraError(f"{self.name}: injected error")
-        if fault == "boom":
-            raise RuntimeError(f"{self.name}: injected driver bug")
-        if fault == "lost":
-            self.state = "lost"
-            raise CameraLost(f"{self.name}: injected unplug")
-        ts = self.t0_ns + t * self.period_ns
-        wait = (ts - time.monotonic_ns()) / 1e9
-        if wait > timeout_s:
-            time.sleep(timeout_s)
-            raise CameraTimeout(f"{self.name}: not yet")
-        if wait > 0:
-            time.sleep(wait)
-        self.cursor = t + 1
-        img = image(t, self.name) if fault != "bad" else np.zeros((4, 4), np.uint8)
-        return Frame(self.name, t - self.id_base, ts, img)
-
-
-def fake_rig(n: int, period_ns: int, left_script: dict[int, str] | None = None,
-             right_script: dict[int, str] | None = None, **right_kw: object,
-             ) -> tuple[FakeCamera, FakeCamera]:
-    """Module level, so a spawned worker process can build it (via functools.partial)."""
-    t0 = time.monotonic_ns() + 30_000_000
-    return (FakeCamera("left", n, t0, period_ns, script=left_script),
-            FakeCamera("right", n, t0, period_ns, script=right_script,
-                       **right_kw))  # type: ignore[arg-type]
+SHAPE = PATTERN_SHAPE
 
 
 @pytest.fixture
@@ -278,7 +175,7 @@ def test_stop_from_another_thread_is_prompt(ring: StereoRing) -> None:
     left, right = fake_rig(10**6, 1_000_000)
     acq = Acquisition(left, right, ring, options=AcquisitionOptions(read_timeout_s=0.05))
     acq.start()
-    time.sleep(0.3)
+    wait_until(lambda: acq.stats().pairs_written > 50, 30, what="50 pairs written")
     t = time.monotonic()
     st = acq.stop()
     assert time.monotonic() - t < 2.0
@@ -307,9 +204,7 @@ def test_worker_process_feeds_the_ring_by_name(ring: StereoRing) -> None:
     n, period = 200, 2_000_000
     factory = functools.partial(fake_rig, n, period)
     with AcquisitionProcess(factory, ring) as acq:
-        t_wait = time.monotonic()
-        while acq.stats().state != AcquisitionStats.RUNNING and time.monotonic() - t_wait < 30:
-            time.sleep(0.01)
+        wait_until(lambda: acq.stats().state == AcquisitionStats.RUNNING, 30, what="the worker running")
         st = acq.stats()
         assert st.pid == acq.pid != os.getpid()
         # the child's t0 is unknown here: take it from the first pair
@@ -320,8 +215,7 @@ def test_worker_process_feeds_the_ring_by_name(ring: StereoRing) -> None:
             check_pair(first, t0, period)
         got = consume(ring, t0, period, lambda: acq.stats().frames_left >= n)
         hb1 = acq.stats().heartbeat_ns
-        time.sleep(0.15)
-        assert acq.stats().heartbeat_ns > hb1  # alive
+        wait_until(lambda: acq.stats().heartbeat_ns > hb1, 30, what="a newer heartbeat")  # alive
     st = acq.stats()
     assert acq.exitcode == 0
     assert [t for _, t in got] == list(range(1, n))
@@ -347,9 +241,7 @@ def broken_factory() -> tuple[Camera, Camera]:
 def test_hung_worker_is_terminated_on_stop(ring: StereoRing) -> None:
     acq = AcquisitionProcess(hanging_rig, ring)
     acq.start()
-    t_wait = time.monotonic()
-    while acq.stats().state != AcquisitionStats.RUNNING and time.monotonic() - t_wait < 30:
-        time.sleep(0.01)
+    wait_until(lambda: acq.stats().state == AcquisitionStats.RUNNING, 30, what="the worker running")
     t = time.monotonic()
     acq.stop(timeout_s=0.5)
     assert not acq.is_alive() and time.monotonic() - t < 10

@@ -15,7 +15,8 @@ from calibration.boards import BoardSpec
 from calibration.live import CaptureLogic, LiveSettings, RerunView, read_pair, run_capture
 from calibration.solve import calibrate_stereo
 from calibration.synthetic import BoardRenderer, default_board, default_rig, random_poses
-from drivers.base import Camera, CameraSettings, CameraTimeout, Frame
+from drivers.base import CameraSettings, Frame
+from fakes import FakeCamera
 from iscd.cli import main
 
 BOARD = default_board()
@@ -40,40 +41,24 @@ class Script:
         return np.clip(np.rint(noisy), 0, 255).astype(np.uint8)
 
 
-class FakeCamera(Camera):
+class ScriptCamera(FakeCamera):
+    """One camera of the script's rig (side 0 left, 1 right), unpaced: frame i has the
+    timestamp i / fps and comes at once; ``drop``: frames that never arrive."""
+
     def __init__(self, script: Script, side: int, drop: set[int] | None = None) -> None:
-        self.script, self.side = script, side
-        self.name = ("left", "right")[side]
-        self.i = 0
-        self.drop = drop or set()
-        self.opened = self.started = False
-
-    def open(self) -> None:
-        self.opened = True
-
-    def configure(self, settings: CameraSettings) -> CameraSettings:
-        self._settings = settings
-        return settings
+        super().__init__(("left", "right")[side], len(script.frames), 0, round(1e9 / script.fps),
+                         skip=drop or (), image=lambda i, _name: script.image(i, side), paced=False)
+        self.side = side
+        self.script_of = script
 
     def start(self) -> None:
-        self.started = True
-        self.script.starts.append(self.name)
+        super().start()
+        self.script_of.starts.append(self.name)
 
     def read(self, timeout_s: float = 1.0) -> Frame:
-        while self.i in self.drop:
-            self.i += 1
-        if self.i >= len(self.script.frames):
-            raise CameraTimeout("script exhausted")
-        i = self.i
-        self.i += 1
-        self.script.served = max(self.script.served, self.i)
-        return Frame(self.name, i, int(i * 1e9 / self.script.fps), self.script.image(i, self.side))
-
-    def stop(self) -> None:
-        self.started = False
-
-    def close(self) -> None:
-        self.opened = False
+        f = super().read(timeout_s)
+        self.script_of.served = max(self.script_of.served, self.cursor)
+        return f
 
 
 @pytest.fixture(scope="module")
@@ -132,7 +117,9 @@ def test_capture_from_cameras_calibrates_the_rig(scene) -> None:  # type: ignore
     cal, _, _ = scene
     frames = sequence(scene, list(range(7)), still_frames=5)
     script = Script(frames)
-    left, right = FakeCamera(script, 0), FakeCamera(script, 1, drop={7})  # one lost frame
+    left, right = ScriptCamera(script, 0), ScriptCamera(script, 1, drop={7})  # one lost frame
+    right.start()  # run_capture takes started cameras
+    left.start()
     rec = rr.RecordingStream("test-calibrate")
     mem = rec.memory_recording()
     logic = run_capture(left, right, BOARD, LiveSettings(n_pairs=6, steady_frames=3,
@@ -150,7 +137,9 @@ def test_capture_from_cameras_calibrates_the_rig(scene) -> None:  # type: ignore
 def test_read_pair_realigns_frame_ids(scene) -> None:  # type: ignore[no-untyped-def]
     frames = sequence(scene, [0, 1], still_frames=2)
     script = Script(frames)
-    left, right = FakeCamera(script, 0, drop={1}), FakeCamera(script, 1, drop={2})
+    left, right = ScriptCamera(script, 0, drop={1}), ScriptCamera(script, 1, drop={2})
+    left.start()
+    right.start()
     ids = []
     for _ in range(3):
         fl, fr = read_pair(left, right)
@@ -163,11 +152,11 @@ def test_live_command(scene, tmp_path: Path, monkeypatch: pytest.MonkeyPatch,  #
                       capsys: pytest.CaptureFixture[str]) -> None:
     frames = sequence(scene, list(range(7)), still_frames=5)
     script = Script(frames, fps=20.0)
-    cams: list[FakeCamera] = []
+    cams: list[ScriptCamera] = []
 
     def open_stereo(cfg):  # type: ignore[no-untyped-def]
         """As drivers.registry.open_stereo: opened and configured, not started."""
-        cams[:] = [FakeCamera(script, 0), FakeCamera(script, 1)]
+        cams[:] = [ScriptCamera(script, 0), ScriptCamera(script, 1)]
         for c, trig in zip(cams, ("master", "slave")):
             c.open()
             c.configure(CameraSettings(fps=20.0, exposure_s=1e-3, trigger=trig))

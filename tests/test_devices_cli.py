@@ -21,10 +21,7 @@ VIKY = gc.simulated_producer()
 needs_viky = pytest.mark.skipif(VIKY is None, reason="the genicam wheel ships no simulated producer (*.cti)")
 
 
-@pytest.fixture(autouse=True, scope="module")
-def _release_harvesters():
-    yield
-    gc.release_all()
+pytestmark = pytest.mark.usefixtures("release_harvesters")
 
 
 @pytest.fixture

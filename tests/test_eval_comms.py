@@ -13,6 +13,7 @@ from functools import lru_cache
 
 import pytest
 
+from fakes import xfail_where
 from iscd.config import default_config
 from iscd.eval.suites import (APPROACH_SPEED_MPS, APPROACH_VIBRATION_PX, CH3_MODES, COMMS_DISTANCES_M,
                               chapter3_cfg, chapter4_cfg, ch4_modes, point_seed)
@@ -32,11 +33,6 @@ def _one_led(distance_m: float, levels: int, packets: int) -> CommsResult:
 def _check_delivery(res: CommsResult) -> None:
     assert res.found == res.packets_sent, f"found {res.found} of {res.packets_sent} packets"
     assert res.undetected == 0 and res.spurious_crc_ok == 0  # every CRC-valid payload is the sent one
-
-
-def _xfail(values: list[float], fails: dict[float, str]) -> list:
-    return [pytest.param(v, marks=pytest.mark.xfail(strict=True, reason=fails[v])) if v in fails else v
-            for v in values]
 
 
 # ----------------------------------------------------------------------------- one LED, fig. 3.8
@@ -64,7 +60,7 @@ SLOW_FAILS: dict[float, str] = {}
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("distance_m", _xfail(list(COMMS_DISTANCES_M), SLOW_FAILS))
+@pytest.mark.parametrize("distance_m", xfail_where(list(COMMS_DISTANCES_M), SLOW_FAILS))
 @pytest.mark.parametrize("levels", [8, 2])
 def test_one_led_full_sweep(distance_m: float, levels: int) -> None:
     """The whole fig. 3.8 sweep, 20-60 m every 5 m, 10 packets a point (6000 symbols)."""

@@ -17,6 +17,7 @@ from functools import lru_cache
 
 import pytest
 
+from fakes import xfail_where
 from iscd.config import default_config
 from iscd.eval.suites import RANGING_DISTANCES_M, jitter_floor_mae, point_seed, ranging_cfg
 from iscd.eval.report import is_project_method
@@ -45,11 +46,6 @@ def _point(distance_m: float, frames: int) -> RangingResult:
 
 def _peers(res: RangingResult) -> list[str]:
     return [m for m in res.errors_m if not is_project_method(m)]
-
-
-def _xfail(values: list[float], fails: dict[float, str]) -> list:
-    return [pytest.param(v, marks=pytest.mark.xfail(strict=True, reason=fails[v])) if v in fails else v
-            for v in values]
 
 
 @pytest.mark.parametrize("distance_m", [30.0, 60.0])
@@ -116,7 +112,7 @@ SLOW_PEERS = {25.0: (
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("distance_m", _xfail([30.0, 60.0], SLOW_MAE))
+@pytest.mark.parametrize("distance_m", xfail_where([30.0, 60.0], SLOW_MAE))
 def test_project_method_per_frame_mae_target_5000_frames(distance_m: float) -> None:
     res = _point(distance_m, 5000)
     s = res.stats(res.project_method)
@@ -125,7 +121,7 @@ def test_project_method_per_frame_mae_target_5000_frames(distance_m: float) -> N
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("distance_m", _xfail(list(RANGING_DISTANCES_M), SLOW_PEERS))
+@pytest.mark.parametrize("distance_m", xfail_where(list(RANGING_DISTANCES_M), SLOW_PEERS))
 def test_project_method_below_every_peer_5000_frames(distance_m: float) -> None:
     """Every distance, 5000 frames, on the frames every ranger emits (on every scored frame
     too, two frames of the dimmest level that the gate rejects for every method give

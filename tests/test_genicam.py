@@ -28,10 +28,7 @@ needs_viky = pytest.mark.skipif(VIKY is None, reason="the genicam wheel ships no
 ROI = Roi(0, 0, 160, 120)
 
 
-@pytest.fixture(autouse=True, scope="module")
-def _release_harvesters():
-    yield
-    gc.release_all()
+pytestmark = pytest.mark.usefixtures("release_harvesters")
 
 
 def viky_camera(serial: str, num_buffers: int = 3, **kw: Any) -> gc.GenICamCamera:
