@@ -56,6 +56,9 @@ class DaemonSettings:
     shed_images_fill: float = field(default=0.35, metadata={"lo": 0, "hi": 1, "doc": "overload level 3: shed Rerun images above this ring fill (then the ring drops its oldest pairs)"})
     shed_ranging_every: int = field(default=4, metadata={"lo": 2, "hi": 1000, "doc": "frames between ranged frames at overload level 2"})
     restart_backoff_s: float = field(default=1.0, metadata={"lo": 0, "doc": "wait before restarting a dead acquisition"})
+    stop_drain_s: float = field(default=0.3, metadata={"lo": 0, "hi": 60, "doc": "at the end of a run (--duration, SIGTERM), decode what the ring still holds for at most this long; the pairs left then are dropped (counted: stop_dropped, in frames_dropped) rather than overrun the end"})
+    stop_demod_s: float = field(default=1.0, metadata={"lo": 0, "hi": 60, "doc": "at the end of a run, wait at most this long for the demodulation steps in flight (then the packets in progress are abandoned, counted: stop_demod_abandoned)"})
+    start_timeout_s: float = field(default=30.0, metadata={"lo": 0, "doc": "--duration counts from when the acquisition runs (cameras up); if it has not started within this long, from then"})
 
 
 
@@ -194,7 +197,8 @@ class Daemon:
         arrival = np.zeros(B, np.int64)
         fps = cfg.camera.fps
         unpaired_watch = _UnpairedWatch()
-        counters = {"pairs_decoded": 0, "pair_gaps": 0, "decode_errors": 0, "acquisition_restarts": 0, "output_errors": 0}
+        counters = {"pairs_decoded": 0, "pair_gaps": 0, "decode_errors": 0, "acquisition_restarts": 0, "output_errors": 0,
+                    "stop_dropped": 0, "stop_demod_abandoned": 0}
         # the compiled kernels are loaded from the cache (or compiled) before the cameras
         # start and before READY=1: the first frames are not spent compiling
         from iscd.jit import CACHE_DIR, warm_up
@@ -209,7 +213,12 @@ class Daemon:
                  f"cache {CACHE_DIR}" if CACHE_DIR is not None else "no cache: they compile at every start")
         t_start = time.monotonic()
         next_stats = t_start + st.stats_interval_s
-        deadline = t_start + self.duration_s if self.duration_s else None
+        # --duration counts from when the acquisition runs (its cameras opened and started),
+        # not from the process start: the start-up (spawning the worker, the scene or the
+        # cameras) is not part of the run. Set at the first sign of it (see acq_running).
+        t_acq: float | None = None
+        deadline: float | None = None
+        t_spawn = time.monotonic()
         last_frame = -1
         last_t_s: float | None = None
         acq.start()
@@ -231,6 +240,21 @@ class Daemon:
                         view.log_levels(r["frame"], r["t_s"], np.asarray(r["levels"]).reshape(-1, decoder.air.n_leds))
             self.records_written += len(records)
 
+        def acq_running(now: float, a: Any = None) -> None:
+            """Start the run's clock (t_acq, deadline) once the acquisition runs."""
+            nonlocal t_acq, deadline
+            if t_acq is not None:
+                return
+            if a is None:
+                a = acq.stats()
+            if (a.state != AcquisitionStats.STARTING or a.pairs_written > 0 or not acq.is_alive()
+                    or now - t_spawn >= st.start_timeout_s):
+                t_acq = now
+                if self.duration_s:
+                    deadline = now + self.duration_s
+                log.info("acquisition running (%.2f s after its start)%s", now - t_spawn,
+                         f"; the run ends in {self.duration_s:g} s" if self.duration_s else "")
+
         def stats_record(final: bool) -> dict[str, Any]:
             a = acq.stats()
             rs = ring.stats()
@@ -244,13 +268,17 @@ class Daemon:
             rec = {"type": "stats", "tx": 0, "frame": int(last_frame),
                    "t_s": last_t_s,  # camera time of the last decoded frame, as in the other records
                    "uptime_s": round(time.monotonic() - t_start, 3), "final": final,
+                   # seconds since the acquisition started running (what --duration counts)
+                   "acquiring_s": round(time.monotonic() - t_acq, 3) if t_acq is not None else 0.0,
                    "frames_in": int(a.frames_left + a.frames_right),
                    # triggers that never reached the decoder as a pair, whatever the cause
                    # (camera buffer, unpaired, ring overflow); the parts follow
                    # (frame ids no pair reached the decoder with; frames left without a
                    # partner count too, two to an id, when pairing itself fails: cameras
                    # that are not triggered together give no ids to miss)
-                   "frames_dropped": max(counters["pair_gaps"], (int(a.frames_dropped) + 1) // 2),
+                   # (and the pairs left in the ring when a run had to end on time)
+                   "frames_dropped": (max(counters["pair_gaps"], (int(a.frames_dropped) + 1) // 2)
+                                      + counters["stop_dropped"]),
                    "unpaired_or_bad": int(a.frames_dropped),
                    "ring_dropped": int(rs.dropped_overflow), "ring_fill": int(rs.queued),
                    "ring_capacity": int(ring.capacity),
@@ -268,12 +296,52 @@ class Daemon:
                    "pair_gaps": counters["pair_gaps"],
                    "acquisition": a.as_dict(), "acquisition_restarts": counters["acquisition_restarts"],
                    "output_errors": counters["output_errors"], "decode_errors": counters["decode_errors"],
+                   "stop_dropped": counters["stop_dropped"], "stop_demod_abandoned": counters["stop_demod_abandoned"],
                    "demod_worker_restarts": decoder.counters.get("demod_worker_restarts", 0)}
             for o in outputs:
                 c = getattr(o, "counters", None)
                 if callable(c):
                     rec.update({k: v for k, v in c().items() if isinstance(v, (int, float))})
             return rec
+
+        def discard_ring() -> int:
+            """Take and drop what the ring still holds (the end of a run that is behind);
+            counted in ``stop_dropped``. Returns how many pairs."""
+            n_drop = 0
+            while True:
+                slots = ring.read_batch(max(B, 64), timeout_s=0.0)
+                if not slots:
+                    break
+                n_drop += len(slots)
+                ring.release_batch(slots)
+            counters["stop_dropped"] += n_drop
+            return n_drop
+
+        def finish_decoder() -> list[dict]:
+            """decoder.finish(), but without waiting on a demodulation backlog for more than
+            stop_demod_s: steps still in flight then are abandoned (counted)."""
+            pending = getattr(decoder, "_pending", None)
+            if pending:
+                # each future's own wait (the pipe worker's futures complete by polling)
+                t_end = time.monotonic() + st.stop_demod_s
+                not_done = []
+                for f, _ in list(pending):
+                    try:
+                        f.exception(timeout=max(0.0, t_end - time.monotonic()))
+                    except TimeoutError:
+                        pass
+                    except Exception:  # noqa: BLE001 - cancelled or broken: finish() reports it
+                        pass
+                    if not f.done():
+                        not_done.append(f)
+                if not_done:
+                    counters["stop_demod_abandoned"] += len(not_done)
+                    log.warning("the run ends on time: %d demodulation steps still in flight are "
+                                "abandoned (a packet in progress may be lost)", len(not_done))
+                    out = decoder._collect() if hasattr(decoder, "_collect") else []
+                    decoder.close()
+                    return out
+            return decoder.finish()
 
         _prof = None
         if os.environ.get("ISCD_PROFILE"):  # cProfile of the frame loop, written at the end
@@ -285,12 +353,21 @@ class Daemon:
             draining = False
             while True:
                 now = time.monotonic()
+                if t_acq is None:
+                    acq_running(now)
                 if not draining and (self._stop or (deadline is not None and now >= deadline)):
-                    # stop the cameras first, then decode what the ring still holds: the
-                    # end of a run loses no pair and counts no drop that did not happen
+                    # stop the cameras first, then decode what the ring still holds, for at
+                    # most stop_drain_s: a run that is behind drops (counted) the rest
+                    # instead of ending late by the backlog
                     acq.request_stop()  # joined in the finally clause
                     draining = True
-                    drain_until = now + 5.0  # a worker that never finishes the ring
+                    drain_until = now + st.stop_drain_s
+                if draining and now > drain_until:
+                    left_over = discard_ring()
+                    if left_over:
+                        log.warning("the run ends on time: %d pairs still in the ring are dropped "
+                                    "(the decoder was behind)", left_over)
+                    break
                 if now >= next_stats:
                     rec = stats_record(False)
                     emit([rec])
@@ -344,9 +421,13 @@ class Daemon:
                         break
                 if n == 0:
                     if ring.finished or (draining and (not acq.is_alive() or now > drain_until)):
+                        if draining and not ring.finished:
+                            discard_ring()
                         break
                     continue
                 t_read_ns = time.monotonic_ns()
+                if t_acq is None:
+                    acq_running(time.monotonic())
                 prev = last_frame if last_frame >= 0 else int(ids[0]) - 1
                 steps = np.diff(np.concatenate([[prev], ids[:n]]))
                 counters["pair_gaps"] += int(np.clip(steps - 1, 0, None).sum())
@@ -395,7 +476,7 @@ class Daemon:
             if _prof is not None:
                 _prof.disable()
                 _prof.dump_stats(os.environ["ISCD_PROFILE"])
-            records = decoder.finish()
+            records = finish_decoder()
             emit(records)
             final = stats_record(True)
             emit([final])
