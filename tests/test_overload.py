@@ -75,7 +75,7 @@ def test_decoder_ranges_every_kth_frame_when_told(rendered_default) -> None:
     assert shed.counters["frames_decoded"] == full.counters["frames_decoded"]
 
 
-from test_daemon import LIGHT  # noqa: E402  (the daemon tests' light transmitter)
+from fakes import LIGHT  # noqa: E402  (the daemon tests' light transmitter)
 
 
 def test_daemon_sheds_in_order_and_keeps_the_packets(tmp_path: Path, monkeypatch) -> None:

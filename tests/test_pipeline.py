@@ -6,6 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from fakes import wait_until
 from iscd.config import default_config
 from iscd.pipeline import StreamDecoder
 from iscd.sim.presets import override, single_led
@@ -198,7 +199,6 @@ def test_a_killed_demodulation_worker_is_replaced() -> None:
     packets after it still decode."""
     import os
     import signal
-    import time
 
     cfg = default_config()
     frames = np.arange(0, 3 * 1306 + 40)
@@ -209,7 +209,9 @@ def test_a_killed_demodulation_worker_is_replaced() -> None:
             pid = dec.worker_pids[0]
             os.kill(pid, signal.SIGKILL)
             killed.append(pid)
-            time.sleep(0.5)  # let the pool notice
+            # the next push finds it dead (its pipe at end of file) once it has exited:
+            # wait for that, however long a loaded machine takes to end it
+            wait_until(lambda: pid not in dec.worker_pids, 60, what="the killed worker gone")
 
     recs, dec, scene = _decode(cfg, frames, async_demod="process", on_block=kill_once)
     assert killed and dec.counters["demod_worker_restarts"] == 1
@@ -273,7 +275,6 @@ def test_leds_followed_frame_by_frame_from_50_to_15_m() -> None:
 def test_close_stops_the_demodulation_worker() -> None:
     """A daemon leaving on an error closes the decoder: its worker process is gone."""
     import os
-    import time
 
     cfg = default_config()
     dec = StreamDecoder(cfg, async_demod="process")
@@ -284,23 +285,19 @@ def test_close_stops_the_demodulation_worker() -> None:
         scene.render_pair_into(i, L[i], R[i])
     ids = np.arange(64)
     dec.push(ids, ids / cfg.camera.fps, L, R)
-    deadline = time.monotonic() + 10
-    while not dec.worker_pids and time.monotonic() < deadline:
-        time.sleep(0.02)
-    pids = dec.worker_pids
-    assert pids
+    pids = wait_until(lambda: dec.worker_pids, 30, what="a demodulation worker")
     dec.close()
     dec.close()  # idempotent
     assert dec.worker_pids == []
-    deadline = time.monotonic() + 10
-    alive = True
-    while alive and time.monotonic() < deadline:
+
+    def gone() -> bool:
         try:
             os.kill(pids[0], 0)
-            time.sleep(0.05)
         except ProcessLookupError:
-            alive = False
-    assert not alive
+            return True
+        return False
+
+    wait_until(gone, 30, interval_s=0.05, what=f"worker {pids[0]} gone")
 
 
 @pytest.mark.parametrize("block", [8, 12])
