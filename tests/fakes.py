@@ -18,6 +18,7 @@ from __future__ import annotations
 import json
 import math
 import time
+import types
 from collections.abc import Callable, Iterable
 from pathlib import Path
 from typing import Any, TypeVar
@@ -65,11 +66,21 @@ class FakeClock:
         self._ns += round(seconds * 1e9)
 
     def install(self, *modules: Any) -> "FakeClock":
-        """Make each module's ``time`` this clock (until the test ends)."""
+        """Make each module's clock this one until the test ends: its ``time`` name, and
+        any module-level alias of a clock function (``_monotonic = time.monotonic``)."""
         assert self._mp is not None, "install() needs the fake_clock fixture"
+        real = {getattr(time, f): f for f in _CLOCK_FUNCTIONS}
         for m in modules:
-            self._mp.setattr(m, "time", self)
+            if getattr(m, "time", None) is time:
+                self._mp.setattr(m, "time", self)
+            for name, value in list(vars(m).items()):
+                if isinstance(value, types.BuiltinFunctionType) and value in real:
+                    self._mp.setattr(m, name, getattr(self, real[value]))
         return self
+
+
+_CLOCK_FUNCTIONS = ("monotonic", "monotonic_ns", "perf_counter", "perf_counter_ns", "time", "time_ns",
+                    "sleep")
 
 
 def wait_until(cond: Callable[[], T], timeout_s: float = 30.0, interval_s: float = 0.01,

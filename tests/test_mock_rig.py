@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from drivers.base import CameraError, CameraLost, CameraSettings, CameraTimeout, Roi
+from drivers import mock
 from drivers.mock import MockCamera, MockRig
 from iscd.config import default_config
 from iscd.sim.presets import override
@@ -62,23 +63,25 @@ def test_pacing_follows_fps_in_real_time():
     assert elapsed == pytest.approx(last / 1000.0 + 0.011, abs=0.05)
 
 
-def test_late_consumer_loses_frames_from_a_small_buffer():
+def test_late_consumer_loses_frames_from_a_small_buffer(fake_clock):
+    fake_clock.install(mock)  # the rig's trigger clock runs on virtual time
     left, right = _rig(pace=True, buffer_frames=4)
     right.stop()
     assert left.read().frame_id == 0
-    time.sleep(0.05)  # ~50 frames arrive; only 4 fit
+    fake_clock.sleep(0.05)  # ~50 frames arrive; only 4 fit
     ids = _ids(left, 6)
     assert ids[:4] == [1, 2, 3, 4]
     assert ids[4] > 30 and ids[5] > ids[4]
     assert left.stats.dropped_buffer >= 30
 
 
-def test_timeout_before_the_first_trigger():
+def test_timeout_before_the_first_trigger(fake_clock):
+    fake_clock.install(mock)  # virtual time: no stall of a loaded machine reaches trigger 0
     left, _ = _rig(pace=True)  # the trigger starts 10 ms after start()
-    t = time.monotonic()
+    t = fake_clock.now()
     with pytest.raises(CameraTimeout):
         left.read(timeout_s=0.003)
-    assert time.monotonic() - t >= 0.0025
+    assert fake_clock.now() - t >= 0.0025
     assert left.read(timeout_s=1.0).frame_id == 0
 
 
@@ -141,7 +144,8 @@ def test_vanish_fault_unpaced_then_reopen():
     assert _ids(right, 9) == list(range(9))
 
 
-def test_vanish_fault_paced_cannot_reopen_early():
+def test_vanish_fault_paced_cannot_reopen_early(fake_clock):
+    fake_clock.install(mock)
     left, right = _rig(pace=True, faults=[{"kind": "vanish", "camera": "left", "frame": 2,
                                            "duration_ms": 40.0}])
     right.stop()
@@ -151,14 +155,14 @@ def test_vanish_fault_paced_cannot_reopen_early():
     left.close()
     with pytest.raises(CameraError):
         left.open()  # still gone
-    deadline = time.monotonic() + 2.0
+    deadline = fake_clock.now() + 2.0
     while True:
         try:
             left.open()
             break
         except CameraError:
-            assert time.monotonic() < deadline
-            time.sleep(0.005)
+            assert fake_clock.now() < deadline
+            fake_clock.sleep(0.005)
     left.start()
     first = left.read(timeout_s=1.0).frame_id
     assert first >= 42

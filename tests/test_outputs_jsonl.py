@@ -15,6 +15,7 @@ import numpy as np
 import pytest
 
 from iscd.outputs import OutputConfig, OutputError, output_config
+from iscd.outputs import jsonl
 from iscd.outputs.jsonl import JsonlWriter, encode_record, read_records, rotated_paths
 
 
@@ -45,17 +46,18 @@ def test_unencodable_record_is_dropped_not_raised(tmp_path: Path) -> None:
     assert read_records(tmp_path / "o.jsonl") == [{"type": "stats", "ok": 1}]
 
 
-def test_time_based_flush_reaches_the_os(tmp_path: Path) -> None:
+def test_time_based_flush_reaches_the_os(tmp_path: Path, fake_clock) -> None:
+    fake_clock.install(jsonl)  # virtual time: a loaded machine cannot pass an interval early
     p = tmp_path / "o.jsonl"
     w = JsonlWriter(p, flush_interval_s=0.05)
     w.write({"i": 0})
     size0 = p.stat().st_size
-    time.sleep(0.06)
+    fake_clock.sleep(0.06)
     w.write({"i": 1})                 # the interval has passed: both lines go to the OS
     assert p.stat().st_size > size0 and w.buffered == 0
     w.write({"i": 2})
     assert w.buffered == 1
-    time.sleep(0.06)
+    fake_clock.sleep(0.06)
     w.maybe_flush()                   # the idle-loop hook
     assert w.buffered == 0 and [r["i"] for r in read_records(p)] == [0, 1, 2]
     w.close()

@@ -4,12 +4,11 @@ as reading the cameras one by one; the per-camera path where faults are injected
 
 from __future__ import annotations
 
-import time
-
 import numpy as np
 import pytest
 
 from drivers.base import CameraError
+from drivers import mock
 from drivers.mock import MockRig
 from iscd.acquisition import Acquisition, AcquisitionOptions
 from iscd.config import default_config
@@ -50,12 +49,13 @@ def test_no_pair_source_with_injected_faults() -> None:
         r.read_pair_into(np.empty((512, 512), np.uint8), np.empty((512, 512), np.uint8))
 
 
-def test_a_late_reader_loses_the_newest_frames_as_a_full_camera_buffer_does() -> None:
+def test_a_late_reader_loses_the_newest_frames_as_a_full_camera_buffer_does(fake_clock) -> None:
+    fake_clock.install(mock)  # the rig's trigger clock runs on virtual time
     r = _rig(True)
     L = np.empty((512, 512), np.uint8)
     R = np.empty_like(L)
     first = r.read_pair_into(L, R, timeout_s=1.0).left_id
-    time.sleep(0.05)  # >= 50 triggers pass; the queue keeps the oldest buffer_frames
+    fake_clock.sleep(0.05)  # 50 triggers pass; the queue keeps the oldest buffer_frames
     ids = [r.read_pair_into(L, R, timeout_s=1.0).left_id for _ in range(r.buffer_frames)]
     assert ids[0] > first and all(b > a for a, b in zip(ids, ids[1:]))  # oldest first
     assert r.stats(0).dropped_buffer > 0 and r.stats(0).dropped_buffer == r.stats(1).dropped_buffer
