@@ -135,6 +135,10 @@ class AcquisitionStats:
     """wrong size or pixel type for the ring"""
     bad_frames_right: int = 0
     ring_errors: int = 0
+    fps_mhz_left: int = 0
+    """the frame rate the left camera reported after its last configure, mHz (0: not yet,
+    or no settings applied); a device may clamp what the config asks"""
+    fps_mhz_right: int = 0
     state: int = 0
     """0 starting, 1 running, 2 stopped, 3 failed"""
     heartbeat_ns: int = 0
@@ -300,7 +304,13 @@ class Acquisition:
             cam.open()
             s = self.settings[side]
             if s is not None:
-                cam.configure(s)
+                accepted = cam.configure(s)
+                fps = getattr(accepted, "fps", None)
+                if isinstance(fps, (int, float)) and fps > 0 and fps == fps and fps < 1e9:
+                    # published: the daemon checks what the device runs at, not what was asked
+                    with self._lock:
+                        setattr(self._stats, f"fps_mhz_{side}", round(fps * 1000))
+                        self._publish(force=True)
             cam.start()
         except Exception as e:  # noqa: BLE001 - any driver failure means "not up yet"
             self._bump(f"open_failures_{side}")

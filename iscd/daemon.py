@@ -255,6 +255,34 @@ class Daemon:
                 log.info("acquisition running (%.2f s after its start)%s", now - t_spawn,
                          f"; the run ends in {self.duration_s:g} s" if self.duration_s else "")
 
+        min_fps = 2 * cfg.transmitter.symbol_rate_hz  # iscd.config's check of camera.fps
+        fps_state: dict[str, Any] = {"checked": {}, "error": None, "mismatch": False}
+
+        def check_device_fps(a: Any) -> str | None:
+            """The config's check (at least 2 frames per symbol) on the frame rate each camera
+            reports after configuring (a device clamps what it cannot do: viky.cti runs 1000
+            fps as 200). Returns the error line when it fails; a rate that passes but differs
+            from camera.fps by more than 1 % is warned about once and flagged in the stats."""
+            for side in ("left", "right"):
+                mhz = int(getattr(a, f"fps_mhz_{side}", 0))
+                if mhz <= 0 or fps_state["checked"].get(side) == mhz:
+                    continue
+                fps_state["checked"][side] = mhz
+                got = mhz / 1000
+                if got < min_fps * 0.999:
+                    fps_state["error"] = (
+                        f"the {side} camera runs at {got:g} frames/s after configuring (camera.fps = "
+                        f"{fps:g} was asked; the device cannot do it): below 2 frames per symbol "
+                        f"(transmitter.symbol_rate_hz = {cfg.transmitter.symbol_rate_hz:g} needs >= "
+                        f"{min_fps:g} frames/s); symbols could not be decoded. Lower camera.fps and "
+                        f"transmitter.symbol_rate_hz to what the camera can do")
+                    return fps_state["error"]
+                if abs(got - fps) > 0.01 * fps:
+                    fps_state["mismatch"] = True
+                    log.warning("the %s camera runs at %g frames/s, not camera.fps = %g: the decoder "
+                                "counts frames per symbol from camera.fps; set it to %g", side, got, fps, got)
+            return None
+
         def stats_record(final: bool) -> dict[str, Any]:
             a = acq.stats()
             rs = ring.stats()
@@ -297,6 +325,9 @@ class Daemon:
                    "acquisition": a.as_dict(), "acquisition_restarts": counters["acquisition_restarts"],
                    "output_errors": counters["output_errors"], "decode_errors": counters["decode_errors"],
                    "stop_dropped": counters["stop_dropped"], "stop_demod_abandoned": counters["stop_demod_abandoned"],
+                   # the frame rate the cameras report (after the device's own clamping)
+                   "device_fps": [a.fps_mhz_left / 1000 or None, a.fps_mhz_right / 1000 or None],
+                   "device_fps_mismatch": fps_state["mismatch"],
                    "demod_worker_restarts": decoder.counters.get("demod_worker_restarts", 0)}
             for o in outputs:
                 c = getattr(o, "counters", None)
@@ -355,6 +386,12 @@ class Daemon:
                 now = time.monotonic()
                 if t_acq is None:
                     acq_running(now)
+                if len(fps_state["checked"]) < 2 or now >= next_stats:
+                    if check_device_fps(acq.stats()) is not None:
+                        # one line, from the caller (iscd run: "iscd run: error: ..."; exit 2)
+                        acq.request_stop()
+                        discard_ring()
+                        break
                 if not draining and (self._stop or (deadline is not None and now >= deadline)):
                     # stop the cameras first, then decode what the ring still holds, for at
                     # most stop_drain_s: a run that is behind drops (counted) the rest
@@ -479,8 +516,13 @@ class Daemon:
             records = finish_decoder()
             emit(records)
             final = stats_record(True)
+            if fps_state["error"]:
+                final["error"] = fps_state["error"]
             emit([final])
             self.final_stats = final
+            if fps_state["error"]:
+                notifier.stopping(status="stopped: " + fps_state["error"][:200])
+                raise ConfigError(fps_state["error"])
             notifier.stopping(status="stopped")
             return final
         finally:

@@ -79,3 +79,71 @@ def test_duration_ends_on_time_when_the_decoder_is_behind(tmp_path: Path, monkey
     assert final["acquiring_s"] < duration + 1.5
     assert d.final_stats is not None and d.final_stats["stop_dropped"] == final["stop_dropped"]
     print(f"ended {late:.2f} s after the duration; {final['stop_dropped']} pairs dropped at the stop")
+
+
+# --------------------------------------------------------------------------- item 12
+def _viky() -> str:
+    pytest.importorskip("harvesters")
+    pytest.importorskip("genicam.gentl")
+    from drivers import genicam as gc
+
+    viky = gc.simulated_producer()
+    if viky is None:
+        pytest.skip("the genicam wheel ships no simulated producer (viky.cti)")
+    return viky
+
+
+def _viky_run(tmp_path: Path, fps: float, symbol_rate: float, duration: float) -> tuple[int, str, list[dict]]:
+    import subprocess
+    import sys
+
+    cfg = tmp_path / "viky.toml"
+    cfg.write_text(f"""
+[transmitter]
+symbol_rate_hz = {symbol_rate}
+pwm_hz = 20000
+[camera]
+width = 160
+height = 120
+fps = {fps}
+[rig]
+backend = "genicam"
+producer = "{_viky()}"
+left = "0"
+right = "1"
+""")
+    out = tmp_path / "run.jsonl"
+    p = subprocess.run([sys.executable, "-m", "iscd", "run", "--config", str(cfg), "--duration", str(duration),
+                        "--out", str(out)], capture_output=True, text=True, timeout=240)
+    recs = _records(out) if out.exists() else []
+    return p.returncode, p.stderr, recs
+
+
+def test_device_frame_rate_below_two_frames_per_symbol_is_refused(tmp_path: Path) -> None:
+    """Item 12 on viky.cti through harvesters: camera.fps = 1000 passes the config check
+    (2 frames per 500 Hz symbol) but the device clamps AcquisitionFrameRate to 200. The
+    daemon applies the same check to the rate the device reports: one error line, exit 2,
+    well before --duration, no traceback; the final stats record says why. Before: the
+    daemon ran the whole duration, exit 0, decoding nothing."""
+    t0 = time.monotonic()
+    rc, err, recs = _viky_run(tmp_path, 1000, 500, 60)
+    wall = time.monotonic() - t0
+    assert rc == 2, err[-2000:]
+    lines = [ln for ln in err.splitlines() if ln.startswith("iscd run: error:")]
+    assert len(lines) == 1, err[-2000:]
+    assert "200 frames/s" in lines[0] and "2 frames per symbol" in lines[0] and "camera.fps = 1000" in lines[0]
+    assert "Traceback" not in err
+    assert wall < 50  # it stopped on the check, not at the end of the 60 s run
+    final = [r for r in recs if r["type"] == "stats"][-1]
+    assert final["final"] is True and "200 frames/s" in final["error"]
+    assert 200.0 in final["device_fps"]
+
+
+def test_device_frame_rate_that_suffices_runs(tmp_path: Path) -> None:
+    """The check passes what the device can do: 200 fps for a 100 Hz symbol rate runs and
+    reports the device's rate in the stats."""
+    rc, err, recs = _viky_run(tmp_path, 200, 100, 2)
+    assert rc == 0, err[-2000:]
+    assert "iscd run: error" not in err and "Traceback" not in err
+    final = [r for r in recs if r["type"] == "stats"][-1]
+    assert final["device_fps"] == [200.0, 200.0] and final["device_fps_mismatch"] is False

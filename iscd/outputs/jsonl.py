@@ -18,9 +18,15 @@ a new ``PATH`` is started; a line is never split between files. Reading ``PATH.k
 appended to (a restarted daemon continues the file), and a file that is moved or deleted
 under the writer (an external logrotate) is noticed at the next flush and re-created.
 
-I/O errors (disk full) never raise out of :meth:`write`: they are logged (rate-limited)
-and counted in :attr:`errors`, and the records of the failed hand-over counted in
-:attr:`dropped`.
+I/O errors (disk full) never raise out of :meth:`write`: they are counted in
+:attr:`errors`, the records of the failed hand-over in :attr:`dropped` (and
+:attr:`io_dropped`), and logged at most once a second (:attr:`LOG_INTERVAL_S`: the first
+error at once, then one line a second saying how many records were lost meanwhile); the
+first successful write after a failure says so. A hand-over that the disk took only part
+of (``write`` wrote some bytes, then ENOSPC) is cut back to its last whole line
+(``ftruncate``), so the file never holds half a record and the next records do not glue
+onto one; the whole lines it did take are kept and counted written. Writing resumes by
+itself when space returns (each hand-over tries again).
 """
 
 from __future__ import annotations
@@ -37,6 +43,11 @@ from typing import Any
 from iscd.outputs import OutputError
 
 log = logging.getLogger(__name__)
+
+# the writer's system calls and clock, by module name so that tests can inject a full disk
+# (ENOSPC, partial writes) or a fake clock without patching the os and time modules
+_write = os.write
+_monotonic = time.monotonic
 
 
 def _default(obj: Any) -> Any:
@@ -140,13 +151,19 @@ class JsonlWriter:
         self.errors = 0
         """I/O errors (each is logged, the first few and then every 100th)."""
         self.rotations = 0
+        self.io_dropped = 0
+        """Records lost because the file system refused them (disk full, I/O error)."""
+        self._failing = False
+        self._last_log = -math.inf
+        self._unlogged_errors = 0
+        self._unlogged_dropped = 0
         self._buf: list[bytes] = []
         self._buf_bytes = 0
         self._lock = threading.Lock()
         self._fd: int | None = None
         self._size = 0
         self._ino: tuple[int, int] | None = None
-        now = time.monotonic()
+        now = _monotonic()
         self._last_flush = now
         self._last_fsync = now
         self._closed = False
@@ -176,14 +193,14 @@ class JsonlWriter:
                 self._rotate_locked()
             self._buf.append(line)
             self._buf_bytes += len(line)
-            now = time.monotonic()
+            now = _monotonic()
             if now - self._last_flush >= self.flush_interval_s or self._buf_bytes >= self.max_buffer_bytes:
                 self._flush_locked(now=now)
 
     def maybe_flush(self) -> None:
         """Flush if ``flush_interval_s`` has passed (call from an idle loop; cheap otherwise)."""
         with self._lock:
-            now = time.monotonic()
+            now = _monotonic()
             if self._buf and now - self._last_flush >= self.flush_interval_s:
                 self._flush_locked(now=now)
 
@@ -214,7 +231,8 @@ class JsonlWriter:
     def counters(self) -> dict[str, int]:
         """For the daemon's stats record."""
         return {"jsonl_records": self.records, "jsonl_dropped": self.dropped,
-                "jsonl_errors": self.errors, "jsonl_rotations": self.rotations}
+                "jsonl_io_dropped": self.io_dropped, "jsonl_errors": self.errors,
+                "jsonl_rotations": self.rotations}
 
     def __enter__(self) -> "JsonlWriter":
         return self
@@ -244,7 +262,7 @@ class JsonlWriter:
         self._open()
 
     def _flush_locked(self, *, now: float | None = None, force_fsync: bool = False) -> None:
-        now = time.monotonic() if now is None else now
+        now = _monotonic() if now is None else now
         self._last_flush = now
         if self._closed:
             return
@@ -254,6 +272,7 @@ class JsonlWriter:
         self._buf_bytes = 0
         if n == 0 and not force_fsync:
             return
+        done = 0
         try:
             if self._fd is None:
                 self._open()
@@ -261,18 +280,49 @@ class JsonlWriter:
                 self._reopen_if_moved()
             assert self._fd is not None
             view = memoryview(data)
-            while view:
-                k = os.write(self._fd, view)
-                view = view[k:]
-            self._size += len(data)
-            self.written += n
-            fsync_s = self.fsync_interval_s
-            if force_fsync or (fsync_s is not None and now - self._last_fsync >= fsync_s):
+            while done < len(data):
+                k = _write(self._fd, view[done:])
+                if k <= 0:  # pragma: no cover - write(2) returns > 0 or fails
+                    raise OSError(28, "no progress writing")
+                done += k
+        except OSError as e:
+            lost, kept = n, 0
+            if done:  # part of the hand-over reached the file: keep its whole lines only
+                keep = data.rfind(b"\n", 0, done) + 1
+                kept = data.count(b"\n", 0, keep)
+                try:
+                    if self._fd is not None:
+                        os.ftruncate(self._fd, self._size + keep)
+                    self._size += keep
+                    self.written += kept
+                    lost = n - kept
+                except OSError:  # cannot cut it back: the partial line stays; say so
+                    self._size += done
+                    self.written += kept
+                    lost = n - kept
+                    self._log_error(f"{self.path}: could not remove a partial line after a failed write")
+            if kept and self._failing:  # some records got through: space came back, a little
+                log.warning("jsonl output: writing to %s again, in part (%d records lost in all)",
+                            self.path, self.io_dropped)
+            self.dropped += lost
+            self.io_dropped += lost
+            self._failing = True
+            self._log_error(f"write to {self.path} failed ({lost} records lost): {e.strerror or e}",
+                            dropped=lost)
+            return
+        self._size += len(data)
+        self.written += n
+        if self._failing and n:
+            self._failing = False
+            log.warning("jsonl output: writing to %s again (%d records lost in all)", self.path, self.io_dropped)
+            self._last_log = -math.inf
+        fsync_s = self.fsync_interval_s
+        if force_fsync or (fsync_s is not None and now - self._last_fsync >= fsync_s):
+            try:
                 os.fdatasync(self._fd)
                 self._last_fsync = now
-        except OSError as e:
-            self.dropped += n
-            self._log_error(f"write to {self.path} failed ({n} records lost): {e.strerror or e}")
+            except OSError as e:  # the records are in the OS's hands; the disk may lose them
+                self._log_error(f"fsync of {self.path} failed: {e.strerror or e}")
 
     def _rotate_locked(self) -> None:
         try:
@@ -302,7 +352,21 @@ class JsonlWriter:
                 except OSError:
                     pass
 
-    def _log_error(self, msg: str) -> None:
+    LOG_INTERVAL_S = 1.0
+    """At most one error line this often (a full disk fails every flush)."""
+
+    def _log_error(self, msg: str, dropped: int = 0) -> None:
         self.errors += 1
-        if self.errors <= 5 or self.errors % 100 == 0:
-            log.error("jsonl output: %s (error %d)", msg, self.errors)
+        self._unlogged_errors += 1
+        self._unlogged_dropped += dropped
+        now = _monotonic()
+        if now - self._last_log < self.LOG_INTERVAL_S:
+            return
+        since = ""
+        if self._unlogged_errors > 1:
+            since = (f"; {self._unlogged_errors} errors and {self._unlogged_dropped} records lost since the "
+                     f"last message")
+        log.error("jsonl output: %s (error %d; %d records lost in all)%s", msg, self.errors, self.dropped, since)
+        self._last_log = now
+        self._unlogged_errors = 0
+        self._unlogged_dropped = 0
