@@ -23,6 +23,7 @@ from multiprocessing import shared_memory
 import numpy as np
 import pytest
 
+from fakes import wait_until
 from iscd.ringbuffer import RingError, StereoRing, capacity_for
 
 SHM = "/dev/shm"
@@ -390,10 +391,9 @@ def test_segment_is_removed_when_its_creator_is_killed() -> None:
         assert os.path.exists(os.path.join(SHM, name))
         proc.send_signal(signal.SIGKILL)
         proc.wait(10)
-        deadline = time.monotonic() + 10
-        while os.path.exists(os.path.join(SHM, name)) and time.monotonic() < deadline:
-            time.sleep(0.05)  # the creator's resource tracker cleans up after it
-        assert not os.path.exists(os.path.join(SHM, name))
+        # the creator's resource tracker cleans up after it
+        wait_until(lambda: not os.path.exists(os.path.join(SHM, name)), 30, interval_s=0.05,
+                   what=f"/dev/shm/{name} removed")
     finally:
         if proc.poll() is None:
             proc.kill()
