@@ -51,37 +51,18 @@ class).
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from functools import lru_cache
-from typing import Any, Callable, Protocol
+from typing import Any, Callable
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.ndimage import label as ndi_label
 
 from iscd.ranging.bicubic import KEYS_A, upsample
+from iscd.ranging.shift import Estimator, ShiftEstimate
 from iscd.ranging.poc import (PeakResult, check_pair, continuous_peak, cross_power, integer_peak,
                               sinc_fit)
-
-
-@dataclass(frozen=True)
-class ShiftEstimate:
-    """Shifts of a batch of patch pairs (left position - right position), px; all (n,)."""
-
-    dx: NDArray[np.float64]
-    dy: NDArray[np.float64]
-    quality: NDArray[np.float64]
-    sigma_px: NDArray[np.float64]
-    """standard deviation of ``dx``, px (NaN where it could not be computed)."""
-    sigma_y_px: NDArray[np.float64] = field(default_factory=lambda: np.array([]))
-
-
-class Estimator(Protocol):
-    """A shift estimator: ``estimate(left, right)`` on (n, h, w) batches."""
-
-    name: str
-
-    def estimate(self, left: ArrayLike, right: ArrayLike, **kw: Any) -> ShiftEstimate: ...
 
 
 def border_level(patches: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
@@ -553,7 +534,7 @@ METHODS: dict[str, Callable[..., Estimator]] = {
 
 
 def _projected(**kw: Any) -> Estimator:
-    from iscd.ranging.projected import ProjectedShift   # it imports this module
+    from iscd.ranging.projected import ProjectedShift   # loaded when first asked for
 
     return ProjectedShift(**kw)
 

@@ -22,6 +22,7 @@ from __future__ import annotations
 import numpy as np
 
 from iscd.jit import njit, register_warm
+from iscd.ranging.spectral import _TINY, Peak1D, _spectral
 
 
 _FAST = {"reassoc", "contract", "nsz", "arcp"}
@@ -280,8 +281,6 @@ def correlate_1d_compiled(left: np.ndarray, right: np.ndarray, beta: float = 0.5
     """The compiled :func:`iscd.ranging.projected.correlate_1d` (same arguments and
     result): the transforms as sums over cached cos/sin tables (w is a few tens of px),
     the peak search and the Newton steps in the same loop, per profile pair (n, w)."""
-    from iscd.ranging.projected import _TINY, Peak1D, _spectral
-
     lf = _w(left, np.float64)
     rt = _w(right, np.float64)
     n, w = lf.shape
@@ -375,7 +374,7 @@ def _range_block(L, R, x0l: int, x0r: int, y0: int, bg_l: np.ndarray, bg_r: np.n
 
 
 _SPECTRAL_W: dict[tuple[int, float | None], tuple[np.ndarray, ...]] = {}
-"""writable copies of :func:`iscd.ranging.projected._spectral` per (w, band cutoff)"""
+"""writable copies of :func:`iscd.ranging.spectral._spectral` per (w, band cutoff)"""
 
 
 def range_block(left: np.ndarray, right: np.ndarray, x0l: int, x0r: int, y0: int, bg_left: np.ndarray,
@@ -396,8 +395,6 @@ def range_block(left: np.ndarray, right: np.ndarray, x0l: int, x0r: int, y0: int
     their backgrounds, grey levels; ring, snr_*, row_* as :func:`project_patches`.
     Returns (z m, disparity px, sigma m, quality, valid, snr), each (n,); z and sigma NaN
     where not valid (frames below ``min_snr`` or ``min_quality``, no peak, d <= 0)."""
-    from iscd.ranging.projected import _TINY, _spectral
-
     L = np.require(left, requirements=["C", "W"])
     R = np.require(right, dtype=L.dtype, requirements=["C", "W"])
     n = L.shape[0]

@@ -36,42 +36,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-_TINY = 1e-12
-
-
-@dataclass(frozen=True)
-class Peak1D:
-    """Sub-pixel maximum of a batch of 1-D correlation functions; all fields (n,)."""
-
-    dx: NDArray[np.float64]
-    """position of the maximum, samples (left - right)."""
-    height: NDArray[np.float64]
-    """correlation at the maximum / sum of the spectral weights (1 = a perfect match)."""
-    sigma: NDArray[np.float64]
-    """standard deviation of ``dx`` from the residual phases, samples."""
-
-
-@lru_cache(maxsize=64)
-def _spectral(w: int, band_cutoff: float | None) -> tuple[NDArray[np.float64], ...]:
-    """For an rfft of length w: angular frequencies (rad/sample); bin multiplicities (1 for
-    DC, 2 for the bins that stand for a conjugate pair, 0 for the Nyquist bin of an even w,
-    which a real-symmetric surface cannot use); the Gaussian band weight (0 at an even w's
-    Nyquist bin); omega^2; omega^2 / multiplicity (for the gradient variance)."""
-    k = np.arange(w // 2 + 1, dtype=np.float64)
-    omega = 2.0 * np.pi * k / w
-    mult = np.full(k.size, 2.0)
-    mult[0] = 1.0
-    if w % 2 == 0:
-        mult[-1] = 0.0
-    band = np.ones(k.size) if band_cutoff is None or band_cutoff <= 0 else np.exp(-0.5 * (k / w / band_cutoff) ** 2)
-    band = band * (mult > 0)
-    w2 = omega * omega
-    w2m = w2 / np.where(mult > 0, mult, 1.0)
-    out = (omega, mult, band, w2, w2m)
-    for a in out:
-        a.setflags(write=False)
-    return out
-
+from iscd.ranging.shift import ShiftEstimate
+from iscd.ranging.spectral import _TINY, Peak1D, _spectral, row_weights
 
 @lru_cache(maxsize=64)
 def _search_penalty(w: int, max_shift_px: float) -> NDArray[np.float64]:
@@ -128,17 +94,6 @@ def correlate_1d(left: NDArray[np.floating], right: NDArray[np.floating], beta: 
         hess = rot.real @ w2
         sigma = np.sqrt(2.0 * ((rot.imag ** 2) @ w2m)) / np.where(hess > _TINY, hess, 0.0)
     return Peak1D(dx=pos, height=height, sigma=sigma)
-
-
-def row_weights(h: int, rows_y: ArrayLike, sigma_px: float) -> NDArray[np.float64]:
-    """(h,) projection weights: a Gaussian of ``sigma_px`` at each LED row ``rows_y`` (patch
-    px), summed and scaled to a maximum of 1 (the matched filter of the spots' vertical
-    profile; empty rows between and around them get ~0 weight)."""
-    ys = np.unique(np.round(np.asarray(rows_y, dtype=np.float64).ravel(), 2))
-    y = np.arange(h, dtype=np.float64)[:, None]
-    w = np.exp(-0.5 * ((y - ys[None, :]) / max(sigma_px, 0.3)) ** 2).sum(axis=1)
-    m = w.max() if w.size else 0.0
-    return w / m if m > 0 else np.ones(h)
 
 
 def data_row_weights(left: NDArray[np.floating], right: NDArray[np.floating]) -> NDArray[np.float64]:
@@ -491,7 +446,6 @@ class ProjectedShift:
         second half of :meth:`estimate`; ``saturated`` (n,): frames with a refilled core;
         ``compiled``: :func:`iscd.ranging.project_kernel.correlate_1d_compiled`, the same
         peak to ~1e-13 px)."""
-        from iscd.ranging.estimators import ShiftEstimate
 
         n = prof_l.shape[0]
         if compiled:
