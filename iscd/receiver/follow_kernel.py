@@ -8,8 +8,7 @@ refine_in_patches`, accelerated rounds), then the Gaussian-weighted luminance (e
 with smooth weights, :func:`~iscd.receiver.luminance.gauss_in_patches`) -- in fused loops
 that read each LED's pixels straight out of the frames (no patch copies, no temporaries
 of the size of the block). It works in float64 where the reference works partly in
-float32 (the luminance's row sums are float32, which doubles their SIMD width): the two
-agree to ~1e-5 px in position and ~1e-5 relative in luminance
+float32: the two agree to ~1e-5 px in position and ~1e-5 relative in luminance
 (``tests/test_frame_kernels.py``).
 
 Conventions as in :mod:`iscd.receiver.luminance`: x right, y down, pixel centres at
@@ -220,7 +219,6 @@ def _follow_kernel(L, R, starts: np.ndarray, half: int, w: float, iterations: in
     xw = np.empty(K)
     off = np.empty((n, 2))
     wt = np.empty(n)
-    wx32 = np.empty(K, np.float32)
     for it in range(iterations):
         for q in range(FF):
             for j in range(n):
@@ -374,19 +372,17 @@ def _follow_kernel(L, R, starts: np.ndarray, half: int, w: float, iterations: in
                 swx = _gauss_row(wx, xa - cx, a2, K)
                 swy = _gauss_row(wy, ya - cy, a2, K)
                 s = 0.0
-                for b in range(K):
-                    wx32[b] = np.float32(wx[b])
                 for a in range(K):
                     row = fr[f, ya + a, xa:xa + K]
-                    r = np.float32(0.0)
+                    r = 0.0
                     if bg_lum:
                         brow = bgi[ya + a, xa:xa + K]
                         for b in range(K):
-                            r += (np.float32(row[b]) - brow[b]) * wx32[b]
+                            r += (float(row[b]) - float(brow[b])) * wx[b]
                     else:
                         for b in range(K):
-                            r += np.float32(row[b]) * wx32[b]
-                    s += wy[a] * float(r)
+                            r += float(row[b]) * wx[b]
+                    s += wy[a] * r
                 out_lum[q, i] = s / (swx * swy)
     out_c[:] = cc
 
