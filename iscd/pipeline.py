@@ -505,9 +505,14 @@ class StreamDecoder:
 
     FOLLOW_MAX_PX = 2.0
     """The LEDs are followed from the last frame's refined centres unless the array's
-    centre there is further than this (or half a pitch, if more) from the grid fit's
-    (then the fit restarts them). The centre, not each LED: from close by the fit's
-    pitch lags and its edge LEDs are pixels off while the followed ones are right."""
+    centre there is further than this (or :attr:`FOLLOW_LOST_PITCH` of a pitch, if more)
+    from the grid fit's prediction (then the fit restarts them). The centre, not each LED:
+    from close by the fit's pitch lags and its edge LEDs are pixels off while the followed
+    ones are right. Most of a pitch, as the tracking's own test of following that walked
+    off: the prediction is the last fit moved by the fits' motion up to
+    :attr:`MOTION_HORIZON` intervals ahead, and a sub-pixel lock of one fit, so
+    extrapolated, reached half a pitch (a randomized 8x8 approach at 41 m: 2.65 px at a
+    5.1 px pitch; restarted from it, following settled on the next LED row for a block)."""
 
     MOTION_HORIZON = 4.0
     """The grid's motion is extrapolated at most this many tracking intervals ahead."""
@@ -554,7 +559,7 @@ class StreamDecoder:
             first = self.led_centres(side, frame_ids[:1])
             prev = self._followed[side]
             fit = tr.left if side == 0 else tr.right
-            limit = max(self.FOLLOW_MAX_PX, 0.5 * fit.pitch_px)
+            limit = max(self.FOLLOW_MAX_PX, self.FOLLOW_LOST_PITCH * fit.pitch_px)
             if prev is not None and prev.shape == first.shape[1:] and \
                     float(np.abs(prev.mean(0) - first[0].mean(0)).max()) <= limit:
                 start = prev  # where the LEDs were in the last frame
