@@ -18,10 +18,9 @@ from collections.abc import Sequence
 
 from iscd import __version__
 from iscd.commands import COMMANDS
+from iscd.errors import UserError
 
-
-class UserError(Exception):
-    """An error caused by the user's input: printed as one line, exit status 2."""
+__all__ = ["UserError", "build_parser", "main"]
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -102,7 +102,7 @@ class _Tee(io.TextIOBase):
 
 
 def run(args: argparse.Namespace) -> int:
-    from iscd.cli import UserError
+    from iscd.errors import UserError
 
     names = args.names or list(BENCHES)
     rc = 0

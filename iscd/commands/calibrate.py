@@ -8,7 +8,7 @@ import logging
 import sys
 from pathlib import Path
 
-from iscd.cli import UserError
+from iscd.errors import UserError
 
 log = logging.getLogger(__name__)
 

@@ -82,7 +82,7 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
 
 
 def _list(text: str, what: str) -> list[str]:
-    from iscd.cli import UserError
+    from iscd.errors import UserError
 
     items = [t.strip() for t in text.split(",") if t.strip()]
     if not items:
@@ -91,7 +91,7 @@ def _list(text: str, what: str) -> list[str]:
 
 
 def _distances(text: str) -> tuple[float, ...]:
-    from iscd.cli import UserError
+    from iscd.errors import UserError
 
     out = []
     for t in _list(text, "distances"):
@@ -107,7 +107,7 @@ def _distances(text: str) -> tuple[float, ...]:
 
 def build_plan(args: argparse.Namespace) -> "object":
     """The :class:`iscd.eval.suites.EvalPlan` of the command line (UserError on bad input)."""
-    from iscd.cli import UserError
+    from iscd.errors import UserError
     from iscd.eval.suites import SUITES, EvalPlan
     from iscd.ranging.estimators import METHODS
 
@@ -153,7 +153,7 @@ def _scene_key(text: str) -> tuple[str, object]:
     bare string)."""
     import tomllib
 
-    from iscd.cli import UserError
+    from iscd.errors import UserError
 
     key, sep, value = text.partition("=")
     key = key.strip()
@@ -169,7 +169,7 @@ def _scene_key(text: str) -> tuple[str, object]:
 def run(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
-    from iscd.cli import UserError
+    from iscd.errors import UserError
     from iscd.config import load
     from iscd.eval.report import NO_MATPLOTLIB, write_report
     from iscd.eval.suites import run_plan, total_frames
@@ -237,7 +237,7 @@ def _run_recordings(args: argparse.Namespace) -> int:
     """``--recording DIR ...``: the oracle of each recording, in the report's motion section."""
     import time
 
-    from iscd.cli import UserError
+    from iscd.errors import UserError
     from iscd.config import ConfigError, load
     from iscd.eval.oracle import oracle_of_recording
     from iscd.eval.report import write_report

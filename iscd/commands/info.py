@@ -41,7 +41,7 @@ def check_pixels(rec: Any, block: int = 64) -> dict[str, Any]:
 
 
 def run(args: argparse.Namespace) -> int:
-    from iscd.cli import UserError
+    from iscd.errors import UserError
     from iscd.recording import RecordingError, open_recording
 
     with warnings.catch_warnings(record=True) as caught:

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
-from iscd.cli import UserError
+from iscd.errors import UserError
 from iscd.commands.run import add_calibration_options
 
 

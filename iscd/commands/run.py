@@ -68,7 +68,7 @@ def check_out_path(path: str, what: str = "--out") -> None:
     """Raise UserError (one line) unless a JSON Lines file can be written at ``path``: its
     folder exists or can be made, and the file can be created (or appended to). Leaves no
     file behind (a folder it had to make stays, as the daemon would make it)."""
-    from iscd.cli import UserError
+    from iscd.errors import UserError
 
     p = Path(path)
     if p.is_dir():
@@ -100,7 +100,7 @@ def checked_calibration(path: str, width: int, height: int, *, scale: bool, what
     (scaled to it with ``scale``, then ``scaled`` is True), or UserError naming the file and,
     for a size mismatch, both sizes."""
     from calibration.io import CalibrationError, check_image_size, load_calibration, scale_calibration
-    from iscd.cli import UserError
+    from iscd.errors import UserError
 
     try:
         cal = load_calibration(path)

@@ -59,7 +59,7 @@ def default_frames(cfg: object, scene: object, packets: int = 2) -> int:
 
 
 def run(args: argparse.Namespace) -> int:
-    from iscd.cli import UserError
+    from iscd.errors import UserError
     from iscd.config import load
     from iscd.sim import Scene
     from iscd.sim.presets import override

@@ -53,7 +53,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def _payload(args: argparse.Namespace, cfg: Any) -> bytes | None:
-    from iscd.cli import UserError
+    from iscd.errors import UserError
 
     if args.payload_text is not None:
         return args.payload_text.encode("utf-8")
@@ -74,7 +74,7 @@ def _payload(args: argparse.Namespace, cfg: Any) -> bytes | None:
 
 
 def _hex(text: str, what: str) -> bytes:
-    from iscd.cli import UserError
+    from iscd.errors import UserError
 
     try:
         return bytes.fromhex(text.removeprefix("0x"))
@@ -83,7 +83,7 @@ def _hex(text: str, what: str) -> bytes:
 
 
 def _read_file(path: str, what: str) -> bytes:
-    from iscd.cli import UserError
+    from iscd.errors import UserError
 
     try:
         return Path(path).read_bytes()
@@ -92,7 +92,7 @@ def _read_file(path: str, what: str) -> bytes:
 
 
 def _levels(path: str, tx: Any) -> np.ndarray:
-    from iscd.cli import UserError
+    from iscd.errors import UserError
 
     try:
         lv = np.load(path, allow_pickle=False)
@@ -109,7 +109,7 @@ def _levels(path: str, tx: Any) -> np.ndarray:
 
 def _find_port(settings: Any) -> str:
     from drivers.board.discovery import find_boards
-    from iscd.cli import UserError
+    from iscd.errors import UserError
 
     found = [b for b in find_boards(settings.vid, settings.pid) if b.device]
     usb_id = f"{settings.vid:04x}:{settings.pid:04x}"
@@ -127,7 +127,7 @@ def run(args: argparse.Namespace) -> int:
     from drivers.board.protocol import BoardConfig, ProtocolError
     from drivers.board.settings import board_settings
     from iscd.airinterface import AirInterface
-    from iscd.cli import UserError
+    from iscd.errors import UserError
     from iscd.config import load
 
     cfg = load(args.config)

@@ -19,7 +19,7 @@ import logging
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
-from iscd.cli import UserError
+from iscd.errors import UserError
 
 if TYPE_CHECKING:
     from iscd.config import Config
