@@ -55,6 +55,7 @@ from typing import Any
 
 import numpy as np
 
+from drivers import urls
 from drivers.base import (Camera, CameraError, CameraLost, CameraSettings, CameraTimeout, Frame,
                           Roi, TriggerMode)
 
@@ -523,8 +524,10 @@ class GenICamCamera(Camera):
 
     def __init__(self, serial: str | None = None, user_id: str | None = None,
                  producer: str | None = None, name: str = "left", *, device: str | None = None,
-                 num_buffers: int = 16, wiring: TriggerWiring = TriggerWiring()) -> None:
+                 num_buffers: int = 16, wiring: TriggerWiring = TriggerWiring(),
+                 first: bool = False) -> None:
         self.serial = serial or None
+        self.first = bool(first)  # no selector: the first camera found (else exactly one)
         self.user_id = user_id or None
         self.device = device or None
         self.producer_arg = producer or None
@@ -565,7 +568,7 @@ class GenICamCamera(Camera):
 
     def _find(self, h: Any) -> int | None:
         idx = [i for i, info in enumerate(h.device_info_list) if self._matches(info)]
-        if len(idx) > 1 and not (self.serial or self.user_id or self.device):
+        if len(idx) > 1 and not (self.serial or self.user_id or self.device or self.first):
             found = ", ".join(str(_info_value(h.device_info_list[i], "serial_number")) for i in idx)
             raise CameraError(f"{self.name}: {len(idx)} GenICam cameras (serials {found}); "
                               f"choose one by serial number or user id")
@@ -797,3 +800,45 @@ def _incomplete_counter(core: Any, stats: dict[str, int]) -> Any:
             stats["incomplete"] += 1
 
     return _CountIncomplete()
+
+
+# --------------------------------------------------------------------------- genicam:// URLs
+def device_url(entry: dict[str, Any]) -> str:
+    """The URL of a camera :func:`list_devices` found: ``genicam://SERIAL?cti=PRODUCER``."""
+    return urls.make_url("genicam", entry.get("serial") or entry.get("user_id") or "*",
+                         cti=entry.get("producer") or "")
+
+
+def _check_url(u: urls.CameraURL) -> None:
+    urls.int_option(u, "buffers", lo=1)
+    if u.option("cti") == "":
+        raise urls.fail(u, "option cti: give the GenTL producer's .cti path (or 'simulated')")
+
+
+def _open_url(u: urls.CameraURL, *, name: str = "camera", producer: str | None = None,
+              num_buffers: int | None = None, wiring: TriggerWiring | None = None) -> GenICamCamera:
+    """``genicam://SERIAL?cti=PATH&buffers=N``: SERIAL is a serial number or user id, ''
+    or ``*`` the first camera found; ``cti`` the producer (default ``producer``, else
+    GENICAM_GENTL64_PATH)."""
+    any_camera = u.target in ("", "*")
+    return GenICamCamera(device=None if any_camera else u.target, producer=u.option("cti") or producer,
+                         name=name, num_buffers=urls.int_option(u, "buffers") or num_buffers or 16,
+                         wiring=wiring or TriggerWiring(), first=any_camera)
+
+
+def _discover(producer: str | None = None, **_: Any) -> list[dict[str, Any]]:
+    out: list[dict[str, Any]] = []
+    for cti in find_producers(producer):  # raises for a missing .cti
+        try:
+            out.extend({**d, "url": device_url(d)} for d in list_devices(cti))
+        except CameraError as e:
+            log.warning("genicam: %s: %s", cti, e)
+    return out
+
+
+urls.register(urls.Backend(
+    "genicam", _open_url, target="host", what="serial number or user id",
+    form="genicam://SERIAL?cti=PATH", options={"cti": "GenTL producer .cti path, or 'simulated'",
+                                                 "buffers": "GenTL buffers announced (16)"},
+    check=_check_url, rig_defaults={"cti": "producer"}, discover=_discover,
+    summary="GenICam camera through harvesters and a GenTL producer"))

@@ -35,6 +35,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from drivers import urls
 from drivers.base import (Camera, CameraError, CameraLost, CameraSettings, CameraTimeout, Frame, PairMeta,
                           Roi, StereoPairSource)
 from iscd.config import Config, ConfigError, FaultConfig
@@ -473,3 +474,44 @@ class MockCamera(Camera):
         """The rig, which renders both cameras' frames of a trigger at once into caller
         buffers (:meth:`MockRig.read_pair_into`), while it can."""
         return self.rig if self.rig.pair_capable() else None
+
+
+# ----------------------------------------------------------------- mock:// URLs
+SCENES = ("default",)
+"""``mock://NAME``: ``default`` is the scene of the config the rig is opened with (the
+embedded default scene without one)."""
+
+
+def _check_url(u: urls.CameraURL) -> None:
+    if u.target not in SCENES:
+        raise urls.fail(u, f"unknown mock scene {u.target!r} (scenes: {', '.join(SCENES)}; "
+                           f"mock://default shows the config's own scene)")
+    urls.int_option(u, "seed")
+    urls.bool_option(u, "noise")
+
+
+def _open_url(u: urls.CameraURL, cfg: Config | None = None, *, level_source: object | None = None,
+              buffer_frames: int | None = None, noise: bool | None = None) -> tuple["MockCamera", "MockCamera"]:
+    """``mock://default?seed=N&noise=false``: the (left, right) cameras of a new rig showing
+    the scene of ``cfg`` (None: the embedded default config), with ``[scene] seed`` = N
+    and noise-free frames if asked; queues of ``buffer_frames`` (default ``[rig]
+    buffer_frames``)."""
+    if cfg is None:
+        from iscd.config import default_config
+
+        cfg = default_config()
+    seed = urls.int_option(u, "seed")
+    if seed is not None:
+        cfg = cfg.replace(scene=dataclasses.replace(cfg.scene, seed=seed))
+    url_noise = urls.bool_option(u, "noise")
+    return MockRig.from_config(cfg, level_source=level_source,
+                               buffer_frames=cfg.rig.buffer_frames if buffer_frames is None else buffer_frames,
+                               noise=url_noise if url_noise is not None else (True if noise is None else noise))
+
+
+urls.register(urls.Backend(
+    "mock", _open_url, stereo=True, target="host", what="scene", form="mock://default",
+    options={"seed": "scene seed (replaces [scene] seed)", "noise": "false: noise-free frames"},
+    check=_check_url, default_target="default", hardware=False,
+    discover=lambda **_: [{"backend": "mock", "name": "default", "url": "mock://default"}],
+    summary="the simulated stereo rig (scene of the config), no hardware"))

@@ -1,8 +1,13 @@
-"""Pick a camera backend by name: list its cameras, build the stereo pair of a config.
+"""The stereo pair of a config, by camera URL: list the cameras, build and open the rig.
 
-Backends (``[rig] backend``): ``mock`` (simulated rig, :mod:`drivers.mock`), ``genicam``
-(:mod:`drivers.genicam`, harvesters + a GenTL producer) and ``v4l2``
-(:mod:`drivers.v4l2`, linuxpy). Each is imported only when used.
+The cameras of ``[rig]`` are camera URLs (:mod:`drivers.urls`, as pyserial's
+``serial_for_url``): ``url = "mock://default"`` for a rig that is one device (the
+simulated rig, :mod:`drivers.mock`), or ``left`` / ``right`` =
+``genicam://SERIAL?cti=PATH`` (:mod:`drivers.genicam`, harvesters + a GenTL producer) or
+``v4l2:///dev/videoN`` (:mod:`drivers.v4l2`, linuxpy). The old form (``backend`` with
+serial numbers or device paths) is mapped to those URLs by :mod:`iscd.config`. Each
+backend registers itself under its scheme; hardware libraries are imported only when a
+camera is opened or listed.
 
 With ``[board] emulate = true`` the mock rig's transmitter is an emulated LED board
 (:class:`drivers.board.emulator.PtyEmulator`, served on a pty linked at ``[board] port``
@@ -21,45 +26,26 @@ from typing import Any
 
 import numpy as np
 
+from drivers import urls
 from drivers.base import Camera, CameraError, CameraSettings, Roi
 
 log = logging.getLogger(__name__)
 
-BACKENDS = ("mock", "genicam", "v4l2")
-HARDWARE_BACKENDS = ("genicam", "v4l2")
 _PIXEL_FORMATS = {8: "Mono8", 10: "Mono10", 12: "Mono12", 16: "Mono16"}
 
 
 def list_cameras(backend: str | None = None, producer: str | None = None) -> list[dict[str, Any]]:
-    """The cameras attached, as dicts with at least ``backend``; ``backend`` None = the
-    hardware backends (genicam and v4l2). ``producer``: GenTL producer for genicam
-    (``.cti`` path or ``"simulated"``; None = ``GENICAM_GENTL64_PATH``).
+    """The cameras attached, as dicts with at least ``backend`` and ``url`` (the camera URL
+    to put in ``[rig]``); ``backend`` None = every hardware backend (genicam and v4l2).
+    ``producer``: GenTL producer for genicam (``.cti`` path or ``"simulated"``; None =
+    ``GENICAM_GENTL64_PATH``).
 
-    Raises :class:`CameraError` for an unknown backend or a producer path that does
-    not exist; a backend whose library is missing contributes no cameras (logged).
+    Raises :class:`CameraError` for an unknown backend or a producer path that does not
+    exist; a backend whose library is missing contributes no cameras (logged).
     """
-    if backend is not None and backend not in BACKENDS:
-        raise CameraError(f"unknown camera backend {backend!r} (known: {', '.join(BACKENDS)})")
-    out: list[dict[str, Any]] = []
-    for name in ([backend] if backend else HARDWARE_BACKENDS):
-        if name == "genicam":
-            from drivers import genicam
-
-            for cti in genicam.find_producers(producer):  # raises for a missing .cti
-                try:
-                    out.extend(genicam.list_devices(cti))
-                except CameraError as e:
-                    log.warning("genicam: %s: %s", cti, e)
-        elif name == "v4l2":
-            from drivers import v4l2
-
-            try:
-                out.extend(v4l2.list_devices())
-            except CameraError as e:
-                log.warning("v4l2: %s", e)
-        elif name == "mock":
-            out.extend({"backend": "mock", "name": side} for side in ("left", "right"))
-    return out
+    if backend is not None and backend not in urls.schemes():
+        raise CameraError(f"unknown camera backend {backend!r} (known: {', '.join(urls.schemes())})")
+    return urls.discover(backend, producer=producer)
 
 
 def settings_from_config(cfg: Any, side: str) -> CameraSettings:
@@ -82,41 +68,30 @@ def check_stereo_config(cfg: Any) -> str | None:
 
     rig = cfg.rig
     link = emulated_board_link(cfg)  # ConfigError for a board that cannot be emulated
-    if rig.backend == "mock":
+    if rig.stereo_url:
         return link
-    for side in ("left", "right"):
-        if not getattr(rig, side):
-            what = "serial number or user id" if rig.backend == "genicam" else "device path (/dev/videoN)"
-            raise ConfigError(f"rig.{side}: set the {side} camera's {what} for backend {rig.backend!r}")
-    if rig.left == rig.right:
+    b = urls.backend(rig.backend)
+    left, right = rig.camera_urls
+    for side, url in (("left", left), ("right", right)):
+        if not url:
+            raise ConfigError(f"rig.{side}: set the {side} camera's {b.what} for backend {rig.backend!r} "
+                              f"(or its URL, {b.form}; 'iscd devices' lists them)")
+    if left == right:
         raise ConfigError(f"rig.right: the same camera as rig.left ({rig.left!r})")
     return link
 
 
 def make_stereo(cfg: Any) -> tuple[Camera, Camera]:
-    """The (left, right) cameras of ``cfg.rig``, constructed but not opened (with
-    ``[board] emulate``, the mock rig's emulated board is served from now on)."""
-    from iscd.config import ConfigError
-
+    """The (left, right) cameras of ``cfg.rig``, constructed but not opened, by the backend
+    of their URL (:func:`drivers.urls.rig_for_url`); with ``[board] emulate``, the mock
+    rig's emulated board is served from now on."""
     rig = cfg.rig
     link = check_stereo_config(cfg)
-    if rig.backend == "mock":
-        from drivers.mock import MockRig  # imported only when used
-
+    if rig.stereo_url:
         if link is not None:
             return _mock_rig_with_board(cfg, link)
-        return MockRig.from_config(cfg, buffer_frames=cfg.rig.buffer_frames)
-    if rig.backend == "genicam":
-        from drivers.genicam import GenICamCamera
-
-        producer = rig.producer or None
-        return (GenICamCamera(device=rig.left, producer=producer, name="left"),
-                GenICamCamera(device=rig.right, producer=producer, name="right"))
-    if rig.backend == "v4l2":
-        from drivers.v4l2 import V4L2Camera
-
-        return V4L2Camera(rig.left, name="left"), V4L2Camera(rig.right, name="right")
-    raise ConfigError(f"rig.backend: unknown camera backend {rig.backend!r}")
+        return urls.rig_for_url(rig.stereo_url, cfg=cfg, buffer_frames=rig.buffer_frames)
+    return urls.rig_for_url(*rig.camera_urls)
 
 
 def open_stereo(cfg: Any) -> tuple[Camera, Camera]:
@@ -127,13 +102,14 @@ def open_stereo(cfg: Any) -> tuple[Camera, Camera]:
     :class:`iscd.config.ConfigError` for a bad ``[rig]``) propagates.
     """
     left, right = make_stereo(cfg)
+    hardware = urls.backend(cfg.rig.backend).hardware
     opened: list[Camera] = []
     try:
         for cam, side in ((left, "left"), (right, "right")):
             cam.open()
             opened.append(cam)
             accepted = cam.configure(settings_from_config(cfg, side))
-            if cfg.rig.backend in HARDWARE_BACKENDS:
+            if hardware:
                 wanted = settings_from_config(cfg, side)
                 if accepted.trigger != wanted.trigger:
                     log.warning("%s camera: trigger %r requested, %r accepted: the pair is not "
@@ -235,12 +211,12 @@ def _mock_rig_with_board(cfg: Any, link: str) -> tuple[Camera, Camera]:
     on a pty at ``link``; the board is closed (link removed) when the rig is collected or
     at interpreter exit."""
     from drivers.board.emulator import PtyEmulator
-    from drivers.mock import MockRig
 
     emu = PtyEmulator(link=link)
     source = BoardOnSceneClock(emu.board, cfg.transmitter)
     source.emulator = emu
-    left, right = MockRig.from_config(cfg, level_source=source, buffer_frames=cfg.rig.buffer_frames)
+    left, right = urls.rig_for_url(cfg.rig.stereo_url, cfg=cfg, level_source=source,
+                                   buffer_frames=cfg.rig.buffer_frames)
     rig = left.rig  # type: ignore[attr-defined]
     source.attach(rig)
     try:

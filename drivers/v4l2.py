@@ -37,6 +37,7 @@ from typing import Any
 
 import numpy as np
 
+from drivers import urls
 from drivers.base import (Camera, CameraError, CameraLost, CameraSettings, CameraTimeout, Frame,
                           Roi)
 
@@ -373,3 +374,32 @@ def list_devices(pattern: str | None = None) -> list[dict[str, Any]]:
             entry["error"] = f"{e.strerror or e}"
         out.append(entry)
     return out
+
+
+# --------------------------------------------------------------------------- v4l2:// URLs
+def device_url(entry: dict[str, Any]) -> str:
+    """The URL of a device :func:`list_devices` found: ``v4l2:///dev/videoN``."""
+    return urls.make_url("v4l2", entry["device"])
+
+
+def _check_url(u: urls.CameraURL) -> None:
+    urls.int_option(u, "buffers", lo=1)
+
+
+def _open_url(u: urls.CameraURL, *, name: str = "camera", num_buffers: int | None = None) -> V4L2Camera:
+    """``v4l2:///dev/videoN?buffers=N``."""
+    return V4L2Camera(u.target, name=name, num_buffers=urls.int_option(u, "buffers") or num_buffers or 8)
+
+
+def _discover(**_: Any) -> list[dict[str, Any]]:
+    try:
+        return [{**d, "url": device_url(d)} for d in list_devices()]
+    except CameraError as e:
+        log.warning("v4l2: %s", e)
+        return []
+
+
+urls.register(urls.Backend(
+    "v4l2", _open_url, target="path", what="device path (/dev/videoN)", form="v4l2:///dev/videoN",
+    options={"buffers": "mmap buffers (8)"}, check=_check_url,
+    discover=_discover, summary="Linux kernel video device through linuxpy"))

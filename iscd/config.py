@@ -199,15 +199,116 @@ class FaultConfig:
 
 @dataclass(frozen=True)
 class RigConfig:
-    """Which cameras feed the daemon."""
+    """Which cameras feed the daemon: camera URLs (docs/cameras.md; 'iscd devices' lists them)."""
 
-    backend: str = _f("mock", choices=("mock", "genicam", "v4l2"), doc="camera backend")
-    left: str = _f("", doc="left camera: serial number / user id (genicam) or device path (v4l2)")
-    right: str = _f("", doc="right camera, as left")
-    producer: str = _f("", doc="GenTL producer .cti path (default: GENICAM_GENTL64_PATH)")
+    backend: str = _f("", doc="old form: the backend whose cameras left/right name by serial number, user "
+                      "id or device path (a camera URL scheme); '' = the scheme of the URLs (the mock "
+                      "rig without any); filled in from the URLs")
+    url: str = _f("", doc="a stereo rig that is one device: mock://default (the simulated rig showing this "
+                  "config's scene; ?seed=N, ?noise=false); '' = the cameras of left and right")
+    left: str = _f("", doc="left camera (trigger master) URL: genicam://SERIAL?cti=PATH or "
+                   "v4l2:///dev/videoN; old form: serial number / user id (genicam) or device path (v4l2)")
+    right: str = _f("", doc="right camera (trigger slave), as left")
+    producer: str = _f("", doc="GenTL producer .cti path of genicam cameras whose URL has no ?cti= "
+                       "(default: GENICAM_GENTL64_PATH)")
     pace: bool = _f(True, doc="mock: deliver frames at fps in real time (False: as fast as possible)")
     buffer_frames: int = _f(256, lo=1, hi=4096, doc="frames a camera buffers for a late reader (mock: queue; genicam: buffers)")
     faults: list[FaultConfig] = _f([], doc="mock: injected faults")
+
+    def __post_init__(self) -> None:
+        stereo_url, cams, backend = _resolve_rig(self)
+        object.__setattr__(self, "backend", backend)
+        object.__setattr__(self, "_stereo_url", stereo_url)
+        object.__setattr__(self, "_camera_urls", cams)
+
+    @property
+    def stereo_url(self) -> str:
+        """The URL of the rig when it is one device (``mock://default``), else ''."""
+        return self._stereo_url  # type: ignore[attr-defined]
+
+    @property
+    def camera_urls(self) -> tuple[str, str]:
+        """The (left, right) camera URLs ('' where unset) when the rig is two cameras, with
+        the old form mapped (``left = "0"`` of backend genicam -> ``genicam://0``) and
+        ``producer`` as the ``cti`` of genicam URLs that lack it; ('', '') for a stereo URL."""
+        return self._camera_urls  # type: ignore[attr-defined]
+
+
+def _resolve_rig(rig: RigConfig) -> tuple[str, tuple[str, str], str]:
+    """(stereo URL, (left URL, right URL), backend) of ``[rig]``, checked against the camera
+    registry (:mod:`drivers.urls`, which names the backends); ConfigError names the key."""
+    from drivers import urls
+
+    def parse(key: str, value: str) -> Any:
+        try:
+            return urls.parse_url(value)
+        except urls.CameraURLError as e:
+            raise ConfigError(f"rig.{key}: {e}") from None
+
+    known = urls.schemes()
+    if rig.backend and rig.backend not in known:
+        raise ConfigError(f"rig.backend: expected one of {list(known)} (the camera URL schemes), "
+                          f"got {rig.backend!r}")
+    if rig.url:
+        u = parse("url", rig.url)
+        if not u.backend.stereo:
+            raise ConfigError(f"rig.url: {rig.url!r} is one camera, not a stereo rig: set the two "
+                              f"cameras as rig.left and rig.right")
+        for side in ("left", "right"):
+            if getattr(rig, side):
+                raise ConfigError(f"rig.{side}: not used with rig.url = {rig.url!r} (that rig gives "
+                                  f"both cameras): remove it")
+        if rig.backend and rig.backend != u.scheme:
+            raise ConfigError(f"rig.backend: {rig.backend!r} contradicts rig.url = {rig.url!r} "
+                              f"(remove rig.backend: the URL names the backend)")
+        return u.url, ("", ""), u.scheme
+    given = {side: getattr(rig, side) for side in ("left", "right")}
+    parsed = {side: parse(side, v) for side, v in given.items() if "://" in v}
+    for side, u in parsed.items():
+        if u.backend.stereo:
+            raise ConfigError(f"rig.{side}: {given[side]!r} is a whole stereo rig (both cameras): "
+                              f"set it as rig.url")
+    if len(parsed) == 1 and all(given.values()):
+        (side, u), = parsed.items()
+        other = "right" if side == "left" else "left"
+        raise ConfigError(f"rig.{other}: give a camera URL like rig.{side} ({u.scheme}://...), "
+                          f"not {given[other]!r}")
+    if len({u.scheme for u in parsed.values()}) > 1:
+        raise ConfigError(f"rig.right: {given['right']!r} is another backend than rig.left "
+                          f"{given['left']!r}: the two cameras of a rig use one backend")
+    if parsed:
+        scheme = next(iter(parsed.values())).scheme
+        if rig.backend and rig.backend != scheme:
+            side = next(iter(parsed))
+            raise ConfigError(f"rig.backend: {rig.backend!r} contradicts rig.{side} = {given[side]!r} "
+                              f"(remove rig.backend: the URLs name the backend)")
+    else:
+        scheme = rig.backend or "mock"
+    b = urls.backend(scheme)
+    if b.stereo:  # the old form: backend = "mock" (left/right unused, as before)
+        return urls.make_url(scheme, b.default_target or ""), ("", ""), scheme
+    cams = []
+    for side, v in given.items():
+        if not v:
+            cams.append("")  # refused when the rig is built (make_stereo), as before
+            continue
+        if side in parsed:
+            u = parsed[side]
+        else:  # the old form: a serial number / user id or a device path
+            if b.target == "path":
+                import os.path
+
+                v = os.path.abspath(v)
+            u = parse(side, urls.make_url(scheme, v))
+        defaults = {opt: getattr(rig, key) for opt, key in b.rig_defaults.items()
+                    if getattr(rig, key, "") and u.option(opt) is None}
+        if defaults:
+            try:
+                u = u.with_options(**defaults)
+            except urls.CameraURLError as e:
+                raise ConfigError(f"rig.{b.rig_defaults[next(iter(defaults))]}: {e}") from None
+        cams.append(u.url)
+    return "", (cams[0], cams[1]), scheme
 
 
 @dataclass(frozen=True)
