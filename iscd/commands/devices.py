@@ -42,7 +42,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 def _genicam(producers: list[str] | None, notes: list[str]) -> dict[str, Any]:
     from drivers.base import CameraError
     from drivers import genicam
-    from iscd.cli import UserError
+    from iscd.errors import UserError
 
     try:
         ctis = ([c for p in producers for c in genicam.find_producers(p)] if producers
@@ -103,7 +103,7 @@ def collect(producers: list[str] | None = None, backend: str = "all", boards: bo
             cfg: Any = None) -> dict[str, Any]:
     """Everything ``iscd devices`` reports, as a JSON-ready dict."""
     from drivers import urls
-    from iscd.cli import UserError
+    from iscd.errors import UserError
 
     known = urls.schemes()
     if backend != "all" and backend not in known:
