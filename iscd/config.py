@@ -212,7 +212,8 @@ class RigConfig:
     producer: str = _f("", doc="GenTL producer .cti path of genicam cameras whose URL has no ?cti= "
                        "(default: GENICAM_GENTL64_PATH)")
     pace: bool = _f(True, doc="mock: deliver frames at fps in real time (False: as fast as possible)")
-    buffer_frames: int = _f(256, lo=1, hi=4096, doc="frames a camera buffers for a late reader (mock: queue; genicam: buffers)")
+    buffer_frames: int = _f(256, lo=1, hi=4096, doc="mock: frames a camera queues for a late reader "
+                            "(genicam, v4l2: the ?buffers=N of their URL)")
     faults: list[FaultConfig] = _f([], doc="mock: injected faults")
 
     def __post_init__(self) -> None:
