@@ -40,7 +40,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from iscd.outputs import OutputError
+from iscd.outputs.base import OutputError
 
 log = logging.getLogger(__name__)
 

@@ -39,7 +39,7 @@ from typing import Any, TypeVar
 
 import numpy as np
 
-from iscd.outputs import OutputError
+from iscd.outputs.base import OutputError
 
 log = logging.getLogger(__name__)
 
@@ -460,7 +460,7 @@ def rerun_view_from(args: Any, cfg: Any = None, *, fps: float = 1000.0,
     """A :class:`RerunView` from the command-line flags of :func:`add_rerun_arguments`, falling
     back to the ``[rerun]`` section ``cfg`` (a :class:`~iscd.outputs.RerunConfig`, or None
     for defaults). Disabled when neither asks for a sink."""
-    from iscd.outputs import RerunConfig
+    from iscd.outputs.base import RerunConfig
 
     rc = cfg if cfg is not None else RerunConfig()
     connect = getattr(args, "connect", None)

@@ -26,7 +26,7 @@ from typing import Any
 
 import zmq
 
-from iscd.outputs import OutputError
+from iscd.outputs.base import OutputError
 from iscd.outputs.jsonl import encode_record
 
 log = logging.getLogger(__name__)
