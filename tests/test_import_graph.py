@@ -99,3 +99,58 @@ def test_no_import_cycles() -> None:
     g = import_graph()
     assert len(g) > 80  # the whole tree was read
     assert cycles(g) == KNOWN
+
+
+DECODE = ("iscd.receiver", "iscd.ranging", "iscd.pipeline", "iscd.stereo_range",
+          "iscd.demod_pipe", "iscd.demod_worker")
+SERVICE = ("iscd.daemon", "iscd.acquisition", "iscd.pairing", "iscd.ringbuffer")
+TOP = ("iscd.commands", "iscd.cli", "iscd.eval")
+CONTRACT: list[tuple[tuple[str, ...], tuple[str, ...], str]] = [
+    (DECODE, ("drivers", "iscd.outputs", *SERVICE, *TOP),
+     "decode reads frames handed to it: no cameras, rig, outputs, service or command line"),
+    (("drivers",), (*DECODE, "iscd.outputs", *SERVICE, *TOP, "calibration"),
+     "drivers talk to devices (the mock rig renders with iscd.sim)"),
+    (("iscd.sim",), (*DECODE, "drivers", "iscd.outputs", *SERVICE, *TOP),
+     "the simulator renders; it knows nothing of the receiver"),
+    (("iscd.outputs",), ("drivers", *SERVICE, *TOP), "outputs take records"),
+    (("calibration",), (*DECODE, "iscd.outputs", *SERVICE, *TOP),
+     "calibration is a tool over the rig model and the cameras"),
+]
+"""(importers, what they must not import, why): the layers as they stand (issue 13 moves
+them into their own folders; the rules stay)."""
+
+
+def _under(m: str, prefixes: tuple[str, ...]) -> bool:
+    return any(m == p or m.startswith(p + ".") for p in prefixes)
+
+
+def contract_breaks(graph: dict[str, set[str]]) -> list[str]:
+    """Every import that breaks :data:`CONTRACT`, or imports the command line from below
+    it, as 'importer -> imported: why'."""
+    out = []
+    for m in sorted(graph):
+        for t in sorted(graph[m]):
+            for src, bad, why in CONTRACT:
+                if _under(m, src) and _under(t, bad):
+                    out.append(f"{m} -> {t}: {why}")
+            if _under(t, ("iscd.cli",)) and m != "iscd.__main__":
+                out.append(f"{m} -> {t}: nothing imports the command line")
+            if _under(t, ("iscd.commands",)) and not _under(m, ("iscd.commands", "iscd.cli")):
+                out.append(f"{m} -> {t}: only the command line imports the commands")
+    return out
+
+
+def test_the_contract_catches_a_forbidden_import(tmp_path: Path) -> None:
+    pkg = tmp_path / "iscd"
+    (pkg / "receiver").mkdir(parents=True)
+    for f in ("__init__.py", "receiver/__init__.py", "daemon.py", "cli.py"):
+        (pkg / f).write_text("")
+    (pkg / "receiver" / "demod.py").write_text("import iscd.daemon\n")
+    (pkg / "daemon.py").write_text("def f():\n    from iscd.cli import main\n")
+    breaks = contract_breaks(import_graph(tmp_path, ("iscd",)))
+    assert breaks == ["iscd.daemon -> iscd.cli: nothing imports the command line",
+                      "iscd.receiver.demod -> iscd.daemon: " + CONTRACT[0][2]]
+
+
+def test_the_layers_hold() -> None:
+    assert contract_breaks(import_graph()) == []
