@@ -28,11 +28,27 @@ KEYS_A = -0.5
 
 
 def keys_kernel(u: ArrayLike, a: float = KEYS_A) -> NDArray[np.float64]:
-    """Keys cubic-convolution kernel S(u) (eq. 3.3 for a = -0.5); u in input pixels.
+    """Keys cubic-convolution kernel S(u) (eq. 3.3 for a = -0.5).
 
     ``S(u) = (a+2)|u|^3 - (a+3)|u|^2 + 1`` for ``|u| <= 1``,
     ``a|u|^3 - 5a|u|^2 + 8a|u| - 4a`` for ``1 < |u| <= 2``, 0 beyond. With a = -0.5 this is
     ``1 - 2.5u^2 + 1.5|u|^3`` and ``2 - 4|u| + 2.5u^2 - 0.5|u|^3``.
+
+    Parameters
+    ----------
+    u : array_like
+        Offsets from the output sample, input px.
+    a : float
+        Kernel constant (default :data:`KEYS_A` = -0.5, the dissertation's).
+
+    Returns
+    -------
+    ndarray of float64
+        S(u), the shape of ``u``.
+
+    References
+    ----------
+    Dissertation, eq. (3.3).
     """
     x = np.abs(np.asarray(u, dtype=np.float64))
     inner = ((a + 2.0) * x - (a + 3.0)) * x * x + 1.0
@@ -45,6 +61,24 @@ def sample_positions(n_in: int, alpha: int, mapping: Mapping = "dissertation") -
 
     ``"dissertation"``: ``x_bic / alpha`` (eq. 3.1; output pixel 0 sits on input pixel 0).
     ``"center"``: ``(x_bic + 0.5) / alpha - 0.5`` (pixel-centre convention of cv2.resize).
+
+    Parameters
+    ----------
+    n_in : int
+        Input samples along the axis, px.
+    alpha : int
+        Magnification (output samples per input px).
+    mapping : {"dissertation", "center"}
+        Output-to-input coordinate convention (above).
+
+    Returns
+    -------
+    ndarray of float64
+        (alpha * n_in,) input coordinates, input px.
+
+    References
+    ----------
+    Dissertation, eq. (3.1).
     """
     j = np.arange(alpha * n_in, dtype=np.float64)
     if mapping == "dissertation":
@@ -74,6 +108,26 @@ def interp_matrix(n_in: int, alpha: int = 3, a: float = KEYS_A,
 
     Row j holds the kernel weights S(h - Delta) (eq. 3.2) of output sample j. Cached and
     read-only.
+
+    Parameters
+    ----------
+    n_in : int
+        Input samples along the axis, px.
+    alpha : int
+        Magnification (output samples per input px).
+    a : float
+        Keys kernel constant (:func:`keys_kernel`).
+    mapping : {"dissertation", "center"}
+        Coordinate convention (:func:`sample_positions`).
+
+    Returns
+    -------
+    ndarray of float64
+        (alpha * n_in, n_in), read-only.
+
+    References
+    ----------
+    Dissertation, eqs. (3.1)-(3.3).
     """
     if not isinstance(n_in, (int, np.integer)) or n_in < 1:
         raise ValueError(f"n_in: expected a positive integer, got {n_in!r}")
@@ -86,9 +140,28 @@ def upsample(patches: ArrayLike, alpha: int = 3, a: float = KEYS_A,
              mapping: Mapping = "dissertation") -> NDArray[np.float64]:
     """Magnify (n, h, w) or (h, w) patches by ``alpha`` with the Keys kernel (eqs. 3.1-3.3).
 
-    Returns float64 patches of shape (n, alpha*h, alpha*w) (or (alpha*h, alpha*w)); output
-    pixel (y_bic, x_bic) is the input at (y_bic/alpha, x_bic/alpha) in input px. Computed as
-    ``Wy @ G @ Wx.T``: two batched matrix products.
+    Output pixel (y_bic, x_bic) is the input at (y_bic/alpha, x_bic/alpha) in input px.
+    Computed as ``Wy @ G @ Wx.T``: two batched matrix products.
+
+    Parameters
+    ----------
+    patches : array_like
+        (n, h, w) or (h, w) patches, grey levels (DN).
+    alpha : int
+        Magnification.
+    a : float
+        Keys kernel constant (:func:`keys_kernel`).
+    mapping : {"dissertation", "center"}
+        Coordinate convention (:func:`sample_positions`).
+
+    Returns
+    -------
+    ndarray of float64
+        Patches of shape (n, alpha*h, alpha*w) (or (alpha*h, alpha*w)), DN.
+
+    References
+    ----------
+    Dissertation, eqs. (3.1)-(3.3).
     """
     g = np.asarray(patches, dtype=np.float64)
     if g.ndim not in (2, 3):

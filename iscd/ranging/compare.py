@@ -52,7 +52,26 @@ TABLE_HEADER = ("| method | MAE px | RMSE px | p95 px | max px | bias px | err/s
 
 def score(method: str, left: ArrayLike, right: ArrayLike, truth_dx: ArrayLike,
           options: dict[str, Any] | None = None, **estimate_kw: Any) -> MethodScore:
-    """Run ``method`` on the pairs and compare its x shift with ``truth_dx`` (n,)."""
+    """Run ``method`` on the pairs and compare its x shift with ``truth_dx``.
+
+    Parameters
+    ----------
+    method : str
+        Estimator name (one of :data:`iscd.ranging.estimators.METHODS`).
+    left, right : array_like
+        (n, h, w) patch pairs, DN.
+    truth_dx : array_like
+        (n,) true x shifts (left - right), px.
+    options : dict, optional
+        Estimator options, to :func:`~iscd.ranging.estimators.get_estimator`.
+    **estimate_kw
+        Passed to the estimator's ``estimate`` (e.g. ``background``).
+
+    Returns
+    -------
+    MethodScore
+        Error statistics (px), failures and time per pair (us).
+    """
     est = get_estimator(method, **(options or {}))
     t0 = time.perf_counter()
     r = est.estimate(left, right, **estimate_kw)
@@ -78,18 +97,63 @@ def score(method: str, left: ArrayLike, right: ArrayLike, truth_dx: ArrayLike,
 
 def compare(left: ArrayLike, right: ArrayLike, truth_dx: ArrayLike,
             methods: Iterable[str] = PEERS, **estimate_kw: Any) -> list[MethodScore]:
-    """:func:`score` for every method on the same pairs."""
+    """:func:`score` for every method on the same pairs.
+
+    Parameters
+    ----------
+    left, right : array_like
+        (n, h, w) patch pairs, DN.
+    truth_dx : array_like
+        (n,) true x shifts, px.
+    methods : iterable of str
+        Estimator names (default :data:`PEERS`).
+    **estimate_kw
+        Passed to each estimator's ``estimate``.
+
+    Returns
+    -------
+    list of MethodScore
+        One per method, in order.
+    """
     return [score(m, left, right, truth_dx, **estimate_kw) for m in methods]
 
 
 def markdown_table(scores: list[MethodScore]) -> str:
-    """The scores as a Markdown table."""
+    """The scores as a Markdown table.
+
+    Parameters
+    ----------
+    scores : list of MethodScore
+        Rows of the table.
+
+    Returns
+    -------
+    str
+        Header and one row per score.
+    """
     return "\n".join([TABLE_HEADER, *(s.row() for s in scores)])
 
 
 def errors(method: str, left: ArrayLike, right: ArrayLike, truth_dx: ArrayLike,
            **options: Any) -> NDArray[np.float64]:
-    """Signed x-shift errors (n,) of one method (NaN where it failed)."""
+    """Signed x-shift errors of one method (NaN where it failed).
+
+    Parameters
+    ----------
+    method : str
+        Estimator name.
+    left, right : array_like
+        (n, h, w) patch pairs, DN.
+    truth_dx : array_like
+        (n,) true x shifts, px.
+    **options
+        Estimator options, to :func:`~iscd.ranging.estimators.get_estimator`.
+
+    Returns
+    -------
+    ndarray of float64
+        (n,) estimated minus true shift, px.
+    """
     r = get_estimator(method, **options).estimate(left, right)
     return r.dx - np.asarray(truth_dx, dtype=np.float64)
 
@@ -131,10 +195,24 @@ def _single_led(rng: np.random.Generator, n: int, z_m: float, brightness: float,
 
 
 def standard_suite(n: int = 200, seed: int = 1) -> list[Case]:
-    """The cases of docs/ranging.md (fixed seed): one LED at 20-60 m unsaturated and
-    saturated (chapter 3 rig, b = 0.6 m), an HDR pair (right camera 4x darker, chapter 4),
-    a dim LED on a textured background (with and without dark-symbol subtraction), and an
-    8x8 array at 50 m (b = 0.25 m) as one whole-array patch."""
+    """The cases of docs/ranging.md (fixed seed).
+
+    One LED at 20-60 m unsaturated and saturated (chapter 3 rig, b = 0.6 m), an HDR pair
+    (right camera 4x darker, chapter 4), a dim LED on a textured background (with and without
+    dark-symbol subtraction), and an 8x8 array at 50 m (b = 0.25 m) as one whole-array patch.
+
+    Parameters
+    ----------
+    n : int
+        Patch pairs per case.
+    seed : int
+        Random seed.
+
+    Returns
+    -------
+    list of Case
+        The cases, with ground truth (px) and, where known, range and baseline (m).
+    """
     from scipy.ndimage import gaussian_filter
 
     from iscd.ranging.synth import disk_spots, fourier_shift, sensor
@@ -182,7 +260,20 @@ def standard_suite(n: int = 200, seed: int = 1) -> list[Case]:
 
 
 def suite_table(cases: list[Case], methods: Iterable[str] = PEERS) -> str:
-    """MAE per case and method (px; and the range error it means, m, where known)."""
+    """MAE per case and method (px; and the range error it means, m, where known).
+
+    Parameters
+    ----------
+    cases : list of Case
+        From :func:`standard_suite`.
+    methods : iterable of str
+        Estimator names (default :data:`PEERS`).
+
+    Returns
+    -------
+    str
+        A Markdown table, one row per case.
+    """
     methods = list(methods)
     lines = ["| case | " + " | ".join(methods) + " |", "|---" * (len(methods) + 1) + "|"]
     for c in cases:
@@ -204,7 +295,18 @@ def suite_table(cases: list[Case], methods: Iterable[str] = PEERS) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """``python -m iscd.ranging.compare [--n N]``: print the synthetic comparison tables."""
+    """``python -m iscd.ranging.compare [--n N]``: print the synthetic comparison tables.
+
+    Parameters
+    ----------
+    argv : list of str, optional
+        Command-line arguments (default ``sys.argv[1:]``).
+
+    Returns
+    -------
+    int
+        Exit status (0).
+    """
     import argparse
 
     ap = argparse.ArgumentParser(description="Compare shift estimators on the synthetic suite (docs/ranging.md).")

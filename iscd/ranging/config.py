@@ -85,5 +85,15 @@ class RangingSettings:
 
 
 def ranging_config(cfg: Config) -> RangingSettings:
-    """The validated ``[ranging]`` section of a loaded config (defaults if absent)."""
+    """The validated ``[ranging]`` section of a loaded config (defaults if absent).
+
+    Parameters
+    ----------
+    cfg : Config
+        A loaded config.
+
+    Returns
+    -------
+    RangingSettings
+    """
     return build_section(RangingSettings, dict(cfg.extra.get("ranging", {})), "ranging")

@@ -66,7 +66,18 @@ from iscd.ranging.poc import (PeakResult, check_pair, continuous_peak, cross_pow
 
 
 def border_level(patches: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-    """Median and robust standard deviation (1.4826 MAD) of each patch's outer ring of pixels."""
+    """Median and robust standard deviation (1.4826 MAD) of each patch's outer ring of pixels.
+
+    Parameters
+    ----------
+    patches : ndarray of float64
+        (n, h, w) patches, DN.
+
+    Returns
+    -------
+    median, sigma : ndarray of float64
+        Each (n,), DN.
+    """
     ring = np.concatenate([patches[:, 0, :], patches[:, -1, :], patches[:, 1:-1, 0],
                            patches[:, 1:-1, -1]], axis=1)
     med = _median_rows(ring)
@@ -107,8 +118,27 @@ def _limit_search(surface: NDArray[np.float64], max_shift: float | None) -> NDAr
 def residual_sigma(left: NDArray[np.float64], right: NDArray[np.float64], dx: NDArray[np.float64],
                    dy: NDArray[np.float64], beta: float = 0.5,
                    band_cutoff: float | None = 0.12) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-    """Standard deviations (dy, dx), px, of a shift from the residual phases of the weighted
-    cross-power spectrum of background-removed patches (see :func:`continuous_peak`)."""
+    """Standard deviations of a shift from the residual phases of the cross-power spectrum.
+
+    The spectrum is the weighted cross-power spectrum of background-removed patches (see
+    :func:`continuous_peak`).
+
+    Parameters
+    ----------
+    left, right : ndarray of float64
+        (n, h, w) patch pairs, DN.
+    dx, dy : ndarray of float64
+        (n,) shifts at which to evaluate, px.
+    beta : float
+        Spectral weighting ``X / |X|^beta``.
+    band_cutoff : float or None
+        Gaussian band limit, cycles/px (None: full band).
+
+    Returns
+    -------
+    sigma_y, sigma_x : ndarray of float64
+        Each (n,), px.
+    """
     lf = left - border_level(left)[0][:, None, None]
     rt = right - border_level(right)[0][:, None, None]
     h, w = lf.shape[1:]
@@ -166,9 +196,33 @@ def declip(patches: NDArray[np.float64], saturated: NDArray[np.bool_], top: Arra
     fitted surface, clamped to ``[top, max_gain * top]``. Why: a clipped core has a flat top
     whose sharp rim aliases when sampled, so the two cameras' clipped spots are not sampled
     shifts of one function (errors of 0.02-0.05 px); the refilled spots nearly are again.
-    Returns ``(patches', ok)``; ``ok`` (n,) is False for a patch where some blob could not be
-    fitted (fewer than ``min_pixels`` usable pixels, or not a peak) -- such patches are
-    returned unchanged (the caller falls back to common clipping).
+
+    Parameters
+    ----------
+    patches : ndarray of float64
+        (n, h, w) background-removed patches, DN.
+    saturated : ndarray of bool
+        (n, h, w) clipped pixels.
+    top : array_like
+        Highest value a pixel could report after the background removal, DN (scalar, (n,) or
+        (n, h, w)).
+    fit_floor : float
+        Fraction of ``top`` below which pixels are left out of the fit.
+    ring_px : int
+        Fit pixels within this chessboard distance of a blob, px.
+    min_pixels : int
+        Fewest usable pixels for a fit.
+    max_gain : float
+        Upper clamp of the refilled values, multiples of ``top``.
+
+    Returns
+    -------
+    patches : ndarray of float64
+        (n, h, w) the refilled patches, DN.
+    ok : ndarray of bool
+        (n,) False for a patch where some blob could not be fitted (fewer than ``min_pixels``
+        usable pixels, or not a peak) -- such patches are returned unchanged (the caller falls
+        back to common clipping).
     """
     n, h, w = patches.shape
     t = np.asarray(top, dtype=np.float64)
@@ -237,6 +291,26 @@ class DissertationPOC:
     max_shift_px: float | None = None
 
     def estimate(self, left: ArrayLike, right: ArrayLike, **kw: Any) -> ShiftEstimate:
+        """Shifts of the patch pairs by the dissertation's method (see the class).
+
+        Bicubic magnification (eqs. 3.1-3.3), POC (3.5-3.7), sinc fit of the peak (3.9).
+
+        Parameters
+        ----------
+        left, right : array_like
+            (n, h, w) or (h, w) patch pairs, DN.
+        **kw
+            Ignored (the common estimator interface).
+
+        Returns
+        -------
+        ShiftEstimate
+            dx, dy, px; quality the fitted sinc amplitude; residual-phase sigmas, px.
+
+        References
+        ----------
+        Dissertation, eqs. (3.1)-(3.3), (3.5)-(3.7), (3.9).
+        """
         lf, rt = check_pair(left, right)
         a = int(self.alpha)
         if a > 1:
@@ -299,6 +373,20 @@ class CV2PhaseCorrelate:
     name: str = "cv2"
 
     def estimate(self, left: ArrayLike, right: ArrayLike, **kw: Any) -> ShiftEstimate:
+        """Shifts of the patch pairs by ``cv2.phaseCorrelate``, one call per pair.
+
+        Parameters
+        ----------
+        left, right : array_like
+            (n, h, w) or (h, w) patch pairs, DN.
+        **kw
+            Ignored (the common estimator interface).
+
+        Returns
+        -------
+        ShiftEstimate
+            dx, dy, px; quality the cv2 response (0-1); residual-phase sigmas, px.
+        """
         import cv2
 
         lf, rt = check_pair(left, right)
@@ -320,6 +408,20 @@ class SkimagePCC:
     upsample_factor: int = 100
 
     def estimate(self, left: ArrayLike, right: ArrayLike, **kw: Any) -> ShiftEstimate:
+        """Shifts of the patch pairs by ``skimage.registration.phase_cross_correlation``.
+
+        Parameters
+        ----------
+        left, right : array_like
+            (n, h, w) or (h, w) patch pairs, DN.
+        **kw
+            Ignored (the common estimator interface).
+
+        Returns
+        -------
+        ShiftEstimate
+            dx, dy, px; quality 1 - the normalized RMS error; residual-phase sigmas, px.
+        """
         from skimage.registration import phase_cross_correlation
 
         lf, rt = check_pair(left, right)
@@ -351,6 +453,21 @@ class Centroid:
         return cx, cy, np.nan_to_num(q)
 
     def estimate(self, left: ArrayLike, right: ArrayLike, **kw: Any) -> ShiftEstimate:
+        """Shifts of the patch pairs as the difference of their intensity centroids.
+
+        Parameters
+        ----------
+        left, right : array_like
+            (n, h, w) or (h, w) patch pairs, DN.
+        **kw
+            Ignored (the common estimator interface).
+
+        Returns
+        -------
+        ShiftEstimate
+            dx, dy, px; quality the lower of the two spots' (see the class); residual-phase sigmas,
+            px.
+        """
         lf, rt = check_pair(left, right)
         lx, ly, lq = self._centroids(lf)
         rx, ry, rq = self._centroids(rt)
@@ -409,7 +526,7 @@ class ISCDShift:
     def prepare(self, lf: NDArray[np.float64], rt: NDArray[np.float64],
                 background: tuple[ArrayLike, ArrayLike] | None = None
                 ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-        """Background removal and saturation handling; returns new (left, right) arrays.
+        """Background removal and saturation handling.
 
         Background: ``background`` patches (a dark symbol's, or a running minimum; anything
         broadcastable to the patches) if given -- what is left then has its border median
@@ -419,6 +536,19 @@ class ISCDShift:
         surface fitted to the unsaturated pixels around it (:func:`declip`), falling back
         to ``"clip"`` for a pair where that fit fails; ``"clip"`` scales the right patch to
         left units (``gain_ratio``) and clips both at the lowest level both can report.
+
+        Parameters
+        ----------
+        lf, rt : ndarray of float64
+            (n, h, w) raw left and right patches, DN.
+        background : (array_like, array_like), optional
+            Left and right background patches, DN.
+
+        Returns
+        -------
+        left, right : ndarray of float64
+            New (n, h, w) arrays, background removed and saturation handled, DN (right in left
+            units when clipped).
         """
         sat_l = lf >= self.saturation - 0.5
         sat_r = rt >= self.saturation - 0.5
@@ -491,6 +621,26 @@ class ISCDShift:
 
     def estimate(self, left: ArrayLike, right: ArrayLike, *,
                  background: tuple[ArrayLike, ArrayLike] | None = None, **kw: Any) -> ShiftEstimate:
+        """Shifts of the patch pairs by the project's 2-D method (see the class and module doc).
+
+        Parameters
+        ----------
+        left, right : array_like
+            (n, h, w) or (h, w) raw patch pairs, DN.
+        background : (array_like, array_like), optional
+            Keyword-only. Left and right background patches (:meth:`prepare`), DN.
+        **kw
+            Ignored (the common estimator interface).
+
+        Returns
+        -------
+        ShiftEstimate
+            dx, dy, px; quality the correlation peak height; sigmas, px, with the floors added.
+
+        References
+        ----------
+        Dissertation, eqs. (3.5) (here weighted; beta = 1 is POC), (3.6) (continuous form).
+        """
         lf, rt = check_pair(left, right)
         l0, r0 = self.prepare(lf, rt, background)
         windowed = self.window_sigma_px is not None and self.window_rounds > 0
@@ -540,7 +690,19 @@ def _projected(**kw: Any) -> Estimator:
 
 
 def get_estimator(method: str = "iscd", **options: Any) -> Estimator:
-    """The estimator called ``method`` (one of :data:`METHODS`), with ``options``."""
+    """The estimator called ``method`` (one of :data:`METHODS`), with ``options``.
+
+    Parameters
+    ----------
+    method : str
+        Estimator name (module doc).
+    **options
+        Fields of that estimator's class (e.g. ``beta``, ``max_shift_px``).
+
+    Returns
+    -------
+    Estimator
+    """
     try:
         factory = METHODS[method]
     except KeyError:
@@ -553,6 +715,23 @@ def get_estimator(method: str = "iscd", **options: Any) -> Estimator:
 
 def estimate_shift(left: ArrayLike, right: ArrayLike, method: str = "iscd",
                    **options: Any) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-    """``(shift_px (n,), quality (n,))`` of each pair of (n, h, w) patches (see module doc)."""
+    """Shift and quality of each pair of (n, h, w) patches (see module doc).
+
+    Parameters
+    ----------
+    left, right : array_like
+        (n, h, w) patch pairs, DN.
+    method : str
+        Estimator name (one of :data:`METHODS`).
+    **options
+        Estimator options (:func:`get_estimator`).
+
+    Returns
+    -------
+    shift_px : ndarray of float64
+        (n,) x position in the left patch minus that in the right, px.
+    quality : ndarray of float64
+        (n,) method-specific, higher is better.
+    """
     est = get_estimator(method, **options).estimate(left, right)
     return est.dx, est.quality

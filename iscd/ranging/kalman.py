@@ -64,7 +64,22 @@ class RangeKalman:
         return self.t is not None
 
     def predict(self, t_s: float) -> tuple[float, float, float]:
-        """Range, its sigma and speed predicted at ``t_s`` (no state change)."""
+        """Range, its sigma and speed predicted at ``t_s`` (no state change).
+
+        Parameters
+        ----------
+        t_s : float
+            Time, s.
+
+        Returns
+        -------
+        z_m : float
+            Predicted range, m.
+        sigma_z_m : float
+            Its standard deviation, m.
+        speed_mps : float
+            dZ/dt, m/s.
+        """
         if self.t is None:
             return math.nan, math.nan, math.nan
         dt = t_s - self.t
@@ -73,9 +88,23 @@ class RangeKalman:
         return z, math.sqrt(max(pzz, 0.0)), self.v
 
     def update(self, t_s: float, z_m: float, sigma_m: float) -> TrackState:
-        """Advance to ``t_s`` (s, increasing) and use the measurement ``z_m`` +- ``sigma_m``.
+        """Advance to ``t_s`` and use the measurement ``z_m`` +- ``sigma_m``.
 
         NaN/inf/non-positive ``z_m`` or ``sigma_m`` only advance the prediction.
+
+        Parameters
+        ----------
+        t_s : float
+            Time of the measurement, s (increasing).
+        z_m : float
+            Measured range, m.
+        sigma_m : float
+            Its standard deviation, m.
+
+        Returns
+        -------
+        TrackState
+            The estimate after the step (``accepted``: whether the measurement was used).
         """
         good = math.isfinite(z_m) and math.isfinite(sigma_m) and sigma_m > 0 and z_m > 0
         if self.t is None:

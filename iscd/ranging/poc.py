@@ -36,7 +36,20 @@ _TINY = 1e-12
 
 
 def as_batch(patches: ArrayLike, name: str = "patches") -> NDArray[np.float64]:
-    """``patches`` as a float64 (n, h, w) array; a single (h, w) patch becomes n = 1."""
+    """``patches`` as a float64 (n, h, w) array; a single (h, w) patch becomes n = 1.
+
+    Parameters
+    ----------
+    patches : array_like
+        (n, h, w) or (h, w) patches, DN.
+    name : str
+        The argument's name in error messages.
+
+    Returns
+    -------
+    ndarray of float64
+        (n, h, w).
+    """
     g = np.asarray(patches, dtype=np.float64)
     if g.ndim == 2:
         g = g[None]
@@ -46,7 +59,18 @@ def as_batch(patches: ArrayLike, name: str = "patches") -> NDArray[np.float64]:
 
 
 def check_pair(left: ArrayLike, right: ArrayLike) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-    """Validate a batch of patch pairs: same shape (n, h, w), finite values."""
+    """Validate a batch of patch pairs: same shape (n, h, w), finite values.
+
+    Parameters
+    ----------
+    left, right : array_like
+        (n, h, w) or (h, w) patches, DN.
+
+    Returns
+    -------
+    left, right : ndarray of float64
+        Each (n, h, w).
+    """
     lf, rt = as_batch(left, "left"), as_batch(right, "right")
     if lf.shape != rt.shape:
         raise ValueError(f"left and right patches differ in shape: {lf.shape} vs {rt.shape}")
@@ -61,6 +85,22 @@ def cross_power(f_left: NDArray[np.complex128], f_right: NDArray[np.complex128],
 
     ``beta = 1`` is phase-only (POC, unit magnitude), ``beta = 0`` plain cross-correlation;
     in between is the "PHAT-beta" weighting. Bins with ``X = 0`` stay 0.
+
+    Parameters
+    ----------
+    f_left, f_right : ndarray of complex128
+        DFTs of the left and right patches, same shape.
+    beta : float
+        Magnitude weighting exponent, 0-1.
+
+    Returns
+    -------
+    ndarray of complex128
+        The weighted cross-power spectrum, the shape of the inputs.
+
+    References
+    ----------
+    Dissertation, eq. (3.5).
     """
     x = f_left * np.conj(f_right)
     if beta == 0.0:
@@ -73,8 +113,22 @@ def cross_power(f_left: NDArray[np.complex128], f_right: NDArray[np.complex128],
 def poc_surface(left: ArrayLike, right: ArrayLike) -> NDArray[np.float64]:
     """The POC function (eq. 3.6): real inverse DFT of the normalized cross-power spectrum.
 
-    (n, h, w) in, (n, h, w) out, unshifted (index 0 = zero shift; negative shifts wrap to the
-    end). A perfect integer shift gives a Kronecker delta of height 1 at ``+shift``.
+    Unshifted (index 0 = zero shift; negative shifts wrap to the end). A perfect integer shift
+    gives a Kronecker delta of height 1 at ``+shift``.
+
+    Parameters
+    ----------
+    left, right : array_like
+        (n, h, w) or (h, w) patch pairs, DN.
+
+    Returns
+    -------
+    ndarray of float64
+        (n, h, w) correlation surfaces, indexed by shift in px.
+
+    References
+    ----------
+    Dissertation, eqs. (3.5), (3.6).
     """
     lf, rt = check_pair(left, right)
     c = cross_power(np.fft.fft2(lf), np.fft.fft2(rt))
@@ -84,7 +138,21 @@ def poc_surface(left: ArrayLike, right: ArrayLike) -> NDArray[np.float64]:
 def integer_peak(surface: NDArray[np.float64]) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
     """Signed (row, column) of the maximum of each (h, w) surface (eq. 3.7).
 
-    Indices above h/2 (w/2) wrap to negative shifts. Returns ``(iy, ix)``, each (n,).
+    Indices above h/2 (w/2) wrap to negative shifts.
+
+    Parameters
+    ----------
+    surface : ndarray of float64
+        (n, h, w) correlation surfaces (:func:`poc_surface`).
+
+    Returns
+    -------
+    iy, ix : ndarray of int64
+        Each (n,), samples (px of the surface).
+
+    References
+    ----------
+    Dissertation, eq. (3.7).
     """
     n, h, w = surface.shape
     flat = np.argmax(surface.reshape(n, -1), axis=1)
@@ -95,8 +163,29 @@ def integer_peak(surface: NDArray[np.float64]) -> tuple[NDArray[np.int64], NDArr
 
 
 def peak_kernel(u: NDArray[np.float64], size: int, kernel: Kernel = "sinc") -> NDArray[np.float64]:
-    """The POC peak shape at offset ``u`` samples: ``sinc(u)`` (eq. 3.9) or the Dirichlet
-    kernel ``sin(pi u) / (size sin(pi u / size))`` (eq. 3.8)."""
+    """The POC peak shape at offset ``u`` samples.
+
+    ``sinc(u)`` (eq. 3.9) or the Dirichlet kernel ``sin(pi u) / (size sin(pi u / size))``
+    (eq. 3.8).
+
+    Parameters
+    ----------
+    u : ndarray of float64
+        Offsets from the peak, samples.
+    size : int
+        Transform length, samples (Dirichlet kernel only).
+    kernel : {"sinc", "dirichlet"}
+        Peak model.
+
+    Returns
+    -------
+    ndarray of float64
+        The model at ``u``, the shape of ``u``.
+
+    References
+    ----------
+    Dissertation, eqs. (3.8), (3.9).
+    """
     if kernel == "sinc":
         return np.sinc(u)
     if kernel == "dirichlet":
@@ -137,9 +226,33 @@ def sinc_fit(surface: NDArray[np.float64], iy: NDArray[np.int64], ix: NDArray[np
     ``A * S(j - gamma)`` for every candidate ``gamma`` in ``[-span, span]`` with spacing
     ``step`` (samples; the estimate's resolution), ``A`` by linear least squares, and the
     candidate with the least squared error (and A > 0) wins; likewise along the peak column.
-    ``S`` is ``sinc`` (3.9) or the Dirichlet kernel (3.8). Returns ``(dy, dx, amplitude)``:
-    the sub-pixel peak position ``(iy + gamma_y, ix + gamma_x)`` in samples and the fitted
-    peak height ``A`` of the x fit. All (n,).
+    ``S`` is ``sinc`` (3.9) or the Dirichlet kernel (3.8).
+
+    Parameters
+    ----------
+    surface : ndarray of float64
+        (n, h, w) POC surfaces.
+    iy, ix : ndarray of int64
+        (n,) integer peaks (:func:`integer_peak`), samples.
+    radius : int
+        Samples each side of the peak in the fit.
+    step : float
+        Grid spacing of the candidates, samples.
+    span : float
+        Candidates in ``[-span, span]``, samples.
+    kernel : {"sinc", "dirichlet"}
+        Peak model (:func:`peak_kernel`).
+
+    Returns
+    -------
+    dy, dx : ndarray of float64
+        (n,) sub-pixel peak position ``(iy + gamma_y, ix + gamma_x)``, samples.
+    amplitude : ndarray of float64
+        (n,) fitted peak height ``A`` of the x fit.
+
+    References
+    ----------
+    Dissertation, eqs. (3.8), (3.9).
     """
     _, h, w = surface.shape
     out = []
@@ -224,14 +337,37 @@ def continuous_peak(spectrum: NDArray[np.complex128], iy: ArrayLike, ix: ArrayLi
     integer peak ``(iy, ix)`` refined by a parabola, Newton steps on the analytic gradient and
     Hessian (steps clipped to 0.5 samples) find the maximum. Nyquist bins of even sizes are
     ignored so that the surface is real-symmetric. With ``iterations = 0`` the statistics are
-    evaluated at the given (possibly fractional) ``(iy, ix)``. ``surface``: the inverse DFT
-    of ``spectrum`` if the caller has it (saves one transform for the parabolic start).
-    ``stats=False`` skips the height and standard deviations (NaN), for intermediate passes.
+    evaluated at the given (possibly fractional) ``(iy, ix)``.
 
     The standard deviations come from the linearized estimator: with residual phases
     ``e(k) = arg(R(k) exp(i w.delta))`` the gradient noise is
     ``G = 2 sum_k |R|^2 w w^T sin^2 e`` (conjugate bins are not independent, hence 2) and the
     Hessian ``H = -sum_k |R| w w^T cos e``; ``cov = H^-1 G H^-1``.
+
+    Parameters
+    ----------
+    spectrum : ndarray of complex128
+        (n, h, w) from ``fft2``, or (n, h, w//2 + 1) from ``rfft2`` with ``width``.
+    iy, ix : array_like
+        (n,) start positions (integer peaks), samples.
+    iterations : int
+        Newton steps.
+    surface : ndarray of float64, optional
+        The inverse DFT of ``spectrum`` if the caller has it (saves one transform for the
+        parabolic start).
+    width : int, optional
+        Patch width w, px, when ``spectrum`` is a half spectrum.
+    stats : bool
+        False skips the height and standard deviations (NaN), for intermediate passes.
+
+    Returns
+    -------
+    PeakResult
+        dy, dx, samples; peak height; sigma_y, sigma_x, samples. All (n,).
+
+    References
+    ----------
+    Dissertation, eqs. (3.6), (3.8).
     """
     n, h, wk = spectrum.shape
     half = width is not None and wk == width // 2 + 1 and width != wk

@@ -55,8 +55,22 @@ def _w(a: np.ndarray, dtype: type) -> np.ndarray:
 
 
 def patch_minimum(frames: np.ndarray, x0: int, y0: int, h: int, w: int) -> np.ndarray:
-    """(h, w) float32 per-pixel minimum over the block ``frames`` (n, H, W) of the patch
-    whose top-left pixel is (x0, y0) px (0 outside the image)."""
+    """Per-pixel minimum over a block of frames of one patch.
+
+    Parameters
+    ----------
+    frames : ndarray
+        (n, H, W) frames, DN.
+    x0, y0 : int
+        Top-left pixel of the patch, px.
+    h, w : int
+        Patch size, px.
+
+    Returns
+    -------
+    ndarray of float32
+        (h, w) minimum, DN (0 outside the image).
+    """
     fr = np.require(frames, requirements=["C", "W"])
     out = np.zeros((h, w), fr.dtype)
     _patch_minimum(fr, int(x0), int(y0), out)
@@ -140,11 +154,35 @@ def _project(fr, x0: int, y0: int, bg: np.ndarray, ring: np.ndarray, snr_w: np.n
 def project_patches(frames: np.ndarray, x0: int, y0: int, background: np.ndarray, ring: np.ndarray,
                     snr_weights: np.ndarray, row_weights: np.ndarray
                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Per frame of ``frames`` (n, H, W), for the (h, w) patch at (x0, y0) px with its
+    """Pedestal, noise, matched-filter signal and row-weighted profile of a patch, per frame.
+
+    Per frame of ``frames`` (n, H, W), for the (h, w) patch at (x0, y0) px with its
     ``background`` (h, w) grey levels: the pedestal (median of the ring residual, ``ring``
     flat indices), its 1.4826 MAD, the matched-filter signal ``snr_weights . (patch - bg -
     pedestal)`` and the profile ``row_weights @ (patch - bg - pedestal)`` (n, w).
-    Returns (pedestal (n,), mad (n,), signal (n,), profile (n, w)), grey levels."""
+
+    Parameters
+    ----------
+    frames : ndarray
+        (n, H, W) frames, DN.
+    x0, y0 : int
+        Top-left pixel of the patch, px.
+    background : ndarray
+        (h, w) background of the patch, DN.
+    ring : ndarray
+        Flat indices of the patch's outer ring (:func:`iscd.ranging.projected.ring_indices`).
+    snr_weights : ndarray
+        (h, w) matched-filter weights.
+    row_weights : ndarray
+        (h,) projection weights.
+
+    Returns
+    -------
+    pedestal, mad, signal : ndarray
+        Each (n,), DN.
+    profile : ndarray
+        (n, w), DN.
+    """
     n = frames.shape[0]
     h, w = background.shape
     ped, mad, sig = np.empty(n), np.empty(n), np.empty(n)
@@ -278,9 +316,33 @@ def _tables(w: int, nk: int) -> tuple[np.ndarray, np.ndarray]:
 def correlate_1d_compiled(left: np.ndarray, right: np.ndarray, beta: float = 0.5,
                           band_cutoff: float | None = 0.12, max_shift_px: float | None = None,
                           iterations: int = 2):  # -> Peak1D
-    """The compiled :func:`iscd.ranging.projected.correlate_1d` (same arguments and
-    result): the transforms as sums over cached cos/sin tables (w is a few tens of px),
-    the peak search and the Newton steps in the same loop, per profile pair (n, w)."""
+    """The compiled :func:`iscd.ranging.projected.correlate_1d` (same arguments and result).
+
+    The transforms as sums over cached cos/sin tables (w is a few tens of px), the peak search
+    and the Newton steps in the same loop, per profile pair (n, w).
+
+    Parameters
+    ----------
+    left, right : ndarray
+        (n, w) profiles, DN.
+    beta : float
+        Spectral weighting ``X / |X|^beta``.
+    band_cutoff : float or None
+        Gaussian band limit f_c, cycles/px (None: full band).
+    max_shift_px : float or None
+        Limit of the integer peak search, px.
+    iterations : int
+        Newton steps.
+
+    Returns
+    -------
+    Peak1D
+        As :func:`iscd.ranging.projected.correlate_1d` (shifts and sigmas in px).
+
+    References
+    ----------
+    Dissertation, eqs. (3.5), (3.6).
+    """
     lf = _w(left, np.float64)
     rt = _w(right, np.float64)
     n, w = lf.shape
@@ -324,8 +386,26 @@ def _block_minima(L, R, x0l: int, x0r: int, y0: int, out_l: np.ndarray, out_r: n
 
 def block_minima(left: np.ndarray, right: np.ndarray, x0l: int, x0r: int, y0: int, h: int, w: int
                  ) -> tuple[np.ndarray, np.ndarray]:
-    """Both cameras' (h, w) float32 per-pixel minima over a block of frames (n, H, W) of
-    the patches at (x0l, y0) and (x0r, y0) px: :func:`patch_minimum` of each in one call."""
+    """Both cameras' per-pixel patch minima over a block of frames.
+
+    :func:`patch_minimum` of each camera's patch in one call.
+
+    Parameters
+    ----------
+    left, right : ndarray
+        (n, H, W) frames of each camera, DN.
+    x0l, x0r : int
+        Left column of the left and right patch, px.
+    y0 : int
+        Top row of both patches, px.
+    h, w : int
+        Patch size, px.
+
+    Returns
+    -------
+    min_left, min_right : ndarray of float32
+        Each (h, w), DN.
+    """
     L = np.require(left, requirements=["C", "W"])
     R = np.require(right, dtype=L.dtype, requirements=["C", "W"])
     out_l = np.empty((h, w), np.float32)
@@ -383,18 +463,58 @@ def range_block(left: np.ndarray, right: np.ndarray, x0l: int, x0r: int, y0: int
                 max_shift_px: float | None, iterations: int, sigma_floor_px: float, focal_px: float,
                 baseline_m: float, quant_noise_dn: float, min_snr: float, min_quality: float
                 ) -> tuple[np.ndarray, ...]:
-    """A block's ranges in one compiled call (the live case of
-    :meth:`iscd.stereo_range.StereoRanger.measure`: identity rectification, ``"iscd-fast"``
-    with row weights, no core refill): both cameras' :func:`project_patches`, the per-block
-    noise (median over the frames of the ring MAD, at least ``quant_noise_dn``), the
-    weaker camera's matched-filter SNR, :func:`correlate_1d_compiled` of the profiles and
+    """A block's ranges in one compiled call.
+
+    The live case of :meth:`iscd.stereo_range.StereoRanger.measure`: identity rectification,
+    ``"iscd-fast"`` with row weights, no core refill: both cameras' :func:`project_patches`,
+    the per-block noise (median over the frames of the ring MAD, at least ``quant_noise_dn``),
+    the weaker camera's matched-filter SNR, :func:`correlate_1d_compiled` of the profiles and
     the range with its standard deviation (:func:`iscd.ranging.range.range_from_disparity`,
     :func:`~iscd.ranging.range.range_sigma`; ``sigma_floor_px`` added in quadrature).
 
-    left/right (n, H, W) frames; (x0l, y0), (x0r, y0) the patches' top-left px; bg_* (h, w)
-    their backgrounds, grey levels; ring, snr_*, row_* as :func:`project_patches`.
-    Returns (z m, disparity px, sigma m, quality, valid, snr), each (n,); z and sigma NaN
-    where not valid (frames below ``min_snr`` or ``min_quality``, no peak, d <= 0)."""
+    Parameters
+    ----------
+    left, right : ndarray
+        (n, H, W) frames, DN.
+    x0l, x0r, y0 : int
+        The patches' top-left corners (x0l, y0) and (x0r, y0), px.
+    bg_left, bg_right : ndarray
+        (h, w) backgrounds of the patches, DN.
+    ring : ndarray
+        As :func:`project_patches`.
+    snr_left, snr_right : ndarray
+        (h, w) matched-filter weights, as :func:`project_patches`.
+    row_left, row_right : ndarray
+        (h,) projection weights, as :func:`project_patches`.
+    beta, band_cutoff, max_shift_px, iterations
+        Keyword-only; as :func:`correlate_1d_compiled` (cycles/px, px).
+    sigma_floor_px : float
+        Keyword-only. Added in quadrature to the disparity sigma, px.
+    focal_px : float
+        Keyword-only. f / rho, px.
+    baseline_m : float
+        Keyword-only. Stereo baseline b, m.
+    quant_noise_dn : float
+        Keyword-only. Lowest noise per pixel, DN.
+    min_snr, min_quality : float
+        Keyword-only. Frames below either are not valid.
+
+    Returns
+    -------
+    z, disparity, sigma : ndarray
+        (n,) range, m; disparity, px; range sigma, m. z and sigma NaN where not valid (frames
+        below ``min_snr`` or ``min_quality``, no peak, d <= 0).
+    quality : ndarray
+        (n,) correlation peak height.
+    valid : ndarray of bool
+        (n,).
+    snr : ndarray
+        (n,) the weaker camera's matched-filter SNR.
+
+    References
+    ----------
+    Dissertation, eq. (2.2) (the range).
+    """
     L = np.require(left, requirements=["C", "W"])
     R = np.require(right, dtype=L.dtype, requirements=["C", "W"])
     n = L.shape[0]

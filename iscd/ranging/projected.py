@@ -54,9 +54,11 @@ _PARABOLA = np.array([-1, 0, 1])
 def correlate_1d(left: NDArray[np.floating], right: NDArray[np.floating], beta: float = 0.5,
                  band_cutoff: float | None = 0.12, max_shift_px: float | None = None,
                  iterations: int = 2) -> Peak1D:
-    """Sub-pixel shift of each pair of 1-D profiles (n, w): the maximum of the correlation of
-    the weighted cross-power spectrum ``X/|X|^beta`` (``X = F_l conj(F_r)``, eq. 3.5 for
-    beta = 1) times ``exp(-f^2 / 2 f_c^2)`` (f in cycles/px).
+    """Sub-pixel shift of each pair of 1-D profiles (n, w).
+
+    The maximum of the correlation of the weighted cross-power spectrum ``X/|X|^beta``
+    (``X = F_l conj(F_r)``, eq. 3.5 for beta = 1) times ``exp(-f^2 / 2 f_c^2)`` (f in
+    cycles/px).
 
     The correlation ``c(x) = sum_k m_k Re(R_k exp(i w_k x))`` (m_k: bin multiplicity) is the
     trigonometric interpolant of its inverse DFT (eq. 3.6, continuous); starting from the
@@ -65,6 +67,28 @@ def correlate_1d(left: NDArray[np.floating], right: NDArray[np.floating], beta: 
     linearises the estimator in the residual phases ``e_k = arg(R_k exp(i w_k dx))``:
     ``var = 2 sum m |R|^2 w^2 sin^2 e / (sum m |R| w^2 cos e)^2``. Written for few numpy
     calls: it runs once per block of frames in the live pipeline.
+
+    Parameters
+    ----------
+    left, right : ndarray of float
+        (n, w) profiles, DN.
+    beta : float
+        Spectral weighting exponent, 0-1.
+    band_cutoff : float or None
+        Gaussian band limit f_c, cycles/px (None: full band).
+    max_shift_px : float or None
+        Limit of the integer peak search, px.
+    iterations : int
+        Newton steps.
+
+    Returns
+    -------
+    Peak1D
+        Shifts (left - right), px, peak heights and standard deviations, px; all (n,).
+
+    References
+    ----------
+    Dissertation, eqs. (3.5), (3.6).
     """
     n, w = left.shape
     omega, mult, band, w2, w2m = _spectral(int(w), band_cutoff)
@@ -97,8 +121,20 @@ def correlate_1d(left: NDArray[np.floating], right: NDArray[np.floating], beta: 
 
 
 def data_row_weights(left: NDArray[np.floating], right: NDArray[np.floating]) -> NDArray[np.float64]:
-    """(h,) projection weights from the data when the LED rows are not known: the mean
-    vertical profile (positive part) of both background-removed batches, max 1."""
+    """Projection weights from the data when the LED rows are not known.
+
+    The mean vertical profile (positive part) of both background-removed batches, max 1.
+
+    Parameters
+    ----------
+    left, right : ndarray of float
+        (n, h, w) background-removed patches, DN.
+
+    Returns
+    -------
+    ndarray of float64
+        (h,) weights, max 1.
+    """
     prof = np.maximum(left.sum(axis=2), 0.0).mean(axis=0) + np.maximum(right.sum(axis=2), 0.0).mean(axis=0)
     m = prof.max()
     return prof / m if m > 0 else np.ones(left.shape[1])
@@ -133,12 +169,27 @@ class Cells:
 
 def led_cells(h: int, w: int, centres_xy: ArrayLike | None, pitch_px: float = 0.0,
               spot_px: float | None = None) -> Cells:
-    """The declip cells of the LEDs at ``centres_xy`` (N, 2) patch px in (h, w) patches.
+    """The declip cells of the LEDs at ``centres_xy`` in (h, w) patches.
 
     A pixel belongs to the LED it is nearest to in x and y within half the pitch (the
     Voronoi cell of a square grid; exact ties go to one of them) and within
     ``spot_px / 2 + 1.5`` px of it (a clipped core plus the ring its fit needs). One LED (or
     no centres): the whole patch is one cell.
+
+    Parameters
+    ----------
+    h, w : int
+        Patch size, px.
+    centres_xy : array_like or None
+        (N, 2) LED centres (x, y), patch px.
+    pitch_px : float
+        LED spacing, px (0 for one LED).
+    spot_px : float, optional
+        Spot diameter, px.
+
+    Returns
+    -------
+    Cells
     """
     if centres_xy is None or pitch_px <= 0:
         idx = np.arange(h * w, dtype=np.int64).reshape(1, h, w)
@@ -166,18 +217,42 @@ def led_cells(h: int, w: int, centres_xy: ArrayLike | None, pitch_px: float = 0.
 def declip_cells(patches: NDArray[np.floating], saturated: NDArray[np.bool_], top: ArrayLike,
                  cells: Cells, top_map: NDArray[np.floating] | None = None, fit_floor: float = 0.03,
                  min_pixels: int = 5, max_gain: float = 30.0) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
-    """Refill clipped LED cores: per LED cell with saturated pixels, ``log(value)`` of the
-    unsaturated pixels within 1 px (chessboard) of them and above ``fit_floor * top`` is
-    fitted by a round log-quadratic ``c0 + c1 x + c2 y + c3 (x^2 + y^2)`` (weighted least
-    squares, weight = value) and the saturated pixels get the fitted surface, clamped to
-    ``[top, max_gain * top]``.
+    """Refill clipped LED cores, per LED cell.
 
-    ``patches`` (n, h, w) background-removed; ``saturated`` (n, h, w) the clipped pixels;
-    ``top`` (scalar or (n,)) plus ``top_map`` ((h, w), (n, h, w) or None) the value a clipped pixel has
-    after the background removal; ``cells`` from :func:`led_cells`. A cell whose fit is not
-    a peak (or has fewer than ``min_pixels`` usable pixels) stays clipped. Returns
-    ``(patches', refilled)``, ``refilled`` (n,) True where some cell was refilled. Only the
-    cells that hold a saturated pixel are touched, with a few dense products over them.
+    Per LED cell with saturated pixels, ``log(value)`` of the unsaturated pixels within 1 px
+    (chessboard) of them and above ``fit_floor * top`` is fitted by a round log-quadratic
+    ``c0 + c1 x + c2 y + c3 (x^2 + y^2)`` (weighted least squares, weight = value) and the
+    saturated pixels get the fitted surface, clamped to ``[top, max_gain * top]``. A cell
+    whose fit is not a peak (or has fewer than ``min_pixels`` usable pixels) stays clipped.
+    Only the cells that hold a saturated pixel are touched, with a few dense products over
+    them.
+
+    Parameters
+    ----------
+    patches : ndarray of float
+        (n, h, w) background-removed patches, DN.
+    saturated : ndarray of bool
+        (n, h, w) the clipped pixels.
+    top : array_like
+        Scalar or (n,); plus ``top_map``, the value a clipped pixel has after the background
+        removal, DN.
+    cells : Cells
+        From :func:`led_cells`.
+    top_map : ndarray of float, optional
+        (h, w) or (n, h, w), DN.
+    fit_floor : float
+        Fraction of ``top`` below which pixels are left out of the fit.
+    min_pixels : int
+        Fewest usable pixels for a fit.
+    max_gain : float
+        Upper clamp of the refilled values, multiples of ``top``.
+
+    Returns
+    -------
+    patches : ndarray of float64
+        (n, h, w), DN.
+    refilled : ndarray of bool
+        (n,) True where some cell was refilled.
     """
     n, h, w = patches.shape
     out = np.array(patches, dtype=np.float64, copy=True)
@@ -240,7 +315,18 @@ def declip_cells(patches: NDArray[np.floating], saturated: NDArray[np.bool_], to
 
 @lru_cache(maxsize=32)
 def ring_indices(h: int, w: int) -> NDArray[np.int64]:
-    """Flat indices of the outer ring of pixels of an (h, w) patch (the pedestal estimate)."""
+    """Flat indices of the outer ring of pixels of an (h, w) patch (the pedestal estimate).
+
+    Parameters
+    ----------
+    h, w : int
+        Patch size, px.
+
+    Returns
+    -------
+    ndarray of int64
+        Cached.
+    """
     m = np.zeros((h, w), dtype=bool)
     m[0, :] = m[-1, :] = m[:, 0] = m[:, -1] = True
     idx = np.flatnonzero(m)
@@ -250,8 +336,24 @@ def ring_indices(h: int, w: int) -> NDArray[np.int64]:
 
 def robust_level(values: NDArray[np.floating], spread: bool = False
                  ) -> tuple[NDArray[np.float64], NDArray[np.float64] | None]:
-    """Median of each row of ``values`` (n, k), and with ``spread`` its robust standard
-    deviation (1.4826 MAD). Sorts ``values`` in place."""
+    """Median of each row of ``values``, and with ``spread`` its robust standard deviation.
+
+    The standard deviation is 1.4826 MAD. Sorts ``values`` in place.
+
+    Parameters
+    ----------
+    values : ndarray of float
+        (n, k), DN.
+    spread : bool
+        Also the standard deviation.
+
+    Returns
+    -------
+    median : ndarray of float64
+        (n,), DN.
+    sigma : ndarray of float64 or None
+        (n,), DN; None without ``spread``.
+    """
     k = values.shape[1]
     values.sort(axis=1)
     med = values[:, k // 2] if k % 2 else 0.5 * (values[:, k // 2 - 1] + values[:, k // 2])
@@ -265,7 +367,20 @@ def robust_level(values: NDArray[np.floating], spread: bool = False
 
 def ring_level(patches: NDArray[np.floating], ring: NDArray[np.int64] | None = None
                ) -> NDArray[np.float64]:
-    """Median of each patch's outer ring of pixels (n,); ``ring`` from :func:`ring_indices`."""
+    """Median of each patch's outer ring of pixels.
+
+    Parameters
+    ----------
+    patches : ndarray of float
+        (n, h, w), DN.
+    ring : ndarray of int64, optional
+        From :func:`ring_indices` (computed if not given).
+
+    Returns
+    -------
+    ndarray of float64
+        (n,), DN.
+    """
     n, h, w = patches.shape
     return robust_level(patches.reshape(n, -1)[:, ring_indices(h, w) if ring is None else ring])[0]
 
@@ -288,10 +403,28 @@ class Plan:
 
 def make_plan(h: int, w: int, centres_left: ArrayLike | None = None, centres_right: ArrayLike | None = None,
               pitch_px: float = 0.0, spot_px: float | None = None, max_shift_px: float | None = None) -> Plan:
-    """A :class:`Plan` for (h, w) patches with the LEDs at ``centres_left``/``centres_right``
-    ((N, 2) patch px; None: row weights from the data, one declip cell), LED spacing
-    ``pitch_px`` (0 for one LED) and spot diameter ``spot_px``. The peak search is limited
-    to ``max_shift_px`` if given, else to half the spacing for an array."""
+    """A :class:`Plan` for (h, w) patches with the LEDs at ``centres_left``/``centres_right``.
+
+    The peak search is limited to ``max_shift_px`` if given, else to half the spacing for an
+    array.
+
+    Parameters
+    ----------
+    h, w : int
+        Patch size, px.
+    centres_left, centres_right : array_like, optional
+        (N, 2) LED centres (x, y), patch px; None: row weights from the data, one declip cell.
+    pitch_px : float
+        LED spacing, px (0 for one LED).
+    spot_px : float, optional
+        Spot diameter, px.
+    max_shift_px : float, optional
+        Limit of the integer peak search, px.
+
+    Returns
+    -------
+    Plan
+    """
     sig_y = max(0.8, (spot_px if spot_px else 3.0) / 2.5)
     wl = wr = None
     if centres_left is not None and centres_right is not None:
@@ -367,6 +500,36 @@ class ProjectedShift:
                  pedestal: tuple[ArrayLike, ArrayLike] | None = None, plan: Plan | None = None,
                  centres_left: ArrayLike | None = None, centres_right: ArrayLike | None = None,
                  pitch_px: float = 0.0, spot_px: float | None = None, **kw: Any):  # -> ShiftEstimate
+        """Shifts of the patch pairs by the fast method (see the class).
+
+        Parameters
+        ----------
+        left, right : array_like
+            (n, h, w) raw patch pairs, DN.
+        background : (array_like, array_like), optional
+            Keyword-only. Left and right backgrounds, broadcastable to the patches, DN.
+        pedestal : (array_like, array_like), optional
+            Keyword-only. Left (n,) and right (n,) pedestals, DN, if the caller has them.
+        plan : Plan, optional
+            Keyword-only. From :func:`make_plan` (cache it per geometry).
+        centres_left, centres_right : array_like, optional
+            Keyword-only. (N, 2) LED centres, patch px (used without ``plan``).
+        pitch_px : float
+            Keyword-only. LED spacing, px.
+        spot_px : float, optional
+            Keyword-only. Spot diameter, px.
+        **kw
+            Ignored (the common estimator interface).
+
+        Returns
+        -------
+        ShiftEstimate
+            dx, px (dy 0, ``sigma_y_px`` NaN); quality the normalised peak height; sigma_px, px.
+
+        References
+        ----------
+        Dissertation, eqs. (3.5) (here weighted; beta = 1 is POC), (3.6) (continuous form).
+        """
         if isinstance(left, np.ndarray) and left.ndim == 3 and isinstance(right, np.ndarray) \
                 and left.shape == right.shape and left.dtype.kind == "f":
             lf, rt = left, right          # the live path: trusted float batches (no copy)
@@ -435,17 +598,44 @@ class ProjectedShift:
                                   saturated=(any_l | any_r) if sat_any else None)
 
     def declips(self, plan: Plan) -> bool:
-        """Whether :meth:`estimate` looks for clipped cores with this plan (``declip``, or
-        by default for one-LED patches and patches of unknown geometry)."""
+        """Whether :meth:`estimate` looks for clipped cores with this plan.
+
+        ``declip``, or by default for one-LED patches and patches of unknown geometry.
+
+        Parameters
+        ----------
+        plan : Plan
+            The patch geometry.
+
+        Returns
+        -------
+        bool
+        """
         return bool(self.declip or (self.declip is None and plan.leds in (1, None)))
 
     def from_profiles(self, prof_l: NDArray[np.float64], prof_r: NDArray[np.float64], plan: Plan,
                       saturated: NDArray[np.bool_] | None = None, *, compiled: bool = False
                       ):  # -> ShiftEstimate
-        """The shift estimate from the row-weighted profiles (n, w) of both cameras (the
-        second half of :meth:`estimate`; ``saturated`` (n,): frames with a refilled core;
-        ``compiled``: :func:`iscd.ranging.project_kernel.correlate_1d_compiled`, the same
-        peak to ~1e-13 px)."""
+        """The shift estimate from the row-weighted profiles of both cameras.
+
+        The second half of :meth:`estimate`.
+
+        Parameters
+        ----------
+        prof_l, prof_r : ndarray of float64
+            (n, w) profiles, DN.
+        plan : Plan
+            The patch geometry (:func:`make_plan`).
+        saturated : ndarray of bool, optional
+            (n,) frames with a refilled core.
+        compiled : bool
+            Keyword-only. Use :func:`iscd.ranging.project_kernel.correlate_1d_compiled` (the same
+            peak to ~1e-13 px).
+
+        Returns
+        -------
+        ShiftEstimate
+        """
 
         n = prof_l.shape[0]
         if compiled:

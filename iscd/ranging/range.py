@@ -35,7 +35,26 @@ Rectifier = Callable[[NDArray[np.float64], Which], NDArray[np.float64]]
 
 
 def range_from_disparity(disparity_px: ArrayLike, focal_px: float, baseline_m: float) -> NDArray[np.float64]:
-    """Z = f b / (rho d) (eq. 2.2), m, with ``focal_px`` = f/rho; NaN where d <= 0 or is not finite."""
+    """Z = f b / (rho d) (eq. 2.2), m, with ``focal_px`` = f/rho.
+
+    Parameters
+    ----------
+    disparity_px : array_like
+        Disparity d, px.
+    focal_px : float
+        f / rho, px.
+    baseline_m : float
+        Baseline b, m.
+
+    Returns
+    -------
+    ndarray of float64
+        Z, m; NaN where d <= 0 or is not finite.
+
+    References
+    ----------
+    Dissertation, eq. (2.2).
+    """
     d = np.asarray(disparity_px, dtype=np.float64)
     with np.errstate(divide="ignore", invalid="ignore"):
         z = focal_px * baseline_m / d
@@ -43,23 +62,78 @@ def range_from_disparity(disparity_px: ArrayLike, focal_px: float, baseline_m: f
 
 
 def disparity_from_range(z_m: ArrayLike, focal_px: float, baseline_m: float) -> NDArray[np.float64]:
-    """d = f b / Z, px (the inverse of :func:`range_from_disparity`)."""
+    """d = f b / Z, px (the inverse of :func:`range_from_disparity`).
+
+    Parameters
+    ----------
+    z_m : array_like
+        Range Z, m.
+    focal_px : float
+        f / rho, px.
+    baseline_m : float
+        Baseline b, m.
+
+    Returns
+    -------
+    ndarray of float64
+        d, px.
+
+    References
+    ----------
+    Dissertation, eq. (2.2).
+    """
     return focal_px * baseline_m / np.asarray(z_m, dtype=np.float64)
 
 
 def range_sigma(z_m: ArrayLike, sigma_d_px: ArrayLike, focal_px: float, baseline_m: float) -> NDArray[np.float64]:
-    """Standard deviation of Z, m, from that of the disparity: sigma_Z = Z^2 / (f b) * sigma_d."""
+    """Standard deviation of Z from that of the disparity: sigma_Z = Z^2 / (f b) * sigma_d.
+
+    Parameters
+    ----------
+    z_m : array_like
+        Range Z, m.
+    sigma_d_px : array_like
+        Standard deviation of the disparity, px.
+    focal_px : float
+        f / rho, px.
+    baseline_m : float
+        Baseline b, m.
+
+    Returns
+    -------
+    ndarray of float64
+        sigma_Z, m.
+
+    References
+    ----------
+    Dissertation, eq. (2.2) (differentiated).
+    """
     z = np.asarray(z_m, dtype=np.float64)
     return z * z / (focal_px * baseline_m) * np.asarray(sigma_d_px, dtype=np.float64)
 
 
 def cut_patches(image: ArrayLike, centres_xy: ArrayLike, size: int | tuple[int, int]
                 ) -> tuple[NDArray[np.float64], NDArray[np.int64]]:
-    """Cut (n, h, w) patches centred (to the nearest pixel) on ``centres_xy`` (n, 2) = (x, y) px.
+    """Cut (n, h, w) patches centred (to the nearest pixel) on ``centres_xy``.
 
-    Returns the patches (float64) and their top-left corners (n, 2) = (x0, y0) as integers, so
-    that patch pixel (j, i) is image pixel (y0 + j, x0 + i). Pixels outside the image repeat the
+    Patch pixel (j, i) is image pixel (y0 + j, x0 + i). Pixels outside the image repeat the
     nearest edge pixel. One fancy-indexing gather, no loops.
+
+    Parameters
+    ----------
+    image : array_like
+        (H, W) image, DN.
+    centres_xy : array_like
+        (n, 2) centres (x, y), px.
+    size : int or (int, int)
+        Patch side, or (h, w), px.
+
+    Returns
+    -------
+    patches : ndarray of float64
+        (n, h, w), DN.
+    origins : ndarray of int64
+        (n, 2) top-left corners (x0, y0), px.
     """
     img = np.asarray(image)
     if img.ndim != 2:
@@ -77,10 +151,20 @@ def cut_patches(image: ArrayLike, centres_xy: ArrayLike, size: int | tuple[int, 
 
 
 def opencv_rectifier(calibration: Any) -> Rectifier | None:
-    """A point rectifier from a calibration's M/D/R/P matrices (None if it has no M1/M2).
+    """A point rectifier from a calibration's M/D/R/P matrices.
 
     Uses ``cv2.undistortPoints(pts, M, D, R=R, P=P)``; without R1/P1 it only undistorts
     (P = M). Points are (n, 2) raw pixel (x, y).
+
+    Parameters
+    ----------
+    calibration : object
+        With ``M1``, ``M2`` (and optionally ``D1``, ``D2``, ``R1``, ``P1``, ``R2``, ``P2``).
+
+    Returns
+    -------
+    Rectifier or None
+        ``rectify(pts (n, 2) px, "left"|"right") -> (n, 2) px``; None if it has no M1/M2.
     """
     import cv2
 
@@ -105,7 +189,18 @@ def opencv_rectifier(calibration: Any) -> Rectifier | None:
 
 
 def disparity_offset_px(calibration: Any) -> float:
-    """cx_left - cx_right of the (rectified if available) cameras: d = f b / Z + offset."""
+    """cx_left - cx_right of the (rectified if available) cameras: d = f b / Z + offset.
+
+    Parameters
+    ----------
+    calibration : object
+        A calibration (P1/P2, else M1/M2).
+
+    Returns
+    -------
+    float
+        The offset, px (0 without either pair).
+    """
     for a, b in (("P1", "P2"), ("M1", "M2")):
         pa, pb = getattr(calibration, a, None), getattr(calibration, b, None)
         if pa is not None and pb is not None:
@@ -191,15 +286,33 @@ class LedRanger:
 
     def measure(self, left_image: ArrayLike, right_image: ArrayLike, left_xy: ArrayLike, right_xy: ArrayLike,
                 background: tuple[ArrayLike, ArrayLike] | None = None) -> RangeEstimate:
-        """One range per LED: ``left_xy``/``right_xy`` (n, 2) are each LED's (x, y) px in the raw
-        left/right images (detection accuracy ~1 px is enough). ``background``: optional dark
-        left/right images (an all-dark symbol) to subtract (iscd method only).
+        """One range per LED.
 
         When LEDs are closer together than half a patch (an array), each patch also holds
         neighbours: patches shrink to about 3 LED spacings, the integer peak search is
         limited to half the spacing and (iscd) a Gaussian window of 0.7 x the spacing,
         centred on the LED in both patches, keeps the patch edges out of the match
-        (docs/ranging.md: 0.13-0.31 -> 0.03 m per LED at 50 m)."""
+        (docs/ranging.md: 0.13-0.31 -> 0.03 m per LED at 50 m).
+
+        Parameters
+        ----------
+        left_image, right_image : array_like
+            (H, W) raw left and right images, DN.
+        left_xy, right_xy : array_like
+            (n, 2) each LED's (x, y) in the raw left/right images, px (detection accuracy ~1 px is
+            enough).
+        background : (array_like, array_like), optional
+            Dark left/right images (an all-dark symbol) to subtract, DN (iscd method only).
+
+        Returns
+        -------
+        RangeEstimate
+            Per LED (n,): range and sigma, m; disparity and sigma, px; quality, validity.
+
+        References
+        ----------
+        Dissertation, eq. (2.2).
+        """
         lxy = np.asarray(left_xy, dtype=np.float64).reshape(-1, 2)
         rxy = np.asarray(right_xy, dtype=np.float64).reshape(-1, 2)
         if lxy.shape != rxy.shape:
@@ -223,10 +336,32 @@ class LedRanger:
 
     def measure_group(self, left_image: ArrayLike, right_image: ArrayLike, left_xy: ArrayLike, right_xy: ArrayLike,
                       margin_px: int = 4, background: tuple[ArrayLike, ArrayLike] | None = None) -> RangeEstimate:
-        """One range for a whole LED array (n = 1): one patch spanning all its LEDs
-        (``left_xy``/``right_xy`` (m, 2)) plus ``margin_px``, in each camera. The integer peak
+        """One range for a whole LED array (n = 1).
+
+        One patch spanning all its LEDs plus ``margin_px``, in each camera. The integer peak
         search is limited to half the smallest LED spacing so that a periodic array cannot
-        match one LED off."""
+        match one LED off.
+
+        Parameters
+        ----------
+        left_image, right_image : array_like
+            (H, W) raw left and right images, DN.
+        left_xy, right_xy : array_like
+            (m, 2) the LEDs' (x, y) in each image, px.
+        margin_px : int
+            Margin around the LEDs, px.
+        background : (array_like, array_like), optional
+            Dark left/right images to subtract, DN.
+
+        Returns
+        -------
+        RangeEstimate
+            n = 1.
+
+        References
+        ----------
+        Dissertation, eq. (2.2).
+        """
         lxy = np.asarray(left_xy, dtype=np.float64).reshape(-1, 2)
         rxy = np.asarray(right_xy, dtype=np.float64).reshape(-1, 2)
         if lxy.shape != rxy.shape or lxy.shape[0] == 0:

@@ -31,4 +31,19 @@ class Estimator(Protocol):
 
     name: str
 
-    def estimate(self, left: ArrayLike, right: ArrayLike, **kw: Any) -> ShiftEstimate: ...
+    def estimate(self, left: ArrayLike, right: ArrayLike, **kw: Any) -> ShiftEstimate:
+        """Shifts of each pair of patches (left position - right position).
+
+        Parameters
+        ----------
+        left, right : array_like
+            (n, h, w) batches of patches, DN (a single (h, w) pair is n = 1).
+        **kw
+            Method-specific options (e.g. ``background``); others ignore them.
+
+        Returns
+        -------
+        ShiftEstimate
+            dx, dy, px; quality; standard deviations, px; all (n,).
+        """
+        ...

@@ -51,9 +51,25 @@ def _spectral(w: int, band_cutoff: float | None) -> tuple[NDArray[np.float64], .
 
 
 def row_weights(h: int, rows_y: ArrayLike, sigma_px: float) -> NDArray[np.float64]:
-    """(h,) projection weights: a Gaussian of ``sigma_px`` at each LED row ``rows_y`` (patch
-    px), summed and scaled to a maximum of 1 (the matched filter of the spots' vertical
-    profile; empty rows between and around them get ~0 weight)."""
+    """Projection weights: a Gaussian of ``sigma_px`` at each LED row, summed, max 1.
+
+    The matched filter of the spots' vertical profile; empty rows between and around them get
+    ~0 weight.
+
+    Parameters
+    ----------
+    h : int
+        Patch height, px.
+    rows_y : array_like
+        LED rows, patch px.
+    sigma_px : float
+        Gaussian standard deviation, px.
+
+    Returns
+    -------
+    ndarray of float64
+        (h,) weights.
+    """
     ys = np.unique(np.round(np.asarray(rows_y, dtype=np.float64).ravel(), 2))
     y = np.arange(h, dtype=np.float64)[:, None]
     w = np.exp(-0.5 * ((y - ys[None, :]) / max(sigma_px, 0.3)) ** 2).sum(axis=1)

@@ -17,6 +17,18 @@ def fourier_shift(images: ArrayLike, dx: ArrayLike, dy: ArrayLike = 0.0) -> NDAr
 
     The exact sub-pixel shift of a periodic band-limited image (Nyquist bins are zeroed so
     that the result stays real).
+
+    Parameters
+    ----------
+    images : array_like
+        (n, h, w) or (h, w) images.
+    dx, dy : array_like
+        Shifts, scalar or (n,), px.
+
+    Returns
+    -------
+    ndarray of float64
+        The shifted images, same shape.
     """
     g = np.asarray(images, dtype=np.float64)
     squeeze = g.ndim == 2
@@ -46,10 +58,26 @@ def _cols(a: ArrayLike, n: int) -> NDArray[np.float64]:
 
 def gaussian_spots(n: int, size: tuple[int, int], cx: ArrayLike, cy: ArrayLike, sigma_px: float,
                    peak: ArrayLike = 1.0) -> NDArray[np.float64]:
-    """Pixel-integrated Gaussian spots, exact (erf): (n, h, w) float, no noise, no clipping.
+    """Pixel-integrated Gaussian spots, exact (erf): no noise, no clipping.
 
-    ``cx``, ``cy`` are (n,) or (n, m) centres (m spots per patch), px; ``peak`` is the value a
-    spot would have at its centre before pixel integration (scalar, (n,) or (n, m)).
+    Parameters
+    ----------
+    n : int
+        Patches.
+    size : (int, int)
+        (h, w), px.
+    cx, cy : array_like
+        (n,) or (n, m) centres (m spots per patch), px.
+    sigma_px : float
+        Gaussian standard deviation, px.
+    peak : array_like
+        Value a spot would have at its centre before pixel integration (scalar, (n,) or
+        (n, m)).
+
+    Returns
+    -------
+    ndarray of float64
+        (n, h, w).
     """
     h, w = size
     cxs, cys = _cols(cx, n), _cols(cy, n)
@@ -70,8 +98,29 @@ def disk_spots(n: int, size: tuple[int, int], cx: ArrayLike, cy: ArrayLike, radi
     The blurred disk is exact: at distance r from the centre it is
     ``peak * P(|X| <= radius)`` for X ~ N(r, sigma^2 I), a non-central chi-square CDF
     (tabulated once per call and interpolated). Pixel integration averages a
-    ``supersample`` x ``supersample`` grid of that smooth function per pixel. ``peak`` is the
-    disk's surface brightness (a large disk's interior value). (n, h, w) float.
+    ``supersample`` x ``supersample`` grid of that smooth function per pixel.
+
+    Parameters
+    ----------
+    n : int
+        Patches.
+    size : (int, int)
+        (h, w), px.
+    cx, cy : array_like
+        Centres, (n,) or (n, m), px.
+    radius_px : float
+        Disk radius, px.
+    psf_sigma_px : float
+        PSF standard deviation, px.
+    peak : array_like
+        The disk's surface brightness (a large disk's interior value).
+    supersample : int
+        Sub-samples per pixel side.
+
+    Returns
+    -------
+    ndarray of float64
+        (n, h, w).
     """
     from scipy.stats import ncx2
 
@@ -101,8 +150,28 @@ def sensor(signal: ArrayLike, rng: np.random.Generator, background_dn: float = 0
            full_scale: float = 255.0) -> NDArray[np.float64]:
     """Add background, shot noise (if ``electrons_per_dn`` > 0), read noise, quantize, clip.
 
-    Returns integer-valued float64 in [0, full_scale] (8-bit by default): a bright spot with
-    ``peak`` above ``full_scale`` saturates exactly like a real 8-bit sensor.
+    A bright spot with ``peak`` above ``full_scale`` saturates exactly like a real 8-bit
+    sensor.
+
+    Parameters
+    ----------
+    signal : array_like
+        Noise-free signal, DN.
+    rng : numpy.random.Generator
+        Noise source.
+    background_dn : float
+        Added background, DN.
+    read_noise_dn : float
+        Read noise standard deviation, DN.
+    electrons_per_dn : float
+        Conversion gain for shot noise, e-/DN (0: no shot noise).
+    full_scale : float
+        Clip level, DN.
+
+    Returns
+    -------
+    ndarray of float64
+        Integer-valued, in [0, full_scale] (8-bit by default), DN.
     """
     v = np.asarray(signal, dtype=np.float64) + background_dn
     if electrons_per_dn > 0:
