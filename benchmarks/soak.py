@@ -202,10 +202,11 @@ def sample_tree(pid: int, t: float) -> dict[str, Any]:
 
 # ---------------------------------------------------------------------- running
 def run(directory: Path, minutes: float, every_s: float, *, sample_s: float = 2.0, ring_ms: float = 2000.0,
-        stall_ms: float = 200.0, vanish_ms: float = 1500.0, python: str = sys.executable) -> int:
+        stall_ms: float = 200.0, vanish_ms: float = 1500.0, python: str = sys.executable,
+        first_s: float | None = None, warmup_s: float = 20.0, env: dict[str, str] | None = None) -> int:
     directory.mkdir(parents=True, exist_ok=True)
     duration = minutes * 60.0
-    faults = fault_schedule(duration, every_s, stall_ms=stall_ms, vanish_ms=vanish_ms)
+    faults = fault_schedule(duration, every_s, stall_ms=stall_ms, vanish_ms=vanish_ms, first_s=first_s)
     (directory / "faults.json").write_text(json.dumps(faults, indent=1))
     cfg = directory / "soak.toml"
     cfg.write_text(config_text(faults, ring_ms))
@@ -218,7 +219,7 @@ def run(directory: Path, minutes: float, every_s: float, *, sample_s: float = 2.
             "cores": os.cpu_count(), "loadavg_start": os.getloadavg()}
     with open(directory / "soak.log", "wb") as log, open(directory / "samples.jsonl", "w") as smp:
         t0 = time.monotonic()
-        proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT)
+        proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, env=env)
         try:
             next_t = t0
             while proc.poll() is None:
@@ -236,7 +237,7 @@ def run(directory: Path, minutes: float, every_s: float, *, sample_s: float = 2.
         meta["loadavg_end"] = os.getloadavg()
         meta["finished"] = time.strftime("%Y-%m-%d %H:%M:%S %Z")
     (directory / "meta.json").write_text(json.dumps(meta, indent=1))
-    return analyze(directory)
+    return analyze(directory, warmup_s=warmup_s)
 
 
 # ---------------------------------------------------------------------- checks
@@ -463,12 +464,14 @@ def main(argv: Sequence[str] | None = None) -> int:
                     help="the daemon's ring (a busy machine's hiccups are not faults)")
     ap.add_argument("--stall-ms", type=float, default=200.0)
     ap.add_argument("--vanish-ms", type=float, default=1500.0)
+    ap.add_argument("--first-s", type=float, default=None, help="first fault (default: half the period)")
+    ap.add_argument("--warmup-s", type=float, default=20.0, help="start-up not checked, s")
     ap.add_argument("--analyze", type=Path, default=None, help="only check the run in this directory")
     a = ap.parse_args(argv)
     if a.analyze is not None:
-        return analyze(a.analyze)
+        return analyze(a.analyze, warmup_s=a.warmup_s)
     return run(a.dir, a.minutes, a.fault_every_s, sample_s=a.sample_s, ring_ms=a.ring_ms,
-               stall_ms=a.stall_ms, vanish_ms=a.vanish_ms)
+               stall_ms=a.stall_ms, vanish_ms=a.vanish_ms, first_s=a.first_s, warmup_s=a.warmup_s)
 
 
 if __name__ == "__main__":

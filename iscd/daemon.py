@@ -520,6 +520,9 @@ class Daemon:
                 final["error"] = fps_state["error"]
             emit([final])
             self.final_stats = final
+            if final.get("jsonl_io_dropped"):  # the file lacks them, maybe this record too: say it here
+                log.warning("jsonl output: %d of %d records could not be written (disk full or I/O errors)",
+                            final["jsonl_io_dropped"], final.get("jsonl_records", 0))
             if fps_state["error"]:
                 notifier.stopping(status="stopped: " + fps_state["error"][:200])
                 raise ConfigError(fps_state["error"])

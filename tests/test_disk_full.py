@@ -121,7 +121,7 @@ def test_daemon_on_a_full_tmpfs_keeps_decoding(small_tmpfs: Path, caplog: pytest
         while not stop.is_set():
             st = os.statvfs(small_tmpfs)
             if st.f_bavail == 0 and out.exists():
-                time.sleep(1.5)  # full for a while: errors and drops
+                time.sleep(1.2)  # full for a while: errors and drops
                 sizes["at_free"] = out.stat().st_size
                 filler.unlink()
                 return
@@ -129,7 +129,7 @@ def test_daemon_on_a_full_tmpfs_keeps_decoding(small_tmpfs: Path, caplog: pytest
 
     helper = threading.Thread(target=free_space_once_full, daemon=True)
     helper.start()
-    duration = 7.0
+    duration = 5.0
     d = Daemon(C.loads(LIGHT), out=str(out), duration_s=duration, install_signals=False)
     t0 = time.monotonic()
     with caplog.at_level(logging.WARNING, logger="iscd.outputs.jsonl"):
@@ -141,7 +141,7 @@ def test_daemon_on_a_full_tmpfs_keeps_decoding(small_tmpfs: Path, caplog: pytest
     recs = _lines(out)  # every line parses
     assert out.stat().st_size > sizes["at_free"], "no record was written after space returned"
     # decoding went on: pairs for the whole run, packets decoded
-    assert final["pairs_decoded"] > 3000 and final["packets_ok"] >= 3
+    assert final["pairs_decoded"] > 2000 and final["packets_ok"] >= 3
     assert final["jsonl_io_dropped"] > 0 and final["jsonl_errors"] > 0
     errors = [r for r in caplog.records if r.levelno >= logging.ERROR and "jsonl output" in r.getMessage()]
     assert 1 <= len(errors) <= wall + 2, [r.getMessage() for r in errors]  # at most once a second
@@ -222,7 +222,7 @@ def test_injected_enospc_in_the_daemon_stats(tmp_path: Path, monkeypatch: pytest
 
     monkeypatch.setattr(J, "_write", enospc)
     out = tmp_path / "o.jsonl"
-    d = Daemon(C.loads(LIGHT), out=str(out), duration_s=4.0, install_signals=False)
+    d = Daemon(C.loads(LIGHT), out=str(out), duration_s=3.0, install_signals=False)
     final = d.run()
     assert final["pairs_decoded"] > 1000
     assert final["jsonl_io_dropped"] > 0 and final["jsonl_records"] >= final["jsonl_io_dropped"]
