@@ -85,8 +85,22 @@ class ChannelModel:
                ) -> tuple[np.ndarray, np.ndarray]:
         """Linear interpolation of ``table`` (C, N, M) at fractional level indices ``q``.
 
-        ``q`` has the LED axis (length N) at ``led_axis``; returns the values and slopes
-        (per unit of q), each of shape (C,) + q.shape.
+        Parameters
+        ----------
+        table : ndarray
+            (C, N, M) values per camera, LED and level (e.g. ``mu``, DN, or ``var``, DN^2).
+        q : ndarray
+            Fractional level indices, 0 .. M-1 (extrapolated from the outer segments beyond),
+            with the LED axis (length N) at ``led_axis``.
+        led_axis : int
+            The axis of ``q`` that indexes the LEDs.
+
+        Returns
+        -------
+        values : ndarray of float64
+            (C,) + q.shape, the units of ``table``.
+        slopes : ndarray of float64
+            (C,) + q.shape, per unit of q.
         """
         C, N, M = table.shape
         q = np.asarray(q, dtype=np.float64)
@@ -144,9 +158,25 @@ class ChannelModel:
                 np.log(v).astype(np.float32))
 
     def lookup(self, q: np.ndarray, led_axis: int = -1) -> tuple[np.ndarray, np.ndarray]:
-        """Centroid and variance (float32) at fractional level indices q (LED axis
-        ``led_axis``), from tables with 1/32-level steps (nearest entry: one gather each,
-        for speed); returns two arrays of shape (C,) + q.shape."""
+        """Centroid and variance (float32) at fractional level indices q.
+
+        From tables with 1/32-level steps (nearest entry: one gather each, for speed).
+
+        Parameters
+        ----------
+        q : ndarray
+            Fractional level indices, 0 .. M-1 (clipped), with the LED axis (length N) at
+            ``led_axis``. Not modified.
+        led_axis : int
+            The axis of ``q`` that indexes the LEDs.
+
+        Returns
+        -------
+        mu : ndarray of float32
+            (C,) + q.shape centroids, DN.
+        var : ndarray of float32
+            (C,) + q.shape variances, DN^2.
+        """
         C, N, M = self.mu.shape
         G = (M - 1) * self.FINE + 1
         shape = [1] * np.ndim(q)
@@ -160,7 +190,21 @@ class ChannelModel:
         return np.take(mu_t, idx, axis=1), np.take(var_t, idx, axis=1)
 
     def interp_error_at(self, q: np.ndarray, led_axis: int = -1) -> np.ndarray:
-        """:attr:`interp_error` (float32) of the segments holding fractional levels q."""
+        """:attr:`interp_error` (float32) of the segments holding fractional levels q.
+
+        Parameters
+        ----------
+        q : ndarray
+            Fractional level indices, 0 .. M-1 (clipped), with the LED axis (length N) at
+            ``led_axis``.
+        led_axis : int
+            The axis of ``q`` that indexes the LEDs.
+
+        Returns
+        -------
+        ndarray of float32
+            (C,) + q.shape RMS interpolation error bounds, DN.
+        """
         C, N, M = self.mu.shape
         shape = [1] * np.ndim(q)
         shape[led_axis] = N
@@ -189,9 +233,30 @@ class ChannelModel:
         return r2.sum(axis=0) if r2.shape[0] > 1 else r2[0]
 
     def cost(self, L: np.ndarray, mu: np.ndarray, var: np.ndarray) -> np.ndarray:
-        """Negative log-likelihood (x2, up to a constant) of L given mu, var, summed over
-        cameras (axis 0); NaN observations cost nothing. L (C, ...) broadcasts against mu
-        over trailing axes; ``var`` may be overwritten."""
+        """Negative log-likelihood (x2, up to a constant) of L given mu, var, summed over cameras.
+
+        NaN observations cost nothing. With ``kind="euclid"`` this is the squared distance of the
+        dissertation's decision rule.
+
+        Parameters
+        ----------
+        L : ndarray
+            (C, ...) observed luminance, DN (NaN = missing); broadcasts against ``mu`` over
+            trailing axes.
+        mu : ndarray
+            (C, ...) centroids, DN.
+        var : ndarray
+            (C, ...) variances, DN^2 (ignored for ``"euclid"``); may be overwritten.
+
+        Returns
+        -------
+        ndarray of float32
+            The cost, the broadcast shape without the camera axis 0.
+
+        References
+        ----------
+        Dissertation, eqs. (3.12), (4.3) (``"euclid"``).
+        """
         L = np.asarray(L, dtype=np.float32)
         r2 = np.subtract(L, mu, dtype=np.float32)
         np.square(r2, out=r2)
@@ -202,7 +267,22 @@ class ChannelModel:
         return self._combine(r2, ivar, np.log(var, out=var), L)
 
     def level_cost(self, L: np.ndarray) -> np.ndarray:
-        """Cost (n, N, M) of each level for clean observations L (C, n, N)."""
+        """Cost (n, N, M) of each level for clean observations L (C, n, N).
+
+        Parameters
+        ----------
+        L : ndarray
+            (C, n, N) clean-frame luminance, DN (NaN = missing).
+
+        Returns
+        -------
+        ndarray of float32
+            (n, N, M) cost of each 0-based level, summed over cameras.
+
+        References
+        ----------
+        Dissertation, eqs. (3.12), (4.3) (``"euclid"``).
+        """
         mu, ivar, logvar = self._tables
         L = np.asarray(L, dtype=np.float32)
         r2 = np.square(L[..., None] - mu[:, None])
@@ -232,8 +312,25 @@ def _fill_levels(m: np.ndarray, seen: np.ndarray) -> np.ndarray:
 def estimate_dissertation(y: np.ndarray, lev: np.ndarray, M: int) -> ChannelModel:
     """Channel factors (3.11 / 4.2): centroid ``w^s s = mean over LEDs and samples of L^s``.
 
-    y: (C, n, N) clean-frame luminance of labelled symbols (NaN = missing); lev: (n, N)
-    their 0-based levels (-1 = unlabelled). Same centroids for every LED of a camera.
+    Same centroids for every LED of a camera.
+
+    Parameters
+    ----------
+    y : ndarray
+        (C, n, N) clean-frame luminance of labelled symbols, DN (NaN = missing).
+    lev : ndarray
+        (n, N) their 0-based levels (-1 = unlabelled).
+    M : int
+        Number of levels.
+
+    Returns
+    -------
+    ChannelModel
+        ``kind="euclid"``, centroids (C, N, M) DN, unit variances.
+
+    References
+    ----------
+    Dissertation, eqs. (3.11), (4.2); decision (3.12), (4.3).
     """
     C, _, N = y.shape
     mu = np.zeros((C, N, M))
@@ -538,10 +635,29 @@ def estimate_iscd(y: np.ndarray, lev: np.ndarray, M: int,
                   nu: float = 6.0) -> ChannelModel:
     """The project's channel model (module docstring) from labelled clean samples.
 
-    y: (C, n, N) luminance, DN (NaN = missing); lev: (n, N) 0-based levels (-1 = unknown).
     A camera without usable samples gets flat centroids and a huge variance (it then
     contributes nothing to decisions). Compiled per camera (:func:`_iscd_camera`);
     :func:`estimate_iscd_reference` is the specification.
+
+    Parameters
+    ----------
+    y : ndarray
+        (C, n, N) luminance, DN (NaN = missing).
+    lev : ndarray
+        (n, N) 0-based levels (-1 = unknown).
+    M : int
+        Number of levels.
+    settings : IscdChannelSettings, optional
+        Shrinkage and floors (default :class:`IscdChannelSettings()`).
+    kind : {"gauss", "t", "euclid"}
+        Cost of the returned model.
+    nu : float
+        Degrees of freedom of the Student-t cost.
+
+    Returns
+    -------
+    ChannelModel
+        Centroids ``mu`` (C, N, M), DN, and variances ``var`` (C, N, M), DN^2.
     """
     st = settings or IscdChannelSettings()
     C, _, N = y.shape
@@ -564,10 +680,28 @@ def estimate_iscd_reference(y: np.ndarray, lev: np.ndarray, M: int,
     """Pure-numpy reference of :func:`estimate_iscd` (the compiled kernel's specification).
 
     The project's channel model (module docstring) from labelled clean samples.
-
-    y: (C, n, N) luminance, DN (NaN = missing); lev: (n, N) 0-based levels (-1 = unknown).
     A camera without usable samples gets flat centroids and a huge variance (it then
     contributes nothing to decisions).
+
+    Parameters
+    ----------
+    y : ndarray
+        (C, n, N) luminance, DN (NaN = missing).
+    lev : ndarray
+        (n, N) 0-based levels (-1 = unknown).
+    M : int
+        Number of levels.
+    settings : IscdChannelSettings, optional
+        Shrinkage and floors (default :class:`IscdChannelSettings()`).
+    kind : {"gauss", "t", "euclid"}
+        Cost of the returned model.
+    nu : float
+        Degrees of freedom of the Student-t cost.
+
+    Returns
+    -------
+    ChannelModel
+        Centroids ``mu`` (C, N, M), DN, and variances ``var`` (C, N, M), DN^2.
     """
     st = settings or IscdChannelSettings()
     C, _, N = y.shape
@@ -614,6 +748,18 @@ class ChannelTrack:
 
     @classmethod
     def single(cls, model: ChannelModel) -> "ChannelTrack":
+        """A track of one model, holding for the whole packet.
+
+        Parameters
+        ----------
+        model : ChannelModel
+            The channel.
+
+        Returns
+        -------
+        ChannelTrack
+            ``starts = (0,)``, ``models = (model,)``.
+        """
         return cls((0,), (model,))
 
     @cached_property
@@ -623,6 +769,17 @@ class ChannelTrack:
                 np.stack([m.interp_error for m in self.models]))
 
     def segment(self, k: np.ndarray) -> np.ndarray:
-        """Index of the model holding for each packet symbol k."""
+        """Index of the model holding for each packet symbol k.
+
+        Parameters
+        ----------
+        k : ndarray
+            Packet symbol indices, symbols.
+
+        Returns
+        -------
+        ndarray of intp
+            Indices into :attr:`models`, the shape of ``k`` (symbols before ``starts[0]`` get 0).
+        """
         j = np.searchsorted(np.asarray(self.starts), np.asarray(k), side="right") - 1
         return np.clip(j, 0, len(self.models) - 1)

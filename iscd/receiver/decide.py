@@ -100,7 +100,31 @@ class CleanCosts:
 
 def clean_costs_reference(L: np.ndarray, clock: SymbolClock, e: float, k_a: int, k_b: int,
                 model: ChannelModel) -> CleanCosts:
-    """Pure-numpy reference of :func:`clean_costs` (the compiled kernel's specification)."""
+    """Pure-numpy reference of :func:`clean_costs` (the compiled kernel's specification).
+
+    Parameters
+    ----------
+    L : ndarray
+        (C, n, N) luminance of the buffer's frames, DN (NaN = missing).
+    clock : SymbolClock
+        The packet's symbol clock, frames.
+    e : float
+        Exposure window length, frames (exposure_s * fps).
+    k_a, k_b : int
+        Packet symbols ``k_a <= k < k_b`` to cost, symbols.
+    model : ChannelModel
+        The channel.
+
+    Returns
+    -------
+    CleanCosts
+        Costs (S, N, M) and observation counts (S, N), S = k_b - k_a, with the span's frame
+        geometry.
+
+    References
+    ----------
+    Dissertation, eqs. (3.12), (4.3) (Euclidean model).
+    """
     C, n, N = L.shape
     M = model.levels
     S = k_b - k_a
@@ -126,13 +150,48 @@ def decide_span_reference(L: np.ndarray, clock: SymbolClock, e: float, k_a: int,
                 edge_levels: tuple[int, ...] = ()) -> SpanDecision:
     """Decide packet symbols ``k_a <= k < k_b`` from the buffer L (C, n, N).
 
-    ctx: (S, N) 0-based levels of packet symbols ``k_first ..`` used as the neighbours of
-    straddling frames (-1 unknown); straddle=False uses clean frames only. With
-    straddling frames, only the ``candidates`` best levels of the clean frames compete
-    (0 = all M; symbols without a clean frame always get all M). ``pre``: the span's
-    :func:`clean_costs` when already computed (same clock and model). edge_levels: the
-    plausible 0-based levels of the symbol right after the context (its straddling frame
-    with the last context symbol then counts with the best of them).
+    Pure-numpy reference of :func:`decide_span`. With straddling frames, only the
+    ``candidates`` best levels of the clean frames compete (symbols without a clean frame
+    always get all M).
+
+    Parameters
+    ----------
+    L : ndarray
+        (C, n, N) luminance of the buffer's frames, DN (NaN = missing).
+    clock : SymbolClock
+        The packet's symbol clock, frames.
+    e : float
+        Exposure window length, frames (exposure_s * fps).
+    k_a, k_b : int
+        Packet symbols to decide, symbols.
+    model : ChannelModel
+        The channel.
+    ctx : ndarray, optional
+        (S, N) 0-based levels of packet symbols ``k_first ..`` used as the neighbours of
+        straddling frames (-1 unknown); None: clean frames only.
+    k_first : int
+        Packet symbol of ``ctx[0]``, symbols.
+    straddle : bool
+        False: clean frames only.
+    timing_sigma : float
+        Symbol boundary uncertainty that widens the straddle variances, frames.
+    candidates : int
+        Levels per symbol that compete with straddling frames (0 = all M).
+    pre : CleanCosts, optional
+        The span's :func:`clean_costs` when already computed (same clock and model).
+    edge_levels : tuple of int
+        The plausible 0-based levels of the symbol right after the context (its straddling
+        frame with the last context symbol then counts with the best of them).
+
+    Returns
+    -------
+    SpanDecision
+        0-based levels, margins (cost gap to the runner-up) and observation counts, each
+        (k_b - k_a, N).
+
+    References
+    ----------
+    Dissertation, eqs. (3.12), (4.3) (Euclidean model, clean frames only).
     """
     cc = pre if pre is not None else clean_costs_reference(L, clock, e, k_a, k_b, model)
     if not (straddle and ctx is not None):
@@ -652,7 +711,31 @@ def _kind_args(model: ChannelModel) -> tuple[int, np.float32, np.float32]:
 def clean_costs(L: np.ndarray, clock: SymbolClock, e: float, k_a: int, k_b: int,
                 model: ChannelModel) -> CleanCosts:
     """Clean-frame costs of packet symbols ``k_a <= k < k_b`` from the buffer L (C, n, N)
-    (compiled; :func:`clean_costs_reference` is the specification)."""
+    (compiled; :func:`clean_costs_reference` is the specification).
+
+    Parameters
+    ----------
+    L : ndarray
+        (C, n, N) luminance of the buffer's frames, DN (NaN = missing).
+    clock : SymbolClock
+        The packet's symbol clock, frames.
+    e : float
+        Exposure window length, frames (exposure_s * fps).
+    k_a, k_b : int
+        Packet symbols to cost, symbols.
+    model : ChannelModel
+        The channel.
+
+    Returns
+    -------
+    CleanCosts
+        Costs (S, N, M) and observation counts (S, N), S = k_b - k_a, with the span's frame
+        geometry.
+
+    References
+    ----------
+    Dissertation, eqs. (3.12), (4.3) (Euclidean model).
+    """
     C, n, N = L.shape
     lo = int(max(0, np.floor(clock.boundary(k_a)) - 1))
     hi = int(min(n, np.ceil(clock.boundary(k_b)) + 1))
@@ -672,16 +755,50 @@ def decide_span(L: np.ndarray, clock: SymbolClock, e: float, k_a: int, k_b: int,
                 edge_levels: tuple[int, ...] = ()) -> SpanDecision:
     """Decide packet symbols ``k_a <= k < k_b`` from the buffer L (C, n, N).
 
-    ctx: (S, N) 0-based levels of packet symbols ``k_first ..`` used as the neighbours of
-    straddling frames (-1 unknown); straddle=False uses clean frames only. With
-    straddling frames, only the ``candidates`` best levels of the clean frames compete
-    (0 = all M; symbols without a clean frame always get all M). ``pre``: the span's
-    :func:`clean_costs` when already computed (same clock and model). edge_levels: the
-    plausible 0-based levels of the symbol right after the context (its straddling frame
-    with the last context symbol then counts with the best of them).
+    With straddling frames, only the ``candidates`` best levels of the clean frames compete
+    (symbols without a clean frame always get all M).
 
     Compiled (:func:`_clean_kernel`, :func:`_straddle_kernel`, :func:`_finish_kernel`);
     :func:`decide_span_reference` is the specification.
+
+    Parameters
+    ----------
+    L : ndarray
+        (C, n, N) luminance of the buffer's frames, DN (NaN = missing).
+    clock : SymbolClock
+        The packet's symbol clock, frames.
+    e : float
+        Exposure window length, frames (exposure_s * fps).
+    k_a, k_b : int
+        Packet symbols to decide, symbols.
+    model : ChannelModel
+        The channel.
+    ctx : ndarray, optional
+        (S, N) 0-based levels of packet symbols ``k_first ..`` used as the neighbours of
+        straddling frames (-1 unknown); None: clean frames only.
+    k_first : int
+        Packet symbol of ``ctx[0]``, symbols.
+    straddle : bool
+        False: clean frames only.
+    timing_sigma : float
+        Symbol boundary uncertainty that widens the straddle variances, frames.
+    candidates : int
+        Levels per symbol that compete with straddling frames (0 = all M).
+    pre : CleanCosts, optional
+        The span's :func:`clean_costs` when already computed (same clock and model).
+    edge_levels : tuple of int
+        The plausible 0-based levels of the symbol right after the context (its straddling
+        frame with the last context symbol then counts with the best of them).
+
+    Returns
+    -------
+    SpanDecision
+        0-based levels, margins (cost gap to the runner-up) and observation counts, each
+        (k_b - k_a, N).
+
+    References
+    ----------
+    Dissertation, eqs. (3.12), (4.3) (Euclidean model, clean frames only).
     """
     cc = pre if pre is not None else clean_costs(L, clock, e, k_a, k_b, model)
     if not (straddle and ctx is not None):

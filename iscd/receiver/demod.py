@@ -102,8 +102,20 @@ WEAK_MARGIN = 4.0
 
 
 def level_separation(model: ChannelModel) -> np.ndarray:
-    """(C, N, M - 1) distance of adjacent level centroids in noise RMS units:
-    ``(mu_s+1 - mu_s) / sqrt((var_s + var_s+1) / 2)`` per camera and LED."""
+    """(C, N, M - 1) distance of adjacent level centroids in noise RMS units.
+
+    ``(mu_s+1 - mu_s) / sqrt((var_s + var_s+1) / 2)`` per camera and LED.
+
+    Parameters
+    ----------
+    model : ChannelModel
+        Centroids (C, N, M), DN, and variances, DN^2.
+
+    Returns
+    -------
+    ndarray of float64
+        (C, N, M - 1) separations, noise RMS.
+    """
     sd = np.sqrt(0.5 * (model.var[..., 1:] + model.var[..., :-1]))
     return (model.mu[..., 1:] - model.mu[..., :-1]) / np.maximum(sd, 1e-9)
 
@@ -118,7 +130,23 @@ def failure_reason(models: list[ChannelModel], margins: np.ndarray) -> str:
     * ``"weak decisions"`` -- the levels are apart but many decisions are weak (noise,
       motion, timing);
     * otherwise ``"few symbol errors"`` -- a handful of wrong symbols (v1 has no FEC).
-    The worst stretch of the packet counts (``models``: the channel of each stretch)."""
+
+    The worst stretch of the packet counts.
+
+    Parameters
+    ----------
+    models : list of ChannelModel
+        The channel of each stretch of the packet.
+    margins : ndarray
+        The packet's decision margins (cost gap to the runner-up), any shape; below
+        :data:`WEAK_MARGIN` is weak.
+
+    Returns
+    -------
+    str
+        The reason, starting with one of the four labels above, with the count of weak
+        decisions.
+    """
     n_weak = int((margins < WEAK_MARGIN).sum()) if margins.size else 0
     detail = f"{n_weak} of {margins.size} decisions weak"
     noisy = [m for m in models if m.kind != "euclid"]  # (the dissertation's rule has no variances)
@@ -139,13 +167,45 @@ def failure_reason(models: list[ChannelModel], margins: np.ndarray) -> str:
 
 
 def known_levels(air: AirInterface) -> np.ndarray:
-    """0-based levels (13 + K, N) of header and training."""
+    """0-based levels (13 + K, N) of header and training.
+
+    Parameters
+    ----------
+    air : AirInterface
+        The air interface (M, N, K).
+
+    Returns
+    -------
+    ndarray of int64
+        (13 + K, N) levels 0 .. M-1, symbol time major.
+    """
     return np.concatenate([air.header(), air.training()]).astype(np.int64) - 1
 
 
 def clean_samples(L: np.ndarray, clock: SymbolClock, e: float, lev: np.ndarray, k_first: int
                   ) -> tuple[np.ndarray, np.ndarray]:
-    """Clean-frame luminance (C, n_s, N) of packet symbols ``k_first ..`` and their levels."""
+    """Clean-frame luminance (C, n_s, N) of packet symbols ``k_first ..`` and their levels.
+
+    Parameters
+    ----------
+    L : ndarray
+        (C, n, N) luminance of the buffer's frames, DN.
+    clock : SymbolClock
+        The packet's symbol clock, frames.
+    e : float
+        Exposure window length, frames (exposure_s * fps).
+    lev : ndarray
+        (S, N) 0-based levels of packet symbols ``k_first .. k_first + S - 1``.
+    k_first : int
+        Packet symbol of ``lev[0]``, symbols.
+
+    Returns
+    -------
+    y : ndarray
+        (C, n_s, N) luminance of the clean frames of those symbols, DN.
+    lev : ndarray
+        (n_s, N) the level of each of those frames.
+    """
     S = lev.shape[0]
     lo = int(max(0, np.floor(clock.boundary(k_first))))
     hi = int(min(L.shape[1], np.ceil(clock.boundary(k_first + S)) + 1))
@@ -156,7 +216,18 @@ def clean_samples(L: np.ndarray, clock: SymbolClock, e: float, lev: np.ndarray, 
 
 
 def rankdata(a: np.ndarray) -> np.ndarray:
-    """Ranks (1..n, ties averaged) along axis 0 of a 2-D array, like scipy's rankdata."""
+    """Ranks (1..n, ties averaged) along axis 0 of a 2-D array, like scipy's rankdata.
+
+    Parameters
+    ----------
+    a : ndarray
+        (n, m) values.
+
+    Returns
+    -------
+    ndarray of float64
+        (n, m) ranks of each column.
+    """
     n, m = a.shape
     order = np.argsort(a, axis=0, kind="stable")
     srt = np.take_along_axis(a, order, axis=0)
@@ -172,8 +243,21 @@ def rankdata(a: np.ndarray) -> np.ndarray:
 
 
 def training_rank_correlation(y: np.ndarray, lev: np.ndarray) -> float:
-    """Mean over LEDs and cameras of the Spearman correlation of clean training samples
-    y (C, n, N) with their levels (n, N); NaN when not computable."""
+    """Mean over LEDs and cameras of the Spearman correlation of clean training samples.
+
+    Parameters
+    ----------
+    y : ndarray
+        (C, n, N) clean-frame luminance of training symbols, DN (NaN = missing; columns with
+        fewer than 4 values are skipped).
+    lev : ndarray
+        (n, N) their levels.
+
+    Returns
+    -------
+    float
+        Mean rank correlation, -1 .. 1; NaN when not computable (n < 4 or no usable column).
+    """
     C, n, N = y.shape
     if n < 4:
         return float("nan")
@@ -199,7 +283,18 @@ def training_rank_correlation(y: np.ndarray, lev: np.ndarray) -> float:
 
 
 def header_contrast(model: ChannelModel) -> float:
-    """Median over LEDs of the best camera's (level M - level 1) / noise RMS."""
+    """Median over LEDs of the best camera's (level M - level 1) / noise RMS.
+
+    Parameters
+    ----------
+    model : ChannelModel
+        Centroids (C, N, M), DN, and variances, DN^2.
+
+    Returns
+    -------
+    float
+        The contrast, noise RMS.
+    """
     sd = np.sqrt(0.5 * (model.var[:, :, -1] + model.var[:, :, 0]))
     c = (model.mu[:, :, -1] - model.mu[:, :, 0]) / sd
     return float(np.median(c.max(0)))
@@ -412,10 +507,6 @@ def demodulate_packet(L: np.ndarray, u_guess: float, air: AirInterface, e: float
                       ) -> PacketResult | Rejection:
     """Demodulate the packet whose header starts near frame-unit time ``u_guess``.
 
-    L: (C, n, N) luminance of the selected cameras (NaN = missing), covering the whole
-    packet; e: exposure in frames; p_nominal: fps / symbol rate; p_prior, p_sigma: expected
-    symbol period (frames) and its RMS uncertainty.
-
     With ``channel_window_symbols`` the channel is first tracked along the packet; if that
     packet fails its CRC it is demodulated again with one channel for the whole packet
     (better at low SNR when nothing changes: every symbol estimates it) and the CRC
@@ -423,10 +514,42 @@ def demodulate_packet(L: np.ndarray, u_guess: float, air: AirInterface, e: float
     for a wrong packet. When both fail, the one with the larger mean decision margin is
     reported.
 
-    Diagnosis hooks (:mod:`iscd.eval.oracle`; the receiver never passes them): ``clock``
-    fixes the symbol clock (no fine phase, no clock fits; ``header_r2`` is NaN);
-    ``channel`` replaces every channel estimate of the iscd rule (verification, tracking
-    and final pass) by ``channel(clock, a, b)`` for the stretch [a, b) of packet symbols.
+    Parameters
+    ----------
+    L : ndarray
+        (C, n, N) luminance of the selected cameras, DN (NaN = missing), covering the whole
+        packet.
+    u_guess : float
+        Approximate header start (:func:`iscd.receiver.timing.coarse_header_search`), frames.
+    air : AirInterface
+        The air interface (M, N, K, F, G).
+    e : float
+        Exposure window length, frames (exposure_s * fps).
+    p_nominal : float
+        Nominal symbol period fps / symbol rate, frames.
+    p_prior : float
+        Expected symbol period, frames.
+    p_sigma : float
+        Its RMS uncertainty, frames.
+    cfg : ReceiverConfig
+        Receiver settings.
+    clock : SymbolClock, optional
+        Diagnosis hook (:mod:`iscd.eval.oracle`; the receiver never passes it): fixes the
+        symbol clock (no fine phase, no clock fits; ``header_r2`` is NaN).
+    channel : callable, optional
+        Diagnosis hook: ``channel(clock, a, b)`` replaces every channel estimate of the iscd
+        rule (verification, tracking and final pass) for the stretch [a, b) of packet
+        symbols.
+
+    Returns
+    -------
+    PacketResult or Rejection
+        The decided levels and payload (``crc_ok``), or why the header candidate did not
+        become a packet (``"incomplete"``: its frames are not all in ``L`` yet).
+
+    References
+    ----------
+    Dissertation, eqs. (3.11), (4.2) and (3.12), (4.3) (the ``dissertation`` rule).
     """
     res = _demodulate(L, u_guess, air, e, p_nominal, p_prior, p_sigma, cfg, clock, channel)
     if isinstance(res, PacketResult) and not res.crc_ok and res.channel == "tracked":

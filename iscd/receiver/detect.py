@@ -65,7 +65,19 @@ class GridFit:
                 self.origin[1] + (self.rows - 1) / 2 * self.pitch_px)
 
     def bbox(self, margin: float = 0.0) -> tuple[int, int, int, int]:
-        """Integer (x0, y0, x1, y1) bounds (x1, y1 exclusive) of the array plus ``margin`` px."""
+        """Integer (x0, y0, x1, y1) bounds (x1, y1 exclusive) of the array plus ``margin`` px.
+
+        Parameters
+        ----------
+        margin : float
+            Added on every side beyond the LED spots (half ``spot_px`` around the outer
+            centres), px.
+
+        Returns
+        -------
+        tuple of int
+            (x0, y0, x1, y1), px (not clipped to the image).
+        """
         half = self.spot_px / 2 + margin
         xs = (self.origin[0], self.origin[0] + (self.cols - 1) * self.pitch_px)
         ys = (self.origin[1], self.origin[1] + (self.rows - 1) * self.pitch_px)
@@ -73,6 +85,18 @@ class GridFit:
                 int(np.ceil(xs[1] + half)) + 1, int(np.ceil(ys[1] + half)) + 1)
 
     def shifted(self, dx: float, dy: float) -> "GridFit":
+        """The same fit with its origin moved by (dx, dy).
+
+        Parameters
+        ----------
+        dx, dy : float
+            Shift, px.
+
+        Returns
+        -------
+        GridFit
+            A copy with ``origin`` + (dx, dy).
+        """
         return replace(self, origin=(self.origin[0] + dx, self.origin[1] + dy))
 
 
@@ -90,7 +114,20 @@ class Blob:
 def activity_map(frames: np.ndarray) -> np.ndarray:
     """Temporal gradient: mean absolute difference of consecutive frames, (H, W) float32.
 
-    ``frames``: (n, H, W) uint8/uint16, n >= 2. Units: grey levels per frame.
+    Parameters
+    ----------
+    frames : ndarray
+        (n, H, W) uint8/uint16 frames, DN, n >= 2.
+
+    Returns
+    -------
+    ndarray of float32
+        (H, W) activity, DN per frame.
+
+    Raises
+    ------
+    ValueError
+        If ``frames`` is not (n >= 2, H, W).
     """
     f = np.asarray(frames)
     if f.ndim != 3 or f.shape[0] < 2:
@@ -111,13 +148,34 @@ def light_map(frames: np.ndarray) -> np.ndarray:
     Peaks at each LED's centre even when the LED saturates (its core then sits at 255 for
     all bright levels and shows little temporal gradient, so the activity map is a ring);
     a steady light or the background gives only a few noise RMS.
+
+    Parameters
+    ----------
+    frames : ndarray
+        (n, H, W) frames, DN.
+
+    Returns
+    -------
+    ndarray of float32
+        (H, W) modulated light, DN.
     """
     f = np.asarray(frames)
     return f.mean(axis=0, dtype=np.float32) - f.min(axis=0).astype(np.float32)
 
 
 def spatial_gradient(image: np.ndarray) -> np.ndarray:
-    """Sobel gradient magnitude of ``image`` (grey levels per px), float32."""
+    """Sobel gradient magnitude of ``image`` (grey levels per px), float32.
+
+    Parameters
+    ----------
+    image : ndarray
+        (H, W) image, DN.
+
+    Returns
+    -------
+    ndarray of float32
+        (H, W) gradient magnitude (3x3 Sobel), DN/px.
+    """
     im = np.asarray(image, dtype=np.float32)
     gx = cv2.Sobel(im, cv2.CV_32F, 1, 0, ksize=3)
     gy = cv2.Sobel(im, cv2.CV_32F, 0, 1, ksize=3)
@@ -125,7 +183,18 @@ def spatial_gradient(image: np.ndarray) -> np.ndarray:
 
 
 def noise_level(act: np.ndarray) -> float:
-    """Robust noise level of an activity map: median + 1.4826 * MAD (grey levels/frame)."""
+    """Robust noise level of an activity map: median + 1.4826 * MAD (grey levels/frame).
+
+    Parameters
+    ----------
+    act : ndarray
+        (H, W) activity map (:func:`activity_map`), DN per frame.
+
+    Returns
+    -------
+    float
+        The noise level, DN per frame.
+    """
     med = float(np.median(act))
     mad = float(np.median(np.abs(act - med)))
     return med + 1.4826 * mad
@@ -135,9 +204,28 @@ def find_blobs(act: np.ndarray, mean_frame: np.ndarray | None = None, *, k_sigma
                min_activity: float = 4.0, min_edge: float = 8.0) -> list[Blob]:
     """Active compact regions of an activity map, strongest first.
 
-    A pixel is active above ``max(min_activity, median + k_sigma * 1.4826 MAD)``. Each
-    contour's blob must show a spatial edge (Sobel magnitude of ``mean_frame`` >=
-    ``min_edge`` grey levels/px somewhere inside) when ``mean_frame`` is given.
+    A pixel is active above ``max(min_activity, median + k_sigma * 1.4826 MAD)`` (MAD at
+    least 0.05). Each contour's blob must show a spatial edge (Sobel magnitude of
+    ``mean_frame`` >= ``min_edge`` grey levels/px somewhere inside) when ``mean_frame`` is
+    given.
+
+    Parameters
+    ----------
+    act : ndarray
+        (H, W) activity map (:func:`activity_map`), DN per frame.
+    mean_frame : ndarray, optional
+        (H, W) mean frame of the same block, DN; None skips the edge test.
+    k_sigma : float
+        Threshold above the median, robust noise RMS.
+    min_activity : float
+        Least threshold, DN per frame.
+    min_edge : float
+        Least Sobel magnitude inside a blob, DN/px.
+
+    Returns
+    -------
+    list of Blob
+        Sorted by peak activity x area, largest first.
     """
     med = float(np.median(act))
     mad = float(np.median(np.abs(act - med)))
@@ -168,7 +256,20 @@ def find_blobs(act: np.ndarray, mean_frame: np.ndarray | None = None, *, k_sigma
 
 
 def group_blobs(blobs: list[Blob], max_gap: float) -> list[list[Blob]]:
-    """Cluster blobs whose bounding boxes are closer than ``max_gap`` px (single linkage)."""
+    """Cluster blobs whose bounding boxes are closer than ``max_gap`` px (single linkage).
+
+    Parameters
+    ----------
+    blobs : list of Blob
+        The blobs (:func:`find_blobs`).
+    max_gap : float
+        Largest gap between two bounding boxes (Chebyshev, inclusive) that joins them, px.
+
+    Returns
+    -------
+    list of list of Blob
+        The clusters, by summed peak x area, largest first.
+    """
     n = len(blobs)
     parent = list(range(n))
 
@@ -204,10 +305,34 @@ def fit_grid(act: np.ndarray, rows: int, cols: int, region: tuple[int, int, int,
              pitch_range: tuple[float, float] = (1.5, 200.0)) -> GridFit:
     """Fit a ``rows x cols`` LED grid to an activity map (see module docstring).
 
-    region: (x0, y0, x1, y1) px to look in (default: the whole map). pitch_guess /
-    origin_guess: a previous fit to refine (tracking); otherwise the pitch starts from the
-    second moments of the activity (a uniform grid of n points at pitch p has variance
-    p²(n²-1)/12 along that axis) and the origin from its centroid.
+    Without guesses the pitch starts from the second moments of the activity (a uniform grid
+    of n points at pitch p has variance p²(n²-1)/12 along that axis) and the origin from its
+    centroid.
+
+    Parameters
+    ----------
+    act : ndarray
+        (H, W) activity map, DN per frame (or a light map, :func:`light_map`, DN).
+    rows, cols : int
+        The configured layout.
+    region : (int, int, int, int), optional
+        (x0, y0, x1, y1) px to look in (default: the whole map).
+    pitch_guess : float, optional
+        A previous fit's pitch to refine (tracking), px.
+    origin_guess : (float, float), optional
+        A previous fit's origin (x, y) to refine, px.
+    pitch_range : (float, float)
+        Smallest and largest pitch, px.
+
+    Returns
+    -------
+    GridFit
+        Origin and pitch, px; score, the units of ``act``; spot diameter, px.
+
+    Raises
+    ------
+    ValueError
+        If the region is empty or has no activity.
     """
     H, W = act.shape
     x0, y0, x1, y1 = region if region is not None else (0, 0, W, H)
@@ -284,7 +409,20 @@ def flux_modulation(frames: np.ndarray, bbox: tuple[int, int, int, int], pad: in
     The flux is the per-frame sum of the pixels in ``bbox`` grown by ``pad`` px (so the
     whole spot stays inside while the rig vibrates), minus the box's border pixels' mean
     per pixel (the background): ``(p95 - p5 of the flux over frames) / max(mean flux, 1 DN)``.
-    frames: (n, H, W); bbox: (x0, y0, x1, y1) px.
+
+    Parameters
+    ----------
+    frames : ndarray
+        (n, H, W) frames, DN.
+    bbox : (int, int, int, int)
+        The candidate's (x0, y0, x1, y1), px.
+    pad : int
+        Growth of the box on every side, px.
+
+    Returns
+    -------
+    float
+        The relative modulation (0 when the clipped box is smaller than 3x3 px).
     """
     f = np.asarray(frames)
     H, W = f.shape[1:]
@@ -303,9 +441,21 @@ def detect_array(frames: np.ndarray, rows: int, cols: int, *, exclude: list[tupl
                  ) -> GridFit | None:
     """Find the transmitter (a ``rows x cols`` array, or one LED) in a block of frames.
 
-    ``frames``: (n, H, W), n >= 8 frames that include symbol changes (any 64 frames of a
-    packet do). ``exclude``: bboxes of candidates already rejected (e.g. a flickering lamp
-    that never sent a header). Returns ``None`` if nothing blinks.
+    Parameters
+    ----------
+    frames : ndarray
+        (n, H, W) frames, DN, n >= 8, that include symbol changes (any 64 frames of a packet
+        do).
+    rows, cols : int
+        The configured layout.
+    exclude : list of (int, int, int, int), optional
+        (x0, y0, x1, y1) px boxes of candidates already rejected (e.g. a flickering lamp that
+        never sent a header); blobs centred inside them are ignored.
+
+    Returns
+    -------
+    GridFit or None
+        The best fit, px; None if nothing blinks.
     """
     act = activity_map(frames)
     mean = frames.mean(axis=0, dtype=np.float32)
@@ -352,7 +502,26 @@ def track_array(frames: np.ndarray, prev: GridFit, *, margin: float | None = Non
     the grid points) is evaluated for a small set of shifts (+-0.5 px in 0.25 px steps,
     plus a whole-pitch search when the score is poor) and pitch scales (+-2 %) in one
     vectorized interpolation; tracking is iterative, so each block moves the fit at most
-    that far. Raises ValueError if the window has no activity.
+    that far.
+
+    Parameters
+    ----------
+    frames : ndarray
+        (n, H, W) frames, DN.
+    prev : GridFit
+        The previous fit, px.
+    margin : float, optional
+        Window around the fit, px (default 2 pitches + 4 px).
+
+    Returns
+    -------
+    GridFit
+        The refined fit, image px.
+
+    Raises
+    ------
+    ValueError
+        If the window is (nearly) outside the image or has no activity.
     """
     x0, y0, x1, y1 = track_box(prev, frames.shape[1:], margin=margin)
     return track_on_light(light_map(frames[:, y0:y1, x0:x1]), prev, x0, y0)
@@ -360,9 +529,29 @@ def track_array(frames: np.ndarray, prev: GridFit, *, margin: float | None = Non
 
 def track_box(prev: GridFit, shape: tuple[int, int], *, margin: float | None = None
               ) -> tuple[int, int, int, int]:
-    """The window (x0, y0, x1, y1) px that :func:`track_array` reads around ``prev`` in
-    images of ``shape`` (H, W): ``margin`` px (default 2 pitches + 4 px) around the fit.
-    Raises ValueError if it is (nearly) outside the image."""
+    """The window (x0, y0, x1, y1) px that :func:`track_array` reads around ``prev``.
+
+    ``margin`` px (default 2 pitches + 4 px) around the fit, clipped to the image.
+
+    Parameters
+    ----------
+    prev : GridFit
+        The previous fit, px.
+    shape : (int, int)
+        Image shape (H, W), px.
+    margin : float, optional
+        Window around the fit, px (default 2 pitches + 4 px).
+
+    Returns
+    -------
+    tuple of int
+        (x0, y0, x1, y1), px (x1, y1 exclusive).
+
+    Raises
+    ------
+    ValueError
+        If the window is (nearly) outside the image.
+    """
     m = margin if margin is not None else 2 * prev.pitch_px + 4
     x0, y0, x1, y1 = prev.bbox(m)
     H, W = shape
@@ -374,7 +563,27 @@ def track_box(prev: GridFit, shape: tuple[int, int], *, margin: float | None = N
 
 def track_on_light(light: np.ndarray, prev: GridFit, x0: int, y0: int) -> GridFit:
     """:func:`track_array` on the light map (:func:`light_map`) of its window, whose
-    top-left pixel is (x0, y0) px in the image."""
+    top-left pixel is (x0, y0) px in the image.
+
+    Parameters
+    ----------
+    light : ndarray
+        (h, w) light map of the window, DN.
+    prev : GridFit
+        The previous fit, image px.
+    x0, y0 : int
+        The window's top-left pixel in the image, px.
+
+    Returns
+    -------
+    GridFit
+        The refined fit, image px.
+
+    Raises
+    ------
+    ValueError
+        If the window has no modulated light.
+    """
     act = np.asarray(light, dtype=np.float64)
     act = np.clip(act - np.median(act), 0, None)
     if not act.any():
@@ -407,8 +616,24 @@ def match_stereo(left: GridFit, right_candidates: list[GridFit], max_dy: float =
                  max_disparity: float = 400.0) -> GridFit | None:
     """The right-camera fit that is the same transmitter as ``left`` (rectified images).
 
-    Same rows (|dy| <= ``max_dy`` px), positive disparity up to ``max_disparity`` px and a
-    pitch within 15 %; the closest in y wins.
+    Same rows (|dy| <= ``max_dy`` px), disparity -1 .. ``max_disparity`` px and a pitch
+    within 15 %; the closest in y wins.
+
+    Parameters
+    ----------
+    left : GridFit
+        The left-camera fit, px.
+    right_candidates : list of GridFit
+        Right-camera fits, px.
+    max_dy : float
+        Largest vertical offset of the centres, px.
+    max_disparity : float
+        Largest disparity (left x - right x of the centres), px.
+
+    Returns
+    -------
+    GridFit or None
+        The match; None if no candidate qualifies.
     """
     best, best_dy = None, np.inf
     lx, ly = left.center

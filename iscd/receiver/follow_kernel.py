@@ -425,14 +425,60 @@ def follow_and_measure_compiled(frames: list[np.ndarray], starts: list[np.ndarra
     """The compiled :func:`iscd.receiver.luminance.follow_and_measure` (same arguments,
     same results to float tolerance) for two cameras.
 
-    frames: (left, right) (F, H, W) of one integer dtype; starts: per camera (N, 2) or
-    (F, N, 2) px; size: the following box, px; sigmas: per camera the Gaussian window, px;
-    use: indices of the LEDs whose centroids steer (all by default); lit_light: per camera
-    the light of a lit LED from earlier blocks; info: gets ``"light"`` (2,);
-    backgrounds: per camera a :class:`~iscd.receiver.luminance.PixelBackground` (updated in
-    place, as the reference does; ``subtract`` as there); spot_radius_px: also ``info["spot_area"]`` (2,) px^2, the
-    lit spots' half-maximum area. Returns per camera the refined centres (F, N, 2) px and
-    the luminance (F, N) DN.
+    An image smaller than a patch falls back to the reference.
+
+    Parameters
+    ----------
+    frames : list of ndarray
+        (left, right) (F, H, W) frames of one integer dtype, DN.
+    starts : list of ndarray
+        Per camera (N, 2) or (F, N, 2) LED centres (x, y), px.
+    size : int
+        The following box, px.
+    sigmas : list of float
+        Per camera the Gaussian window sigma, px.
+    use : ndarray, optional
+        Indices of the LEDs whose centroids steer (all by default).
+    iterations : int
+        Centroid rounds.
+    lit_light : ndarray, optional
+        (2,) per camera the patch light of a lit LED from earlier blocks, DN summed over the
+        patch.
+    info : dict, optional
+        Gets ``"light"`` (2,), DN summed over the patch, and with ``spot_radius_px``
+        ``"spot_area"`` (2,), px^2.
+    backgrounds : list of PixelBackground, optional
+        Per camera a :class:`~iscd.receiver.luminance.PixelBackground` (updated in place, as
+        the reference does).
+    spot_radius_px : float, optional
+        Measure the lit spots' half-maximum area within this radius, px.
+    subtract : bool
+        With ``backgrounds``: centroids and luminance of the light above the background.
+    lit_share : float, optional
+        Share of a lit LED's light that lets an LED steer (default
+        :data:`~iscd.receiver.luminance.LIT_SHARE`).
+    max_px : float
+        Largest correction per LED and axis, px.
+    scale : bool
+        Also fit a scale of the array.
+    accelerate : bool
+        Extrapolate the rounds' geometric series in the second round.
+
+    Returns
+    -------
+    centres : list of ndarray
+        Per camera the refined centres (F, N, 2), px.
+    luminance : list of ndarray
+        Per camera the luminance (F, N), DN.
+
+    Raises
+    ------
+    ValueError
+        If ``frames`` is not two cameras, or the backgrounds do not match them.
+
+    References
+    ----------
+    Dissertation, eq. (3.10) (with Gaussian weights).
     """
     from iscd.receiver.luminance import LIT_SHARE, patch_half
 

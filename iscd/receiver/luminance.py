@@ -44,8 +44,23 @@ def window_indices(centres: np.ndarray, size: int | tuple[int, int], shape: tupl
                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Row and column indices of each LED's window and a validity mask.
 
-    centres: (..., N, 2) px (x, y); size: w or (w, h) px. Returns rows (..., N, h, 1),
-    cols (..., N, 1, w) clipped into the image and valid (..., N, h, w).
+    Parameters
+    ----------
+    centres : ndarray
+        (..., N, 2) LED centres (x, y), px.
+    size : int or (int, int)
+        Window width w, or (w, h), px.
+    shape : (int, int)
+        Image shape (H, W), px.
+
+    Returns
+    -------
+    rows : ndarray of intp
+        (..., N, h, 1) row indices, clipped into the image.
+    cols : ndarray of intp
+        (..., N, 1, w) column indices, clipped into the image.
+    valid : ndarray of bool
+        (..., N, h, w) window cells inside the image.
     """
     w, h = _window(size)
     c = np.asarray(centres, dtype=np.float64)
@@ -62,7 +77,25 @@ def window_indices(centres: np.ndarray, size: int | tuple[int, int], shape: tupl
 
 def gather_windows(frames: np.ndarray, centres: np.ndarray, size: int | tuple[int, int]
                    ) -> tuple[np.ndarray, np.ndarray]:
-    """Pixels of every LED window in every frame: (F, N, h, w) and validity (.., N, h, w)."""
+    """Pixels of every LED window in every frame: (F, N, h, w) and validity (.., N, h, w).
+
+    Parameters
+    ----------
+    frames : ndarray
+        (F, H, W) frames, DN.
+    centres : ndarray
+        (N, 2) or (F, N, 2) LED centres (x, y), px.
+    size : int or (int, int)
+        Window width w, or (w, h), px.
+
+    Returns
+    -------
+    pix : ndarray
+        (F, N, h, w) pixel values, DN, the dtype of ``frames`` (cells outside the image hold
+        the nearest edge pixel).
+    valid : ndarray of bool
+        (N, h, w) or (F, N, h, w), like ``centres``: cells inside the image.
+    """
     fr = np.asarray(frames)
     if fr.ndim != 3:
         raise ValueError(f"expected frames (F, H, W), got shape {fr.shape}")
@@ -80,8 +113,26 @@ def gather_windows(frames: np.ndarray, centres: np.ndarray, size: int | tuple[in
 def roi_mean(frames: np.ndarray, centres: np.ndarray, size: int | tuple[int, int] = 3) -> np.ndarray:
     """Mean pixel value of each LED's ROI (3.10): (F, N) DN.
 
-    size: ROI width (and height) in px, or (w, h); the window is centred on the rounded
-    LED centre (for even sizes, on the pixel corner nearest to it).
+    The window is centred on the rounded LED centre (for even sizes, on the pixel corner
+    nearest to it).
+
+    Parameters
+    ----------
+    frames : ndarray
+        (F, H, W) frames, DN.
+    centres : ndarray
+        (N, 2) or (F, N, 2) LED centres (x, y), px.
+    size : int or (int, int)
+        ROI width (and height), or (w, h), px.
+
+    Returns
+    -------
+    ndarray of float64
+        (F, N) luminance, DN; NaN for a window entirely outside the image.
+
+    References
+    ----------
+    Dissertation, eq. (3.10).
     """
     pix, valid = gather_windows(frames, centres, size)
     s = (pix.astype(np.float64) * valid).sum(axis=(-2, -1))
@@ -116,7 +167,28 @@ class Patches:
 def gather_patches(frames: np.ndarray, centres: np.ndarray, half: int,
                    out: np.ndarray | None = None) -> Patches:
     """(2 half + 1)^2 px patches around the rounded centres (N, 2) or (F, N, 2), px;
-    written into ``out`` (F, N, K, K) float32 when given."""
+    written into ``out`` (F, N, K, K) float32 when given.
+
+    A patch at the image edge is moved inside the image; in an image smaller than a patch
+    the edge pixels repeat.
+
+    Parameters
+    ----------
+    frames : ndarray
+        (F, H, W) frames, DN.
+    centres : ndarray
+        (N, 2) or (F, N, 2) LED centres (x, y), px.
+    half : int
+        Patch half-size, px (K = 2 half + 1).
+    out : ndarray, optional
+        (F, N, K, K) float32 array to write the pixels into.
+
+    Returns
+    -------
+    Patches
+        Pixels (F, N, K, K) float32, DN, and the patches' first column and row ``x0``,
+        ``y0`` (F, N), px.
+    """
     fr = np.asarray(frames)
     if fr.ndim != 3:
         raise ValueError(f"expected frames (F, H, W), got shape {fr.shape}")
@@ -154,14 +226,48 @@ def gather_patches(frames: np.ndarray, centres: np.ndarray, half: int,
 def box_cover(c: np.ndarray, px: np.ndarray, w: int) -> np.ndarray:
     """Fraction of each pixel (centres ``px`` (..., K), pixel j covering [px_j - 0.5,
     px_j + 0.5]) inside a sub-pixel box of width ``w`` px centred at c (...): (..., K)
-    float32, summing to w when the box lies inside."""
+    float32, summing to w when the box lies inside.
+
+    Parameters
+    ----------
+    c : ndarray
+        (...) box centres, px.
+    px : ndarray
+        (..., K) pixel centres, px.
+    w : int
+        Box width, px.
+
+    Returns
+    -------
+    ndarray of float32
+        (..., K) covered fractions, 0 .. 1.
+    """
     a = (np.asarray(c, dtype=np.float32) - np.float32(w / 2.0))[..., None]
     return np.clip(np.minimum(a + np.float32(w), px + 0.5) - np.maximum(a, px - 0.5), 0.0, 1.0)
 
 
 def gauss_in_patches(p: Patches, centres: np.ndarray, sigma_px: float | np.ndarray) -> np.ndarray:
     """Gaussian-weighted mean (F, N) of each patch around sub-pixel centres (F, N, 2)
-    (see :func:`gauss_mean`); sigma_px: one, or one per frame (F,)."""
+    (see :func:`gauss_mean`).
+
+    Parameters
+    ----------
+    p : Patches
+        (F, N, K, K) patches (:func:`gather_patches`), DN.
+    centres : ndarray
+        (F, N, 2) sub-pixel LED centres (x, y), px.
+    sigma_px : float or ndarray
+        Gaussian window sigma, px: one, or one per frame (F,).
+
+    Returns
+    -------
+    ndarray of float32
+        (F, N) luminance, DN.
+
+    References
+    ----------
+    Dissertation, eq. (3.10) (with Gaussian weights).
+    """
     sig = np.asarray(sigma_px, dtype=np.float64)
     if not np.all(sig > 0):
         raise ValueError(f"sigma_px must be > 0, got {sigma_px}")
@@ -190,7 +296,27 @@ def gauss_mean(frames: np.ndarray, centres: np.ndarray, sigma_px: float = 1.0,
     every sub-pixel phase to a few times exp(-2 pi^2 s^2), s^2 = 1 / (1/sigma^2 +
     1/sigma_spot^2) (Poisson summation; 0.3 % for sigma = 0.85 px on a 0.85 px spot, where
     a 3x3 box varies by 7 %), and it weights the pixels by how much of the LED's light they
-    hold (a matched filter). centres: (N, 2) or (F, N, 2) px.
+    hold (a matched filter).
+
+    Parameters
+    ----------
+    frames : ndarray
+        (F, H, W) frames, DN.
+    centres : ndarray
+        (N, 2) or (F, N, 2) LED centres (x, y), px.
+    sigma_px : float
+        Gaussian window sigma, px (> 0).
+    radius : int, optional
+        Window half-size, px (default ceil(3.5 sigma)).
+
+    Returns
+    -------
+    ndarray of float32
+        (F, N) luminance, DN.
+
+    References
+    ----------
+    Dissertation, eq. (3.10) (with Gaussian weights).
     """
     if not sigma_px > 0:
         raise ValueError(f"sigma_px must be > 0, got {sigma_px}")
@@ -207,22 +333,59 @@ def refine_in_patches(p: Patches, centres: np.ndarray, size: int = 3, iterations
                       bg_pix: np.ndarray | None = None, spot_radius_px: float | None = None,
                       subtract: bool = True) -> np.ndarray:
     """:func:`refine_centres` on patches gathered around ``centres`` (F, N, 2) px (the
-    patches must reach size / 2 + max_px px around them). ``groups``: the frames are that
-    many equal runs from different cameras (their light levels differ), each with its own
-    least-light threshold. ``use``: indices of the LEDs whose centroids are measured (all
-    by default); the shift and scale they give move every LED. ``accelerate``: the second
-    round extrapolates the geometric series of the rounds' steps (3 rounds then do what 6
-    plain ones would). ``lit_light``: per group, the patch light of a lit LED known from
-    earlier blocks; an LED steers a frame only with ``LIT_SHARE`` of it or of this block's
-    90th percentile, whichever is more (in a block where every LED is dark -- zero padding
-    -- that percentile is noise, and noise would walk the centres away). ``info``: filled
-    with this block's 90th percentile per group (``"light"``), to keep as the next block's
-    ``lit_light``. ``bg_pix``: the per-pixel background of each patch (F, N, K, K) DN
-    (:class:`PixelBackground`, held across blocks): which LEDs are lit is then judged on the
-    light above it, and (``subtract``) the centroids are taken of that light instead of the
-    light above each patch's darkest pixel (a textured background then pulls no centroid).
-    ``spot_radius_px``: also measure the lit spots' size (:func:`half_max_area`, into
-    ``info["spot_area"]``, per group) within this radius of their refined centres."""
+    patches must reach size / 2 + max_px px around them).
+
+    An LED steers a frame only with ``LIT_SHARE`` of a lit LED's light (``lit_light``) or
+    of this block's 90th percentile, whichever is more (in a block where every LED is dark
+    -- zero padding -- that percentile is noise, and noise would walk the centres away).
+    With ``bg_pix``, which LEDs are lit is judged on the light above it, and (``subtract``)
+    the centroids are taken of that light instead of the light above each patch's darkest
+    pixel (a textured background then pulls no centroid).
+
+    Parameters
+    ----------
+    p : Patches
+        (F, N, K, K) patches (:func:`gather_patches`), DN.
+    centres : ndarray
+        (F, N, 2) LED centres (x, y) the patches were gathered around, px.
+    size : int
+        Centroid box width, px.
+    iterations : int
+        Centroid rounds.
+    scale : bool
+        Also fit a scale of the array (with more than one LED in ``use``).
+    max_px : float
+        Largest correction per LED and axis, px.
+    groups : int
+        The frames are that many equal runs from different cameras (their light levels
+        differ), each with its own least-light threshold.
+    use : ndarray, optional
+        Indices of the LEDs whose centroids are measured (all by default); the shift and
+        scale they give move every LED.
+    accelerate : bool
+        The second round extrapolates the geometric series of the rounds' steps (3 rounds
+        then do what 6 plain ones would).
+    lit_light : ndarray, optional
+        (groups,) patch light of a lit LED known from earlier blocks, DN summed over the
+        patch.
+    info : dict, optional
+        Filled with this block's 90th percentile of the patch light per group
+        (``"light"``, DN summed over the patch), to keep as the next block's ``lit_light``,
+        and with ``"spot_area"`` (see ``spot_radius_px``).
+    bg_pix : ndarray, optional
+        (F, N, K, K) per-pixel background of each patch, DN (:class:`PixelBackground`, held
+        across blocks).
+    spot_radius_px : float, optional
+        Also measure the lit spots' size (:func:`half_max_area`, into ``info["spot_area"]``,
+        (groups,) px^2) within this radius of their refined centres, px.
+    subtract : bool
+        With ``bg_pix``: take the centroids of the light above it.
+
+    Returns
+    -------
+    ndarray of float64
+        (F, N, 2) refined centres (x, y), px.
+    """
     w = _window(size)[0]
     c0 = np.asarray(centres, dtype=np.float64)
     F, N = c0.shape[:2]
@@ -292,13 +455,32 @@ def half_max_area(img: np.ndarray, xs: np.ndarray, ys: np.ndarray, centres: np.n
                   lit: np.ndarray, groups: int, radius_px: float) -> np.ndarray:
     """Mean area (px^2) above half its peak of the lit spots, per group (camera): (groups,).
 
-    img: (F, n, K, K) light above the background; xs, ys: (F, n, K) pixel coordinates;
-    centres (F, n, 2) px; lit (F, n). Per lit spot, the pixels within ``radius_px`` of its
-    centre (an array's neighbours stay out) above half the brightest of them are counted;
-    NaN for a group without a lit spot. A spot whose core clips has a wide plateau at its
-    peak, so its half-maximum area is that of the plateau and its rim: the window that
-    reaches the unsaturated wings. ``sqrt(area / pi) / 1.1774`` is the sigma of a Gaussian
-    with that half-maximum area (FWHM = 2.3548 sigma)."""
+    Per lit spot, the pixels within ``radius_px`` of its centre (an array's neighbours stay
+    out) above half the brightest of them are counted. A spot whose core clips has a wide
+    plateau at its peak, so its half-maximum area is that of the plateau and its rim: the
+    window that reaches the unsaturated wings. ``sqrt(area / pi) / 1.1774`` is the sigma of
+    a Gaussian with that half-maximum area (FWHM = 2.3548 sigma).
+
+    Parameters
+    ----------
+    img : ndarray
+        (F, n, K, K) light above the background, DN.
+    xs, ys : ndarray
+        (F, n, K) pixel coordinates of the patch columns and rows, px.
+    centres : ndarray
+        (F, n, 2) spot centres (x, y), px.
+    lit : ndarray of bool
+        (F, n) lit spots.
+    groups : int
+        The frames are that many equal runs, one per camera.
+    radius_px : float
+        Radius around each centre that is searched, px.
+
+    Returns
+    -------
+    ndarray of float64
+        (groups,) mean area, px^2; NaN for a group without a lit spot.
+    """
     F, n = img.shape[:2]
     d2 = (xs - centres[..., 0:1])[..., None, :] ** 2 + (ys - centres[..., 1:2])[..., :, None] ** 2
     inside = d2 <= radius_px * radius_px  # (F, n, K, K)
@@ -316,7 +498,18 @@ def half_max_area(img: np.ndarray, xs: np.ndarray, ys: np.ndarray, centres: np.n
 
 
 def area_sigma(area_px2: float | np.ndarray) -> float | np.ndarray:
-    """Sigma (px) of the Gaussian whose half-maximum area is ``area_px2`` (px^2)."""
+    """Sigma (px) of the Gaussian whose half-maximum area is ``area_px2`` (px^2).
+
+    Parameters
+    ----------
+    area_px2 : float or ndarray
+        Half-maximum area, px^2.
+
+    Returns
+    -------
+    float or ndarray
+        Sigma, px, the shape of ``area_px2``.
+    """
     return np.sqrt(np.asarray(area_px2, dtype=np.float64) / np.pi) / 1.1774
 
 
@@ -342,7 +535,20 @@ def _background(pix: np.ndarray, x0: np.ndarray, y0: np.ndarray, groups: int) ->
 def grid_sample(rows: int, cols: int, per_axis: int = 4) -> np.ndarray:
     """Row-major indices of a ``per_axis`` x ``per_axis`` sample of a rows x cols grid
     that includes its corners (all LEDs when the grid is that small): enough centroids
-    to fix a shift and a scale, at a quarter of the work for an 8x8 array."""
+    to fix a shift and a scale, at a quarter of the work for an 8x8 array.
+
+    Parameters
+    ----------
+    rows, cols : int
+        The grid's layout.
+    per_axis : int
+        Samples along each axis.
+
+    Returns
+    -------
+    ndarray of intp
+        Row-major LED indices, ascending.
+    """
     r = np.unique(np.rint(np.linspace(0, rows - 1, min(rows, per_axis))).astype(np.intp))
     c = np.unique(np.rint(np.linspace(0, cols - 1, min(cols, per_axis))).astype(np.intp))
     return (r[:, None] * cols + c[None, :]).ravel()
@@ -356,21 +562,53 @@ def follow_and_measure(frames: list[np.ndarray], starts: list[np.ndarray], size:
                        ) -> tuple[list[np.ndarray], list[np.ndarray]]:
     """Follow the LEDs and measure their luminance in each camera, in one vectorized pass.
 
-    frames: per camera (F, H, W); starts: per camera (N, 2) or (F, N, 2) px, where the
-    LEDs are thought to be; size: the following box, px; sigmas: per camera the Gaussian
-    window, px. One patch gather per camera serves both steps: :func:`refine_in_patches`
-    (shift and scale of each frame, from the LEDs ``use``; ``lit_light`` and ``info`` as
-    there, per camera) and :func:`gauss_in_patches`. Returns per camera the refined
-    centres (F, N, 2) px and the luminance (F, N) DN.
+    One patch gather per camera serves both steps: :func:`refine_in_patches` (shift and
+    scale of each frame) and :func:`gauss_in_patches`.
 
-    backgrounds: per camera a :class:`PixelBackground`, first updated with this block's
-    patches (:meth:`PixelBackground.update`); which LEDs are lit is then judged on the light
-    above it (it holds across blocks, so a short block judges as well as a long one), and
-    with ``subtract`` the centroids and the luminance are of that light too (the
-    luminance: the Gaussian-weighted mean of ``pixel - background``, which a textured
-    background moving under the window does not change).
-    spot_radius_px: measure the lit spots' half-maximum area too (``info["spot_area"]``
-    (2,) px^2, :func:`half_max_area`) within this radius (at most the patch's half-size).
+    With ``backgrounds``, each is first updated with this block's patches
+    (:meth:`PixelBackground.update`); which LEDs are lit is then judged on the light above
+    it (it holds across blocks, so a short block judges as well as a long one), and with
+    ``subtract`` the centroids and the luminance are of that light too (the luminance: the
+    Gaussian-weighted mean of ``pixel - background``, which a textured background moving
+    under the window does not change).
+
+    Parameters
+    ----------
+    frames : list of ndarray
+        Per camera (F, H, W) frames, DN.
+    starts : list of ndarray
+        Per camera (N, 2) or (F, N, 2) px, where the LEDs are thought to be.
+    size : int
+        The following box, px.
+    sigmas : list of float
+        Per camera the Gaussian window sigma, px.
+    use : ndarray, optional
+        Indices of the LEDs whose centroids steer (all by default).
+    iterations : int
+        Centroid rounds.
+    lit_light : ndarray, optional
+        Per camera the patch light of a lit LED from earlier blocks, DN summed over the patch
+        (as in :func:`refine_in_patches`).
+    info : dict, optional
+        Gets ``"light"`` per camera (and ``"spot_area"``), as in :func:`refine_in_patches`.
+    backgrounds : list of PixelBackground, optional
+        Per camera the per-pixel background, updated in place.
+    spot_radius_px : float, optional
+        Measure the lit spots' half-maximum area too (``info["spot_area"]`` (C,) px^2,
+        :func:`half_max_area`) within this radius (at most the patch's half-size), px.
+    subtract : bool
+        With ``backgrounds``: centroids and luminance of the light above the background.
+
+    Returns
+    -------
+    centres : list of ndarray
+        Per camera the refined centres (F, N, 2), px.
+    luminance : list of ndarray
+        Per camera the luminance (F, N), DN.
+
+    References
+    ----------
+    Dissertation, eq. (3.10) (with Gaussian weights).
     """
     F = frames[0].shape[0]
     # the Gaussian reaches 3.5 sigma on every side however the LED sits in its patch (a
@@ -435,7 +673,18 @@ class PixelBackground:
 
     def update(self, p: Patches) -> np.ndarray:
         """Fold one block's patches (one camera, :func:`gather_patches`) in; returns the
-        background under each patch pixel (F, N, K, K) float32 DN after the update."""
+        background under each patch pixel (F, N, K, K) float32 DN after the update.
+
+        Parameters
+        ----------
+        p : Patches
+            (F, N, K, K) patches of one camera, DN.
+
+        Returns
+        -------
+        ndarray of float32
+            (F, N, K, K) background under each patch pixel, DN.
+        """
         self.block += 1
         K = p.pix.shape[-1]
         ys = (p.y0[..., None] + np.arange(K))[..., :, None]  # (F, N, K, 1)
@@ -452,7 +701,20 @@ class PixelBackground:
 
 
 def patch_half(size: int, max_px: float = 1.5) -> int:
-    """Patch half-size that holds a ``size`` px box moved up to max_px."""
+    """Patch half-size that holds a ``size`` px box moved up to max_px.
+
+    Parameters
+    ----------
+    size : int
+        Box width, px.
+    max_px : float
+        Largest move of the box, px.
+
+    Returns
+    -------
+    int
+        ceil(size / 2 + max_px), px.
+    """
     return int(np.ceil(size / 2.0 + max_px))
 
 
@@ -471,8 +733,30 @@ def refine_centres(frames: np.ndarray, centres: np.ndarray, size: int = 3, itera
     above each pixel's least value over the block, count for nothing), are fitted by a shift (dx, dy) and, with ``scale`` and more than one LED, a
     scale about their weighted centre (least squares); the boxes are recentred and, since
     a box truncates the spot and recovers only part of an offset, a few rounds converge.
-    centres: (N, 2) or (F, N, 2) px. A frame without light keeps its centres; the
-    correction is clipped to +-max_px per LED.
+    A frame without light keeps its centres.
+
+    Parameters
+    ----------
+    frames : ndarray
+        (F, H, W) frames, DN.
+    centres : ndarray
+        (N, 2) or (F, N, 2) LED centres (x, y), px.
+    size : int
+        Centroid box width, px.
+    iterations : int
+        Centroid rounds.
+    scale : bool
+        Also fit a scale of the array.
+    max_px : float
+        Largest correction per LED and axis, px.
+    accelerate : bool
+        Extrapolate the rounds' geometric series in the second round
+        (:func:`refine_in_patches`).
+
+    Returns
+    -------
+    ndarray of float64
+        (F, N, 2) refined centres (x, y), px.
     """
     p = gather_patches(frames, centres, patch_half(size, max_px))
     c = np.broadcast_to(np.asarray(centres, dtype=np.float64), p.x0.shape + (2,))
@@ -552,7 +836,23 @@ class SpotLuminance:
 
     def fit(self, frames: np.ndarray) -> "SpotLuminance":
         """Estimate templates and background from a block of frames (F, H, W); the LEDs
-        should change level over the block (e.g. a few hundred frames of data)."""
+        should change level over the block (e.g. a few hundred frames of data).
+
+        Parameters
+        ----------
+        frames : ndarray
+            (F, H, W) frames, DN, F >= 8.
+
+        Returns
+        -------
+        SpotLuminance
+            ``self``, fitted.
+
+        Raises
+        ------
+        ValueError
+            If ``frames`` is not a block of at least 8 frames.
+        """
         fr = np.asarray(frames)
         if fr.ndim != 3 or fr.shape[0] < 8:
             raise ValueError(f"need a block of >= 8 frames (F, H, W), got shape {fr.shape}")

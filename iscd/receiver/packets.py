@@ -53,7 +53,24 @@ class Packet:
     margins: np.ndarray | None = field(default=None, repr=False)
 
     def record(self, tx: int = 0) -> dict[str, Any]:
-        """The SPEC section 7 JSON record (``payload_hex`` is empty when the CRC failed)."""
+        """The SPEC section 7 JSON record (``payload_hex`` is empty when the CRC failed).
+
+        Parameters
+        ----------
+        tx : int
+            Transmitter index.
+
+        Returns
+        -------
+        dict
+            ``type``, ``tx``, ``frame``, ``t_s`` (s), ``crc_ok``, ``payload_hex``, ``levels``
+            (the F·N decided data levels 1..M, symbol time major) and the :attr:`quality`
+            metrics.
+
+        References
+        ----------
+        SPEC section 7 (output).
+        """
         return {"type": "packet", "tx": tx, "frame": int(self.frame), "t_s": float(self.t_s),
                 "crc_ok": bool(self.crc_ok),
                 "payload_hex": self.payload.hex() if self.crc_ok and self.payload is not None else "",
@@ -150,9 +167,29 @@ class PacketAssembler:
              L_right: np.ndarray | None = None) -> list[Packet]:
         """Append frames (ids increasing; gaps become NaN rows) and return finished packets.
 
-        frame_ids: (n,) trigger counters; t_s: (n,) exposure start times, s; L_left,
-        L_right: (n, N) luminance of each LED (None: that camera is absent). Frames whose
-        id does not increase are dropped (counted in ``stats["frames_rejected"]``).
+        Frames whose id does not increase are dropped (counted in ``stats["frames_rejected"]``).
+        A gap longer than ``max_gap_frames`` resets the receiver.
+
+        Parameters
+        ----------
+        frame_ids : ndarray
+            (n,) trigger counters, frames.
+        t_s : ndarray
+            (n,) exposure start times, s (NaN: derived from the ids and the fps).
+        L_left : ndarray or None
+            (n, N) luminance of each LED in the left camera, DN (None: that camera is absent).
+        L_right : ndarray or None
+            (n, N) luminance of each LED in the right camera, DN (None: that camera is absent).
+
+        Returns
+        -------
+        list of Packet
+            The packets completed by these frames, oldest first.
+
+        Raises
+        ------
+        ValueError
+            If ``t_s`` and ``frame_ids`` differ in length or a block has the wrong LED count.
         """
         ids = np.asarray(frame_ids, dtype=np.int64).reshape(-1)
         ts = np.asarray(t_s, dtype=np.float64).reshape(-1)

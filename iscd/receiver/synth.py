@@ -23,8 +23,28 @@ def cumulative_on_time(t_led: np.ndarray, duty_k: np.ndarray, symbol_period_s: f
                        pwm_hz: float | None) -> np.ndarray:
     """On-time (LED-clock s) from LED time 0 to ``t_led`` for per-symbol duties.
 
-    t_led: (n,) LED-clock times, s. duty_k: (K, N) duty (0..1) of each symbol and LED.
-    Returns (n, N). Times before 0 count nothing; after the last symbol, the total.
+    Times before 0 count nothing; after the last symbol, the total.
+
+    Parameters
+    ----------
+    t_led : ndarray
+        (n,) LED-clock times, s.
+    duty_k : ndarray
+        (K, N) duty (0..1) of each symbol and LED.
+    symbol_period_s : float
+        Symbol period T, s.
+    pwm_hz : float or None
+        PWM carrier frequency, Hz (each period on for its first ``duty / f_pwm`` s); None:
+        ideal, on-time = duty x time.
+
+    Returns
+    -------
+    ndarray of float64
+        (n, N) on-time, LED-clock s.
+
+    References
+    ----------
+    SPEC section 3 (PWM levels), section 6 (exposure integration).
     """
     t = np.asarray(t_led, dtype=np.float64)
     n_sym = duty_k.shape[0]
@@ -48,8 +68,36 @@ def integrated_duty(levels: np.ndarray, n_levels: int, frame_start_s: np.ndarray
                     pwm_hz: float | None = 50_000.0) -> np.ndarray:
     """Mean duty x in [0, 1] seen by each exposure window: (frames, N).
 
-    levels: (K, N) 1-based levels sent from LED symbol 0 on. frame_start_s: (n,) camera
-    times of exposure start, s. The window is [t, t + exposure_s] on the camera clock.
+    The window is [t, t + exposure_s] on the camera clock; the LED clock is
+    ``t_led = (t_cam - phase_s) * (1 + drift_ppm 1e-6)``.
+
+    Parameters
+    ----------
+    levels : ndarray
+        (K, N) 1-based levels sent from LED symbol 0 on.
+    n_levels : int
+        Number of levels M (duty (s - 1) / (M - 1)).
+    frame_start_s : ndarray
+        (n,) camera times of exposure start, s.
+    exposure_s : float
+        Exposure time, s.
+    symbol_rate_hz : float
+        Symbol rate, Hz.
+    phase_s : float
+        Camera time of LED symbol 0's start, s.
+    drift_ppm : float
+        LED clock rate error, ppm (positive = LED fast).
+    pwm_hz : float or None
+        PWM carrier frequency, Hz (None: ideal).
+
+    Returns
+    -------
+    ndarray of float64
+        (n, N) mean duty, 0 .. 1.
+
+    References
+    ----------
+    SPEC section 3 (PWM levels), section 6 (exposure integration).
     """
     lv = np.asarray(levels, dtype=np.float64)
     duty_k = (lv - 1.0) / (n_levels - 1)
@@ -63,7 +111,20 @@ def integrated_duty(levels: np.ndarray, n_levels: int, frame_start_s: np.ndarray
 
 
 def gaussian_profile(size: int = 5, sigma_px: float = 1.0) -> np.ndarray:
-    """Peak-normalized Gaussian spot over a size x size ROI, flattened (size*size,)."""
+    """Peak-normalized Gaussian spot over a size x size ROI, flattened (size*size,).
+
+    Parameters
+    ----------
+    size : int
+        ROI width and height, px.
+    sigma_px : float
+        Spot sigma, px.
+
+    Returns
+    -------
+    ndarray of float64
+        (size * size,) row-major profile, peak 1.
+    """
     r = np.arange(size) - (size - 1) / 2
     g = np.exp(-(r[:, None] ** 2 + r[None, :] ** 2) / (2 * sigma_px ** 2))
     return (g / g.max()).reshape(-1)
@@ -90,7 +151,23 @@ class SynthCamera:
     profile: np.ndarray = field(default_factory=gaussian_profile)
 
     def luminance(self, x: np.ndarray, rng: np.random.Generator) -> np.ndarray:
-        """ROI-mean luminance (frames, N) of integrated duty ``x`` (frames, N)."""
+        """ROI-mean luminance (frames, N) of integrated duty ``x`` (frames, N).
+
+        Per pixel: signal, offset, shot and read noise, rounding (with ``quantize``) and clipping
+        at ``clip_dn``; each LED's gain drawn once per call (``led_gain_spread``).
+
+        Parameters
+        ----------
+        x : ndarray
+            (n, N) integrated duty, 0 .. 1 (:func:`integrated_duty`).
+        rng : numpy.random.Generator
+            Noise source.
+
+        Returns
+        -------
+        ndarray of float64
+            (n, N) ROI-mean luminance, DN.
+        """
         n, N = x.shape
         gains = self.peak_dn * (1.0 + self.led_gain_spread * rng.standard_normal(N))
         prof = np.asarray(self.profile, dtype=np.float64)
@@ -141,6 +218,42 @@ def synth_recording(air: object, cams: list[SynthCamera], n_packets: int = 2, *,
     mid-transmission), ``tail_symbols`` random ones follow the last packet. The recording
     covers camera time ``start_s`` to the end of the tail; ``start_s`` past the first
     header start gives a recording that begins mid-packet.
+
+    Parameters
+    ----------
+    air : AirInterface
+        The air interface (M, N, packet geometry).
+    cams : list of SynthCamera
+        The cameras (C of them).
+    n_packets : int
+        Number of packets (when ``payloads`` is not given).
+    fps : float
+        Frame rate, frames/s.
+    exposure_s : float
+        Exposure time, s.
+    symbol_rate_hz : float
+        Symbol rate, Hz.
+    pwm_hz : float or None
+        PWM carrier frequency, Hz (None: ideal).
+    phase_s : float
+        Camera time of LED symbol 0's start, s.
+    drift_ppm : float
+        LED clock rate error, ppm (positive = LED fast).
+    lead_symbols : int
+        Random symbols before the first header, symbols.
+    tail_symbols : int
+        Random symbols after the last packet, symbols.
+    start_s : float
+        Camera time of the first frame's exposure start, s.
+    seed : int
+        Seed of the random payloads, symbols and noise.
+    payloads : list of bytes, optional
+        The packets' payloads (default: ``n_packets`` random ones).
+
+    Returns
+    -------
+    SynthRecording
+        Luminance (C, n, N), DN, frame times, s, and the truth.
     """
     from iscd.airinterface import AirInterface, random_payload
 
@@ -171,7 +284,36 @@ def render_spots(x: np.ndarray, centres: np.ndarray, shape: tuple[int, int], pea
                  read_noise_dn: float = 1.0, shot_dn: float = 0.0128, clip_dn: float = 255.0,
                  rng: np.random.Generator | None = None) -> np.ndarray:
     """8-bit frames (F, H, W) of Gaussian LED spots: LED i at ``centres[i]`` (x, y px)
-    with peak ``peak_dn * x[f, i]`` over a background, noise, rounding and clipping."""
+    with peak ``peak_dn * x[f, i]`` over a background, noise, rounding and clipping.
+
+    Parameters
+    ----------
+    x : ndarray
+        (F, N) relative brightness of each LED in each frame (e.g. integrated duty, 0 .. 1).
+    centres : ndarray
+        (N, 2) LED centres (x, y), px.
+    shape : (int, int)
+        Image shape (H, W), px.
+    peak_dn : float
+        Peak pixel value of a spot at x = 1 before clipping, DN.
+    sigma_px : float
+        Spot sigma, px.
+    background_dn : float or ndarray
+        Background, DN: one value or an (H, W) image.
+    read_noise_dn : float
+        Read noise RMS per pixel, DN.
+    shot_dn : float
+        Shot-noise variance per DN of signal, DN.
+    clip_dn : float
+        Saturation level, DN.
+    rng : numpy.random.Generator, optional
+        Noise source (default seeded with 0).
+
+    Returns
+    -------
+    ndarray of uint8
+        (F, H, W) frames, DN.
+    """
     rng = rng or np.random.default_rng(0)
     H, W = shape
     c = np.asarray(centres, dtype=np.float64)

@@ -50,20 +50,71 @@ class SymbolClock:
     p: float
 
     def boundary(self, k: np.ndarray | float) -> np.ndarray:
+        """Start of packet symbol k: ``u0 + k p``, frames.
+
+        Parameters
+        ----------
+        k : ndarray or float
+            Packet symbol index (fractional allowed), symbols.
+
+        Returns
+        -------
+        ndarray of float64
+            Frame-unit time, frames, the shape of ``k``.
+        """
         return self.u0 + np.asarray(k, dtype=np.float64) * self.p
 
     def drift_ppm(self, nominal_p: float) -> float:
-        """LED clock rate error against the camera, ppm (positive = LED fast)."""
+        """LED clock rate error against the camera, ppm (positive = LED fast).
+
+        Parameters
+        ----------
+        nominal_p : float
+            Nominal symbol period fps / symbol rate, frames.
+
+        Returns
+        -------
+        float
+            ``(nominal_p / p - 1) 1e6``, ppm.
+        """
         return (nominal_p / self.p - 1.0) * 1e6
 
     def shifted(self, k: float) -> "SymbolClock":
-        """The clock of a packet starting k symbols later."""
+        """The clock of a packet starting k symbols later.
+
+        Parameters
+        ----------
+        k : float
+            Shift, symbols.
+
+        Returns
+        -------
+        SymbolClock
+            ``u0 + k p``, the same period.
+        """
         return SymbolClock(self.u0 + k * self.p, self.p)
 
 
 def frame_map(frames: np.ndarray, clock: SymbolClock, e: float) -> tuple[np.ndarray, np.ndarray]:
     """Symbol k_n containing the start of frame n's window and the fraction alpha_n of the
-    window inside it (1 = clean; the rest lies in k_n + 1)."""
+    window inside it (1 = clean; the rest lies in k_n + 1).
+
+    Parameters
+    ----------
+    frames : ndarray
+        Frame indices n, frames.
+    clock : SymbolClock
+        The packet's symbol clock, frames.
+    e : float
+        Exposure window length, frames (exposure_s * fps, <= 1).
+
+    Returns
+    -------
+    k : ndarray of int64
+        Packet symbol of each window's start, the shape of ``frames``.
+    alpha : ndarray of float64
+        Fraction of each window in symbol k, 0 .. 1.
+    """
     n = np.asarray(frames, dtype=np.float64)
     k = np.floor((n - clock.u0) / clock.p).astype(np.int64)
     end = clock.u0 + (k + 1) * clock.p
@@ -72,7 +123,22 @@ def frame_map(frames: np.ndarray, clock: SymbolClock, e: float) -> tuple[np.ndar
 
 
 def clean_frame(k: np.ndarray, clock: SymbolClock, e: float) -> np.ndarray:
-    """Index of the frame closest to the middle of symbol k (the cleanest one)."""
+    """Index of the frame closest to the middle of symbol k (the cleanest one).
+
+    Parameters
+    ----------
+    k : ndarray
+        Packet symbol indices, symbols.
+    clock : SymbolClock
+        The packet's symbol clock, frames.
+    e : float
+        Exposure window length, frames.
+
+    Returns
+    -------
+    ndarray of int64
+        Frame indices whose window is centred nearest the symbol's middle, the shape of ``k``.
+    """
     mid = clock.u0 + (np.asarray(k, dtype=np.float64) + 0.5) * clock.p
     return np.rint(mid - e / 2).astype(np.int64)
 
@@ -86,7 +152,22 @@ def _header_cum(u: np.ndarray, p: float) -> np.ndarray:
 
 def header_fraction(offset: np.ndarray, p: float, e: float) -> np.ndarray:
     """Fraction of the window ``[o, o + e]`` (o = frame start - header start, frames) in '+'
-    chips, for windows inside the header; the exact straddle integral of Barker-13."""
+    chips, for windows inside the header; the exact straddle integral of Barker-13.
+
+    Parameters
+    ----------
+    offset : ndarray
+        Window starts o relative to the header start, frames.
+    p : float
+        Symbol period, frames.
+    e : float
+        Exposure window length, frames.
+
+    Returns
+    -------
+    ndarray of float64
+        '+' fraction of each window, 0 .. 1, the shape of ``offset``.
+    """
     o = np.asarray(offset, dtype=np.float64)
     return (_header_cum(o + e, p) - _header_cum(o, p)) / e
 
@@ -103,7 +184,20 @@ class HeaderCandidate:
 
 def luminance_range(L: np.ndarray, step: int = 1) -> tuple[np.ndarray, np.ndarray]:
     """2nd and 98th percentiles (C, N) of each camera's and LED's luminance L (C, n, N),
-    from every ``step``-th frame; NaN for LEDs with fewer than 8 values or no spread."""
+    from every ``step``-th frame; NaN for LEDs with fewer than 8 values or no spread.
+
+    Parameters
+    ----------
+    L : ndarray
+        (C, n, N) luminance, DN (NaN = missing).
+    step : int
+        Use every ``step``-th frame, frames.
+
+    Returns
+    -------
+    lo, hi : ndarray of float64
+        Each (C, N), DN.
+    """
     C, n, N = L.shape
     sub = L[:, ::max(1, step), :]
     flat = sub.transpose(1, 0, 2).reshape(sub.shape[1], C * N)
@@ -122,7 +216,20 @@ def luminance_range(L: np.ndarray, step: int = 1) -> tuple[np.ndarray, np.ndarra
 
 def normalized_mean(L: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
     """Mean over cameras and LEDs of ``(L - lo) / (hi - lo)``: (C, n, N) -> (n,), NaN where
-    nothing is valid (LEDs with NaN range are ignored)."""
+    nothing is valid (LEDs with NaN range are ignored).
+
+    Parameters
+    ----------
+    L : ndarray
+        (C, n, N) luminance, DN (NaN = missing).
+    lo, hi : ndarray
+        (C, N) luminance range (:func:`luminance_range`), DN.
+
+    Returns
+    -------
+    ndarray of float64
+        (n,) normalized luminance, ~0 .. 1.
+    """
     z = (L - lo[:, None, :]) / (hi - lo)[:, None, :]
     cnt = np.isfinite(z).sum(axis=(0, 2))
     with np.errstate(invalid="ignore", divide="ignore"):
@@ -133,7 +240,18 @@ def normalized_mean(L: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray
 
 def normalize_luminance(L: np.ndarray) -> np.ndarray:
     """Per camera and LED, map the 2nd..98th percentile range to 0..1; (C, n, N) -> (n,)
-    mean over LEDs and cameras (NaN where nothing is valid). Flat LEDs are ignored."""
+    mean over LEDs and cameras (NaN where nothing is valid). Flat LEDs are ignored.
+
+    Parameters
+    ----------
+    L : ndarray
+        (C, n, N) luminance, DN (NaN = missing).
+
+    Returns
+    -------
+    ndarray of float64
+        (n,) normalized luminance, ~0 .. 1.
+    """
     lo, hi = luminance_range(L)
     return normalized_mean(L, lo, hi)
 
@@ -147,6 +265,29 @@ def coarse_header_search(y: np.ndarray, p: float, e: float, n_phases: int = 8,
     correlation of y over the frames inside the header with the header's '+' fraction
     (NaN frames skipped; at least ``min_valid`` of them present). Non-maximum
     suppression keeps the best candidate within 1.5 symbols.
+
+    Parameters
+    ----------
+    y : ndarray
+        (n,) normalized luminance (:func:`normalized_mean`), ~0 .. 1 (NaN = missing).
+    p : float
+        Symbol period, frames.
+    e : float
+        Exposure window length, frames.
+    n_phases : int
+        Sub-frame phases tried per frame.
+    min_rho : float
+        Least correlation of a candidate.
+    min_slope : float
+        Least amplitude slope, normalized luminance units (~1 for a real header).
+    min_valid : float
+        Least fraction of the header's frames present, 0 .. 1.
+
+    Returns
+    -------
+    list of HeaderCandidate
+        Header starts u0 (frames, indices into ``y``), by decreasing correlation; empty when
+        ``y`` is shorter than a header.
     """
     y = np.asarray(y, dtype=np.float64)
     J = int(np.floor(HEADER_SYMBOLS * p - e))  # window frames 1..J after n0
@@ -195,9 +336,31 @@ def fine_header(L: np.ndarray, u_guess: float, p: float, e: float, half_width: f
                 step: float = 0.02) -> tuple[float, float]:
     """Header start u0 (frames) by grid search around ``u_guess``; returns (u0, mean R^2).
 
-    L: (C, n, N) luminance of the buffer. Each LED/camera column is fitted ``L = g D + c``
-    over the frames inside the header for every grid u0; the sum of the columns' R^2 is
-    maximized (equivalent to least squares per column, scale-free across columns).
+    Each LED/camera column is fitted ``L = g D + c`` over the frames inside the header for
+    every grid u0; the sum of the columns' R^2 is maximized (equivalent to least squares per
+    column, scale-free across columns), then refined by a parabola.
+
+    Parameters
+    ----------
+    L : ndarray
+        (C, n, N) luminance of the buffer, DN (NaN = missing).
+    u_guess : float
+        Approximate header start (:func:`coarse_header_search`), frames.
+    p : float
+        Symbol period, frames.
+    e : float
+        Exposure window length, frames.
+    half_width : float
+        Half-width of the searched grid, frames.
+    step : float
+        Grid step, frames.
+
+    Returns
+    -------
+    u0 : float
+        Header start, frames (``u_guess`` when too few frames or columns are usable).
+    r2 : float
+        Mean R^2 of the columns at the best grid point, 0 .. 1 (0 when not computable).
     """
     C, n, N = L.shape
     grid = u_guess + np.arange(-half_width, half_width + step / 2, step)
@@ -410,7 +573,36 @@ def clock_cost_reference(L: np.ndarray, n_lo: int, n_hi: int, u0: float, p: floa
                          lev: np.ndarray, k_first: int, track: ChannelTrack, timing_sigma: float,
                          huber: float) -> float:
     """Pure-numpy reference of :func:`_clock_cost` (the clock's robust cost on all labelled
-    frames, clean and straddling)."""
+    frames, clean and straddling).
+
+    Parameters
+    ----------
+    L : ndarray
+        (C, n, N) luminance of the buffer, DN (NaN = missing).
+    n_lo, n_hi : int
+        Frames ``n_lo .. n_hi - 1`` are used, frames.
+    u0 : float
+        Start of packet symbol 0, frames.
+    p : float
+        Symbol period, frames.
+    e : float
+        Exposure window length, frames.
+    lev : ndarray
+        (S, N) 0-based levels of packet symbols ``k_first .. k_first + S - 1`` (-1 = unknown).
+    k_first : int
+        Packet symbol of ``lev[0]``, symbols.
+    track : ChannelTrack
+        The channel along the packet.
+    timing_sigma : float
+        Symbol boundary uncertainty that widens the straddle variances, frames.
+    huber : float
+        Huber threshold of the normalized residual, noise RMS.
+
+    Returns
+    -------
+    float
+        Sum of Huber's rho of the normalized residuals.
+    """
     S, N = lev.shape
     frames = np.arange(n_lo, n_hi)
     k, alpha = frame_map(frames, SymbolClock(u0, p), e)
@@ -485,14 +677,44 @@ def refine_clock(L: np.ndarray, clock: SymbolClock, e: float, lev: np.ndarray, k
                  fit_p: bool = True) -> tuple[SymbolClock, int]:
     """Gauss-Newton refinement of the symbol clock on labelled symbols.
 
-    L: (C, n, N) buffer luminance; lev: (S, N) 0-based levels of packet symbols
-    ``k_first .. k_first + S - 1`` (-1 = unknown); model: the channel, one for the span or
-    a :class:`ChannelTrack` (a straddling frame uses the model of its first symbol);
-    p_prior, p_sigma: prior on the period (frames). Returns the refined clock and the
-    number of informative straddling observations used (0: clock unchanged).
-
+    A straddling frame uses the model of its first symbol. With exposures shorter than the
+    frame period the period is first searched on a grid (:data:`PERIOD_SEARCH_FRAMES`).
     The normal equations come from the compiled :func:`_clock_sums`;
     :func:`refine_clock_reference` is the specification.
+
+    Parameters
+    ----------
+    L : ndarray
+        (C, n, N) buffer luminance, DN (NaN = missing).
+    clock : SymbolClock
+        The clock to start from, frames.
+    e : float
+        Exposure window length, frames.
+    lev : ndarray
+        (S, N) 0-based levels of packet symbols ``k_first .. k_first + S - 1`` (-1 = unknown).
+    k_first : int
+        Packet symbol of ``lev[0]``, symbols.
+    model : ChannelModel or ChannelTrack
+        The channel, one for the span or a track along the packet.
+    p_prior : float
+        Prior mean of the symbol period, frames.
+    p_sigma : float
+        Its RMS, frames.
+    iters : int
+        Most Gauss-Newton steps.
+    huber : float
+        Huber threshold of the normalized residual, noise RMS.
+    timing_sigma : float
+        Symbol boundary uncertainty that widens the straddle variances, frames.
+    fit_p : bool
+        Fit the period too (else the phase only).
+
+    Returns
+    -------
+    clock : SymbolClock
+        The refined clock, frames.
+    used : int
+        Number of informative straddling observations used (0: clock unchanged).
     """
     track = model if isinstance(model, ChannelTrack) else ChannelTrack.single(model)
     C, n, N = L.shape
@@ -545,13 +767,42 @@ def refine_clock_reference(L: np.ndarray, clock: SymbolClock, e: float, lev: np.
                  fit_p: bool = True) -> tuple[SymbolClock, int]:
     """Pure-numpy reference of :func:`refine_clock` (the compiled kernel's specification).
 
-    Gauss-Newton refinement of the symbol clock on labelled symbols.
+    Gauss-Newton refinement of the symbol clock on labelled symbols. A straddling frame uses
+    the model of its first symbol.
 
-    L: (C, n, N) buffer luminance; lev: (S, N) 0-based levels of packet symbols
-    ``k_first .. k_first + S - 1`` (-1 = unknown); model: the channel, one for the span or
-    a :class:`ChannelTrack` (a straddling frame uses the model of its first symbol);
-    p_prior, p_sigma: prior on the period (frames). Returns the refined clock and the
-    number of informative straddling observations used (0: clock unchanged).
+    Parameters
+    ----------
+    L : ndarray
+        (C, n, N) buffer luminance, DN (NaN = missing).
+    clock : SymbolClock
+        The clock to start from, frames.
+    e : float
+        Exposure window length, frames.
+    lev : ndarray
+        (S, N) 0-based levels of packet symbols ``k_first .. k_first + S - 1`` (-1 = unknown).
+    k_first : int
+        Packet symbol of ``lev[0]``, symbols.
+    model : ChannelModel or ChannelTrack
+        The channel, one for the span or a track along the packet.
+    p_prior : float
+        Prior mean of the symbol period, frames.
+    p_sigma : float
+        Its RMS, frames.
+    iters : int
+        Most Gauss-Newton steps.
+    huber : float
+        Huber threshold of the normalized residual, noise RMS.
+    timing_sigma : float
+        Symbol boundary uncertainty that widens the straddle variances, frames.
+    fit_p : bool
+        Fit the period too (else the phase only).
+
+    Returns
+    -------
+    clock : SymbolClock
+        The refined clock, frames.
+    used : int
+        Number of informative straddling observations used (0: clock unchanged).
     """
     track = model if isinstance(model, ChannelTrack) else ChannelTrack.single(model)
     C, n, N = L.shape

@@ -58,7 +58,18 @@ class LightAccumulator:
         self.frames = 0
 
     def add(self, frames: np.ndarray) -> None:
-        """Fold a block (F, H, W) of integer frames in (its window's pixels only)."""
+        """Fold a block (F, H, W) of integer frames in (its window's pixels only).
+
+        Parameters
+        ----------
+        frames : ndarray
+            (F, H, W) integer frames, DN; the window must lie inside them.
+
+        Raises
+        ------
+        ValueError
+            If the frames are not integer or the window lies outside them.
+        """
         fr = np.asarray(frames)
         if fr.dtype.kind not in "ui":
             raise ValueError(f"LightAccumulator takes integer frames, got {fr.dtype}")
@@ -190,7 +201,27 @@ register_warm(_grid_scores, lambda: (np.ones((8, 8)), np.zeros(2), np.zeros(2), 
 
 def track_on_light_compiled(light: np.ndarray, prev: GridFit, x0: int, y0: int) -> GridFit:
     """The compiled :func:`iscd.receiver.detect.track_on_light` (same result to float
-    tolerance) for an array; one LED goes to the reference."""
+    tolerance) for an array; one LED goes to the reference.
+
+    Parameters
+    ----------
+    light : ndarray
+        (h, w) light map of the tracking window (:meth:`LightAccumulator.light_map`), DN.
+    prev : GridFit
+        The previous fit, image px.
+    x0, y0 : int
+        The window's top-left pixel in the image, px.
+
+    Returns
+    -------
+    GridFit
+        The refined fit, image px.
+
+    Raises
+    ------
+    ValueError
+        If the window has no modulated light.
+    """
     if prev.rows * prev.cols == 1:
         return track_on_light(light, prev, x0, y0)
     lt = np.require(light, dtype=np.float32, requirements=["C", "W"])
