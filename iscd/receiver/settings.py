@@ -64,7 +64,27 @@ class ReceiverConfig:
 
 
 def receiver_config(cfg: Config | None = None, table: dict[str, Any] | None = None) -> ReceiverConfig:
-    """The validated ``[receiver]`` section of ``cfg`` (or of a raw ``table``)."""
+    """The validated ``[receiver]`` section of ``cfg`` (or of a raw ``table``).
+
+    Parameters
+    ----------
+    cfg : Config or None
+        A loaded configuration; its ``[receiver]`` table is read from ``cfg.extra``.
+        ``None`` (with no ``table``) gives every default.
+    table : dict or None
+        A raw ``[receiver]`` table, used instead of ``cfg`` when given.
+
+    Returns
+    -------
+    ReceiverConfig
+        The section with every key checked and every default filled in.
+
+    Raises
+    ------
+    ConfigError
+        When the table is not a table, or a key is unknown or of the wrong type (the message
+        names the key).
+    """
     if table is None:
         table = (cfg.extra.get("receiver", {}) if cfg is not None else {})
     if not isinstance(table, dict):

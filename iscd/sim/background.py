@@ -21,7 +21,26 @@ from iscd.config import DistractorConfig
 
 def texture(shape: tuple[int, int], mean_dn: float, rng: np.random.Generator,
             contrast: float = 0.35, n_blocks: int = 40) -> np.ndarray:
-    """Procedural texture (float32, DN) of ``shape`` with mean ``mean_dn``, >= 0."""
+    """Procedural texture (float32, DN) of ``shape`` with mean ``mean_dn``, >= 0.
+
+    Parameters
+    ----------
+    shape : tuple of int
+        (h, w), px.
+    mean_dn : float
+        Mean grey level, DN.
+    rng : numpy.random.Generator
+        Source of the noise and the blocks.
+    contrast : float
+        Relative RMS contrast before clipping at 0 (the mean is restored after it).
+    n_blocks : int
+        Hard-edged rectangles (buildings, signs, poles) added to the smoothed noise.
+
+    Returns
+    -------
+    ndarray of float32
+        (h, w) texture, DN.
+    """
     h, w = shape
     tex = np.zeros((h, w), np.float32)
     for sigma, weight in ((1.0, 0.25), (4.0, 0.5), (16.0, 1.0), (48.0, 1.0)):
@@ -47,7 +66,28 @@ def background_pair(kind: str, shape: tuple[int, int], mean_dn: float, disparity
                     ) -> tuple[np.ndarray, np.ndarray]:
     """(left, right) noise-free backgrounds (float32 DN, before aperture scaling) of
     ``shape``; the right one is the left scene shifted by ``disparity_px`` (cubic);
-    ``contrast``: the texture's relative RMS contrast."""
+    ``contrast``: the texture's relative RMS contrast.
+
+    Parameters
+    ----------
+    kind : {"texture", "flat", "none"}
+        ``scene.background``.
+    shape : tuple of int
+        (h, w), px.
+    mean_dn : float
+        Mean grey level at f/4 and 1 ms, DN.
+    disparity_px : float
+        Disparity d_bg = f_px b / Z_bg of the background, px: right(u) = left(u + d_bg).
+    rng : numpy.random.Generator
+        Source of the texture (unused for ``flat`` and ``none``).
+    contrast : float
+        Relative RMS contrast of the texture.
+
+    Returns
+    -------
+    left, right : ndarray of float32
+        Each (h, w), DN.
+    """
     h, w = shape
     if kind == "none":
         z = np.zeros(shape, np.float32)
@@ -67,7 +107,24 @@ def background_pair(kind: str, shape: tuple[int, int], mean_dn: float, disparity
 
 def flicker_gain(d: DistractorConfig, t0_s: np.ndarray, exposure_s: float,
                  phase_rad: float = 0.0) -> np.ndarray:
-    """Mean of (1 - cos(2 pi f t + phi)) over [t0, t0 + exposure] (1 for a steady light)."""
+    """Mean of (1 - cos(2 pi f t + phi)) over [t0, t0 + exposure] (1 for a steady light).
+
+    Parameters
+    ----------
+    d : DistractorConfig
+        The distractor; its ``flicker_hz`` is f, Hz (<= 0: steady).
+    t0_s : ndarray
+        Exposure start times, s (camera clock).
+    exposure_s : float
+        Exposure time, s.
+    phase_rad : float
+        phi, rad.
+
+    Returns
+    -------
+    ndarray of float64
+        Gain on ``brightness_dn`` (0-2, mean 1), the shape of ``t0_s``.
+    """
     t0 = np.asarray(t0_s, dtype=np.float64)
     if d.flicker_hz <= 0:
         return np.ones_like(t0)

@@ -41,15 +41,52 @@ class LedClock:
         return 1.0 + self.drift_ppm * 1e-6
 
     def led_time(self, t_cam: np.ndarray | float) -> np.ndarray:
-        """LED clock time (s) of camera time ``t_cam`` (s)."""
+        """LED clock time (s) of camera time ``t_cam`` (s).
+
+        Parameters
+        ----------
+        t_cam : float or ndarray
+            Camera clock time, s.
+
+        Returns
+        -------
+        ndarray of float64
+            t_led = (t_cam - phase_s) (1 + drift_ppm 1e-6), s, the shape of ``t_cam``.
+
+        References
+        ----------
+        SPEC section 3.
+        """
         return (np.asarray(t_cam, dtype=np.float64) - self.phase_s) * self.rate
 
     def cam_time(self, t_led: np.ndarray | float) -> np.ndarray:
-        """Camera time (s) of LED clock time ``t_led`` (s)."""
+        """Camera time (s) of LED clock time ``t_led`` (s).
+
+        Parameters
+        ----------
+        t_led : float or ndarray
+            LED clock time, s.
+
+        Returns
+        -------
+        ndarray of float64
+            Camera clock time, s, the shape of ``t_led``.
+        """
         return np.asarray(t_led, dtype=np.float64) / self.rate + self.phase_s
 
     def symbol_start_cam(self, k: np.ndarray | int) -> np.ndarray:
-        """Camera time (s) at which LED symbol ``k`` starts."""
+        """Camera time (s) at which LED symbol ``k`` starts.
+
+        Parameters
+        ----------
+        k : int or ndarray
+            Symbol indices (LED clock; symbol k starts at t_led = k T).
+
+        Returns
+        -------
+        ndarray of float64
+            Camera clock time, s, the shape of ``k``.
+        """
         return self.cam_time(np.asarray(k, dtype=np.float64) * self.symbol_period_s)
 
 
@@ -58,6 +95,24 @@ def partial_on_time(tau: np.ndarray, duty: np.ndarray, pwm_hz: float) -> np.ndar
 
     The carrier period 1/f_pwm starts at the symbol start; in each period the LED is on
     for the first duty/f_pwm: ``floor(tau*f)*d/f + min(frac(tau*f), d)/f``.
+
+    Parameters
+    ----------
+    tau : ndarray
+        Time since the symbol start, s (LED clock), 0 <= tau <= T.
+    duty : ndarray
+        PWM duty (s - 1)/(M - 1), 0..1; broadcasts with ``tau``.
+    pwm_hz : float
+        Carrier frequency f_pwm, Hz.
+
+    Returns
+    -------
+    ndarray of float64
+        On-time, s (LED clock), the broadcast shape of ``tau`` and ``duty``.
+
+    References
+    ----------
+    SPEC section 3; dissertation fig. 3.2.
     """
     x = np.asarray(tau, dtype=np.float64) * pwm_hz
     whole = np.floor(x)
@@ -68,11 +123,24 @@ def cumulative_on_time(t_led: np.ndarray, duties: np.ndarray, first_symbol: int,
                        clock: LedClock, cum: np.ndarray | None = None) -> np.ndarray:
     """G(t_led): on-time (s, LED clock) from ``first_symbol``'s start to ``t_led``.
 
-    t_led: LED clock times (s), shape (F,). Must lie in
-      [first_symbol*T, (first_symbol + n_sym)*T] (a time exactly at the end is allowed).
-    duties: (n_sym, N) PWM duties of symbols first_symbol .. first_symbol + n_sym - 1.
-    cum: optional precomputed :func:`symbol_cumsum` of ``duties``.
-    Returns (F, N) on-times in s.
+    Parameters
+    ----------
+    t_led : ndarray
+        (F,) LED clock times, s. Must lie in [first_symbol*T, (first_symbol + n_sym)*T]
+        (a time exactly at the end is allowed).
+    duties : ndarray
+        (n_sym, N) PWM duties (0..1) of symbols first_symbol .. first_symbol + n_sym - 1.
+    first_symbol : int
+        Symbol index of the first row of ``duties``.
+    clock : LedClock
+        Symbol period T and carrier frequency.
+    cum : ndarray, optional
+        Precomputed :func:`symbol_cumsum` of ``duties``, (n_sym + 1, N), s.
+
+    Returns
+    -------
+    ndarray of float64
+        (F, N) on-times, s (LED clock).
     """
     T = clock.symbol_period_s
     d = np.asarray(duties, dtype=np.float64)
@@ -88,7 +156,20 @@ def cumulative_on_time(t_led: np.ndarray, duties: np.ndarray, first_symbol: int,
 
 
 def symbol_cumsum(duties: np.ndarray, clock: LedClock) -> np.ndarray:
-    """(n_sym + 1, N) cumulative on-time (s) at each symbol start, 0 at the first."""
+    """(n_sym + 1, N) cumulative on-time (s) at each symbol start, 0 at the first.
+
+    Parameters
+    ----------
+    duties : ndarray
+        (n_sym, N) PWM duties of consecutive symbols, 0..1.
+    clock : LedClock
+        Symbol period and carrier frequency.
+
+    Returns
+    -------
+    ndarray of float64
+        (n_sym + 1, N) on-times, s (LED clock).
+    """
     d = np.asarray(duties, dtype=np.float64)
     full = partial_on_time(np.full(d.shape, clock.symbol_period_s), d, clock.pwm_hz)
     out = np.zeros((d.shape[0] + 1, d.shape[1]))
@@ -100,9 +181,26 @@ def on_time(t0_cam: np.ndarray, exposure_s: float, clock: LedClock,
             duty_of: "callable[[int, int], np.ndarray]") -> np.ndarray:  # type: ignore[valid-type]
     """Integrated on-time (s, camera clock) of every LED in each exposure window.
 
-    t0_cam: (F,) exposure start times, camera clock, s; windows are [t0, t0 + exposure_s].
-    duty_of(k0, k1): (k1 - k0, N) duties of symbols k0..k1-1 (negative k: dark).
-    Returns (F, N) seconds; divide by exposure_s for the on-time fraction.
+    Parameters
+    ----------
+    t0_cam : ndarray
+        (F,) exposure start times, s (camera clock); windows are [t0, t0 + exposure_s].
+    exposure_s : float
+        Exposure time, s.
+    clock : LedClock
+        The transmitter's clock.
+    duty_of : callable
+        ``duty_of(k0, k1)``: (k1 - k0, N) PWM duties (0..1) of symbols k0..k1-1
+        (negative k: dark).
+
+    Returns
+    -------
+    ndarray of float64
+        (F, N) on-times, s; divide by ``exposure_s`` for the on-time fraction.
+
+    References
+    ----------
+    SPEC sections 3 and 6.
     """
     t0 = np.asarray(t0_cam, dtype=np.float64).reshape(-1)
     T = clock.symbol_period_s
@@ -123,7 +221,26 @@ def on_time(t0_cam: np.ndarray, exposure_s: float, clock: LedClock,
 def brute_force_on_time(t0_cam: float, exposure_s: float, clock: LedClock,
                         duty_of: "callable[[int, int], np.ndarray]",  # type: ignore[valid-type]
                         samples_per_pwm_period: int = 400) -> np.ndarray:
-    """Reference: sample the carrier waveform densely and sum (tests only). Returns (N,) s."""
+    """Reference: sample the carrier waveform densely and sum (tests only).
+
+    Parameters
+    ----------
+    t0_cam : float
+        Exposure start, s (camera clock).
+    exposure_s : float
+        Exposure time, s.
+    clock : LedClock
+        The transmitter's clock.
+    duty_of : callable
+        ``duty_of(k0, k1)``: (k1 - k0, N) PWM duties (0..1) of symbols k0..k1-1.
+    samples_per_pwm_period : int
+        Midpoint-rule samples per carrier period 1/f_pwm.
+
+    Returns
+    -------
+    ndarray of float64
+        (N,) on-times, s (camera clock).
+    """
     n = int(np.ceil(exposure_s * clock.pwm_hz * samples_per_pwm_period))
     dt = exposure_s / n
     t = t0_cam + (np.arange(n) + 0.5) * dt  # midpoint rule

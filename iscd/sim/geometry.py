@@ -39,6 +39,17 @@ class StereoGeometry:
 
     @classmethod
     def from_config(cls, cam: CameraConfig) -> "StereoGeometry":
+        """The ideal rig of ``[camera]``: f/rho, baseline and image size.
+
+        Parameters
+        ----------
+        cam : CameraConfig
+            The camera section.
+
+        Returns
+        -------
+        StereoGeometry
+        """
         return cls(cam.focal_px, cam.baseline_m, cam.width, cam.height)
 
     @property
@@ -50,12 +61,42 @@ class StereoGeometry:
         return self.height / 2 - 0.5
 
     def disparity(self, z_m: np.ndarray | float) -> np.ndarray:
-        """d = f_px b / Z, px."""
+        """d = f_px b / Z, px.
+
+        Parameters
+        ----------
+        z_m : float or ndarray
+            Distance Z, m.
+
+        Returns
+        -------
+        ndarray of float64
+            Disparity d, px, the shape of ``z_m``.
+
+        References
+        ----------
+        Dissertation, eq. (2.2).
+        """
         return self.focal_px * self.baseline_m / np.asarray(z_m, dtype=np.float64)
 
     def project(self, x_m: np.ndarray, y_m: np.ndarray, z_m: np.ndarray
                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(u_left, u_right, v) in px of points (X, Y, Z) in m (broadcasting)."""
+        """(u_left, u_right, v) in px of points (X, Y, Z) in m (broadcasting).
+
+        Parameters
+        ----------
+        x_m, y_m, z_m : ndarray
+            Point coordinates in the left camera's frame (x right, y down, z forward), m.
+
+        Returns
+        -------
+        u_left, u_right, v : ndarray of float64
+            Image coordinates, px (pixel-centre convention); the broadcast shape of the inputs.
+
+        References
+        ----------
+        Dissertation, eq. (2.2).
+        """
         z = np.asarray(z_m, dtype=np.float64)
         ul = self.cx + self.focal_px * np.asarray(x_m) / z
         v = self.cy + self.focal_px * np.asarray(y_m) / z
@@ -68,7 +109,20 @@ def project_rig(rig: "StereoCalibration", x_m: np.ndarray, y_m: np.ndarray, z_m:
     coordinates, broadcasting) as imaged by a non-ideal rig: each camera's intrinsics and lens
     distortion and the right camera's pose (R, T), via
     :func:`calibration.io.project_points` (cv2.projectPoints). A rig equal to the ideal one
-    gives :meth:`StereoGeometry.project` up to rounding."""
+    gives :meth:`StereoGeometry.project` up to rounding.
+
+    Parameters
+    ----------
+    rig : calibration.io.StereoCalibration
+        The rig (M1, D1, M2, D2, R, T; T in m).
+    x_m, y_m, z_m : ndarray
+        Point coordinates in the left camera's frame, m.
+
+    Returns
+    -------
+    u_left, v_left, u_right, v_right : ndarray of float64
+        Image coordinates, px; the broadcast shape of the inputs.
+    """
     from calibration.io import project_points
 
     x, y, z = np.broadcast_arrays(np.asarray(x_m, np.float64), np.asarray(y_m, np.float64),
@@ -83,7 +137,18 @@ def project_rig(rig: "StereoCalibration", x_m: np.ndarray, y_m: np.ndarray, z_m:
 
 def led_offsets(tx: TransmitterConfig) -> np.ndarray:
     """(N, 2) LED (x, y) offsets from the array centre, m, row-major:
-    x = (c - (cols-1)/2) pitch, y = (r - (rows-1)/2) pitch."""
+    x = (c - (cols-1)/2) pitch, y = (r - (rows-1)/2) pitch.
+
+    Parameters
+    ----------
+    tx : TransmitterConfig
+        ``rows``, ``cols`` and ``pitch_m`` (m).
+
+    Returns
+    -------
+    ndarray of float64
+        (N, 2) offsets, m, N = rows cols.
+    """
     r, c = np.divmod(np.arange(tx.rows * tx.cols), tx.cols)
     return np.stack([(c - (tx.cols - 1) / 2) * tx.pitch_m,
                      (r - (tx.rows - 1) / 2) * tx.pitch_m], axis=1)
@@ -91,13 +156,39 @@ def led_offsets(tx: TransmitterConfig) -> np.ndarray:
 
 def lateral(t_s: np.ndarray, scene: SceneConfig) -> np.ndarray:
     """X(t) = lateral_m + lateral_speed_mps t, m (t in s, camera clock): the transmitter's
-    lateral offset (right positive); it keeps moving when the approach has stopped."""
+    lateral offset (right positive); it keeps moving when the approach has stopped.
+
+    Parameters
+    ----------
+    t_s : ndarray
+        Times, s (camera clock).
+    scene : SceneConfig
+        ``lateral_m`` (m) and ``lateral_speed_mps`` (m/s).
+
+    Returns
+    -------
+    ndarray of float64
+        X, m, the shape of ``t_s``.
+    """
     t = np.asarray(t_s, dtype=np.float64)
     return scene.lateral_m + scene.lateral_speed_mps * t
 
 
 def distance(t_s: np.ndarray, scene: SceneConfig) -> np.ndarray:
-    """Z(t) = max(distance_m - speed_mps t, min_distance_m), m (t in s, camera clock)."""
+    """Z(t) = max(distance_m - speed_mps t, min_distance_m), m (t in s, camera clock).
+
+    Parameters
+    ----------
+    t_s : ndarray
+        Times, s (camera clock).
+    scene : SceneConfig
+        ``distance_m`` (m), ``speed_mps`` (m/s) and ``min_distance_m`` (m).
+
+    Returns
+    -------
+    ndarray of float64
+        Z, m, the shape of ``t_s``.
+    """
     z = scene.distance_m - scene.speed_mps * np.asarray(t_s, dtype=np.float64)
     return np.maximum(z, scene.min_distance_m)
 
@@ -268,7 +359,18 @@ class EngineVibration:
 
     def phase(self, t_s: np.ndarray) -> np.ndarray:
         """phi(t) = 2 pi (f_e t + W sum_i c_i (cos theta_i - cos(2 pi nu_i t + theta_i))
-        / (2 pi nu_i)), rad."""
+        / (2 pi nu_i)), rad.
+
+        Parameters
+        ----------
+        t_s : ndarray
+            Times, s (flattened).
+
+        Returns
+        -------
+        ndarray of float64
+            (F,) phase of the fundamental, rad.
+        """
         t = np.asarray(t_s, dtype=np.float64).reshape(-1, 1)
         w = self.nu * 2 * np.pi
         integ = (self.c * (np.cos(self.theta) - np.cos(w * t + self.theta)) / w).sum(axis=1)
@@ -285,7 +387,21 @@ class EngineVibration:
 
 def make_vibration(scene: SceneConfig, seed: int
                    ) -> Vibration | BumpVibration | EngineVibration:
-    """The rig vibration of ``scene.vibration_model`` with RMS ``scene.vibration_px``."""
+    """The rig vibration of ``scene.vibration_model`` with RMS ``scene.vibration_px``.
+
+    Parameters
+    ----------
+    scene : SceneConfig
+        ``vibration_model``, ``vibration_px`` (px) and the model's parameters
+        (``bump_*``, ``engine_*``).
+    seed : int
+        Random seed (the scene's).
+
+    Returns
+    -------
+    Vibration or BumpVibration or EngineVibration
+        Called with times t_s (s), gives the (F, 2) shift (dx, dy), px.
+    """
     rms = scene.vibration_px
     if scene.vibration_model == "bumps":
         return BumpVibration(rms, seed, scene.bump_rate_hz, scene.bump_freq_hz,
@@ -299,6 +415,17 @@ def make_vibration(scene: SceneConfig, seed: int
 def vibration_margin(scene: SceneConfig) -> int:
     """Padding (px) of the pre-rendered background for the whole-pixel vibration shift:
     4 x RMS for ``smooth`` (as before), 8 x RMS for the impulsive ``bumps``, the peak
-    2 x RMS for ``engine``; at most 64."""
+    2 x RMS for ``engine``; at most 64.
+
+    Parameters
+    ----------
+    scene : SceneConfig
+        ``vibration_model`` and ``vibration_px`` (px).
+
+    Returns
+    -------
+    int
+        Margin, px (0 without vibration).
+    """
     factor = {"smooth": 4.0, "bumps": 8.0, "engine": 2.0}[scene.vibration_model]
     return min(int(math.ceil(factor * scene.vibration_px)), 64)

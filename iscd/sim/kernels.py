@@ -78,7 +78,17 @@ def copy_frame(out: np.ndarray, src: np.ndarray, oy: int, ox: int) -> None:
 
 
 def copy_frame_ref(out: np.ndarray, src: np.ndarray, oy: int, ox: int) -> None:
-    """Reference of :func:`copy_frame`."""
+    """Reference of :func:`copy_frame`.
+
+    Parameters
+    ----------
+    out : ndarray of uint8
+        (H, W) destination frame.
+    src : ndarray of uint8
+        Padded source (bank) frame.
+    oy, ox : int
+        Origin of the copied region in ``src``, px.
+    """
     H, W = out.shape
     np.copyto(out, src[oy:oy + H, ox:ox + W])
 
@@ -170,7 +180,33 @@ def add_sources_ref(acc: np.ndarray, clear: bool, kern: np.ndarray, ix: np.ndarr
                     iy: np.ndarray, w: np.ndarray, c_amp: float, c_core: float,
                     c_flux: float, gy: np.ndarray, gxt: np.ndarray, grid_q: int) -> None:
     """Reference of :func:`add_sources` (``np.bincount`` and matrix products, as
-    :func:`iscd.sim.optics.render`)."""
+    :func:`iscd.sim.optics.render`).
+
+    Parameters
+    ----------
+    acc : ndarray of float64
+        (hc, wc) light canvas, DN (modified in place).
+    clear : bool
+        Set ``acc`` to 0 first.
+    kern : ndarray of float32
+        (n, k, k) core profile P of each source's window.
+    ix, iy : ndarray of int64
+        (n,) window origins, canvas px.
+    w : ndarray of float64
+        (n,) on-fraction (0..1) or flicker gain (0..2) of each source.
+    c_amp : float
+        Grey level of a fully-on source, DN.
+    c_core : float
+        Core peak scale per DN of light.
+    c_flux : float
+        Glare flux per DN of light, px^2.
+    gy : ndarray of float64
+        (hc, m) unit-area glare Gaussians of the source rows, 1/px (m = 0: no glare).
+    gxt : ndarray of float64
+        (q, wc) unit-area glare Gaussians of the source columns, 1/px.
+    grid_q : int
+        Columns of the row-major (m, grid_q) source grid; 0: m = q = n.
+    """
     n, k, _ = kern.shape
     H, W = acc.shape
     amp = w * c_amp
@@ -253,7 +289,31 @@ def expose_window_ref(out: np.ndarray, Y0: int, X0: int, acc: np.ndarray, ay: in
                       bg: np.ndarray, prnu: np.ndarray, by: int, bx: int, z: np.ndarray,
                       noise: bool, sensor: np.ndarray) -> None:
     """Reference of :func:`expose_window` (numpy, the arithmetic of ``SensorModel.expose``
-    with the draws ``z`` given)."""
+    with the draws ``z`` given).
+
+    Parameters
+    ----------
+    out : ndarray of uint8
+        (H, W) frame, written in the window only.
+    Y0, X0 : int
+        Top-left of the window in ``out``, px.
+    acc : ndarray of float64
+        (hc, wc) light canvas, DN.
+    ay, ax : int
+        Top-left of the window in ``acc``, px.
+    bg : ndarray of float32
+        Background photo-signal, DN.
+    prnu : ndarray of float32
+        PRNU gain map, the shape of ``bg``.
+    by, bx : int
+        Top-left of the window in ``bg`` and ``prnu``, px.
+    z : ndarray of float32
+        (h, w) N(0, 1) draws; (h, w) is the window's shape.
+    noise : bool
+        Add shot and read noise.
+    sensor : ndarray of float32
+        (4,) :func:`sensor_constants`.
+    """
     gain, read2, offset, top = sensor
     h, w = z.shape
     s = np.add(acc[ay:ay + h, ax:ax + w], bg[by:by + h, bx:bx + w], dtype=np.float32)
@@ -276,7 +336,51 @@ def render_window_ref(out: np.ndarray, Y0: int, X0: int, acc: np.ndarray, ay: in
                       gy: np.ndarray, gxt: np.ndarray, grid_q: int, bg: np.ndarray,
                       prnu: np.ndarray, by: int, bx: int, z: np.ndarray, noise: bool,
                       sensor: np.ndarray) -> None:
-    """Reference of :func:`render_window`."""
+    """Reference of :func:`render_window`.
+
+    Parameters
+    ----------
+    out : ndarray of uint8
+        (H, W) frame, written in the window only.
+    Y0, X0 : int
+        Top-left of the window in ``out``, px.
+    acc : ndarray of float64
+        (hc, wc) light canvas, DN (modified in place).
+    ay, ax : int
+        Top-left of the window in ``acc``, px.
+    clear : bool
+        Set ``acc`` to 0 first.
+    kern : ndarray of float32
+        (n, k, k) core profile P of each source's window.
+    ix, iy : ndarray of int64
+        (n,) window origins, canvas px.
+    w : ndarray of float64
+        (n,) on-fraction (0..1) or flicker gain (0..2) of each source.
+    c_amp : float
+        Grey level of a fully-on source, DN.
+    c_core : float
+        Core peak scale per DN of light.
+    c_flux : float
+        Glare flux per DN of light, px^2.
+    gy : ndarray of float64
+        (hc, m) unit-area glare Gaussians of the source rows, 1/px (m = 0: no glare).
+    gxt : ndarray of float64
+        (q, wc) unit-area glare Gaussians of the source columns, 1/px.
+    grid_q : int
+        Columns of the row-major (m, grid_q) source grid; 0: m = q = n.
+    bg : ndarray of float32
+        Background photo-signal, DN.
+    prnu : ndarray of float32
+        PRNU gain map, the shape of ``bg``.
+    by, bx : int
+        Top-left of the window in ``bg`` and ``prnu``, px.
+    z : ndarray of float32
+        (h, w) N(0, 1) draws; (h, w) is the window's shape.
+    noise : bool
+        Add shot and read noise.
+    sensor : ndarray of float32
+        (4,) :func:`sensor_constants`.
+    """
     add_sources_ref(acc, clear, kern, ix, iy, w, c_amp, c_core, c_flux, gy, gxt, grid_q)
     expose_window_ref(out, Y0, X0, acc, ay, ax, bg, prnu, by, bx, z, noise, sensor)
 
@@ -316,7 +420,19 @@ def bloom_columns(acc: np.ndarray, cap: float, spill: float, coef: np.ndarray) -
 
 
 def bloom_columns_ref(acc: np.ndarray, cap: float, spill: float, coef: np.ndarray) -> None:
-    """Reference of :func:`bloom_columns` (numpy)."""
+    """Reference of :func:`bloom_columns` (numpy).
+
+    Parameters
+    ----------
+    acc : ndarray of float64
+        (h, w) light canvas, DN (modified in place).
+    cap : float
+        Full well, DN.
+    spill : float
+        Share of the excess above ``cap`` that a pixel loses, 0..1.
+    coef : ndarray of float64
+        (D,) :func:`iscd.sim.sensor.bloom_coefficients`.
+    """
     ex = np.maximum(acc - cap, 0.0)
     acc -= spill * ex
     for j in range(coef.size):
@@ -329,7 +445,24 @@ def bloom_columns_ref(acc: np.ndarray, cap: float, spill: float, coef: np.ndarra
 def sensor_constants(gain_dn_per_e: float, read_dn: float, dark_dn: float, max_dn: int
                      ) -> np.ndarray:
     """The float32 constants of :meth:`iscd.sim.sensor.SensorModel.expose` for
-    :func:`expose_window`: (gain, read_dn^2, dark_dn + 0.5, max_dn + 0.5 - 1e-3)."""
+    :func:`expose_window`: (gain, read_dn^2, dark_dn + 0.5, max_dn + 0.5 - 1e-3).
+
+    Parameters
+    ----------
+    gain_dn_per_e : float
+        Conversion gain, DN per electron.
+    read_dn : float
+        Read noise RMS, DN.
+    dark_dn : float
+        Black level, DN.
+    max_dn : int
+        Top grey level, DN.
+
+    Returns
+    -------
+    ndarray of float32
+        (4,) gain (DN/e), read noise^2 (DN^2), offset (DN), top (DN).
+    """
     return np.array([gain_dn_per_e, read_dn ** 2, dark_dn + 0.5, max_dn + 0.5 - 1e-3],
                     np.float32)
 

@@ -51,6 +51,20 @@ def disk_blur_profile(r: np.ndarray, radius_px: float, sigma_px: float) -> np.nd
     """P(r): a unit disk of radius R blurred by a Gaussian of sigma s, at radius r (px).
 
     The non-central chi-square CDF ``chndtr(R^2/s^2, 2, r^2/s^2)`` (= scipy.stats.ncx2.cdf).
+
+    Parameters
+    ----------
+    r : ndarray
+        Distances from the disk centre, px.
+    radius_px : float
+        Disk radius R, px.
+    sigma_px : float
+        Gaussian sigma s, px (> 0).
+
+    Returns
+    -------
+    ndarray of float64
+        P, 0..1, the shape of ``r``.
     """
     s2 = sigma_px * sigma_px
     return chndtr(radius_px * radius_px / s2, 2.0, np.asarray(r, dtype=np.float64) ** 2 / s2)
@@ -88,7 +102,17 @@ class SpotProfile:
 
 
 def gaussian_profile(sigma_px: float) -> SpotProfile:
-    """The default spot: a uniform disk blurred by one Gaussian of sigma ``sigma_px``."""
+    """The default spot: a uniform disk blurred by one Gaussian of sigma ``sigma_px``.
+
+    Parameters
+    ----------
+    sigma_px : float
+        Total blur sigma (PSF, pixel area, defocus), px.
+
+    Returns
+    -------
+    SpotProfile
+    """
     return SpotProfile(((1.0, float(sigma_px)),))
 
 
@@ -97,7 +121,24 @@ def moffat_components(fwhm_sigma_px: float, beta: float, extra_var_px2: float,
     """A Moffat PSF (1 + r^2/alpha^2)^-beta with the FWHM of a Gaussian of sigma
     ``fwhm_sigma_px`` (alpha = sigma sqrt(2 ln 2) / sqrt(2^(1/beta) - 1)) as ``n``
     equal-weight Gaussians: precisions tau_j = Gamma(beta - 1, 2/alpha^2) quantiles at
-    (j + 0.5)/n, variances 1/tau_j + ``extra_var_px2`` (pixel, defocus). ((w, sigma), ...)."""
+    (j + 0.5)/n, variances 1/tau_j + ``extra_var_px2`` (pixel, defocus). ((w, sigma), ...).
+
+    Parameters
+    ----------
+    fwhm_sigma_px : float
+        Sigma of the Gaussian with the same FWHM, px.
+    beta : float
+        Moffat exponent (> 1).
+    extra_var_px2 : float
+        Variance added to every component (pixel area, defocus), px^2.
+    n : int
+        Number of Gaussians.
+
+    Returns
+    -------
+    tuple of (float, float)
+        ``n`` pairs (weight, sigma in px).
+    """
     alpha = fwhm_sigma_px * math.sqrt(2 * math.log(2)) / math.sqrt(2 ** (1 / beta) - 1)
     p = (np.arange(n) + 0.5) / n
     tau = gammaincinv(beta - 1.0, p) * (2.0 / alpha ** 2)
@@ -107,7 +148,20 @@ def moffat_components(fwhm_sigma_px: float, beta: float, extra_var_px2: float,
 def diffuser_disks(falloff: float, n: int = DIFFUSER_DISKS) -> tuple[tuple[float, float], ...]:
     """b(rho) = 1 - k (rho/R)^2 as ``n`` nested uniform disks (radii j/n R, the brightness
     of each annulus at its mid-radius), weights normalized so that the flux is the uniform
-    disk's (mean surface brightness 1, centre 1/(1 - k/2)). ((w_d, c_d), ...)."""
+    disk's (mean surface brightness 1, centre 1/(1 - k/2)). ((w_d, c_d), ...).
+
+    Parameters
+    ----------
+    falloff : float
+        k, the brightness drop from centre to edge (<= 0: a uniform disk).
+    n : int
+        Number of disks.
+
+    Returns
+    -------
+    tuple of (float, float)
+        Pairs (weight w_d, radius c_d as a fraction of R); ``((1.0, 1.0),)`` when uniform.
+    """
     if falloff <= 0:
         return ((1.0, 1.0),)
     c = (np.arange(n) + 1.0) / n
@@ -118,7 +172,22 @@ def diffuser_disks(falloff: float, n: int = DIFFUSER_DISKS) -> tuple[tuple[float
 
 
 def profile_at(r: np.ndarray, radius_px: float, prof: SpotProfile) -> np.ndarray:
-    """P(r) of ``prof`` for a disk of radius R px (1 in a resolved uniform disk)."""
+    """P(r) of ``prof`` for a disk of radius R px (1 in a resolved uniform disk).
+
+    Parameters
+    ----------
+    r : ndarray
+        Distances from the spot centre, px.
+    radius_px : float
+        Disk radius R, px.
+    prof : SpotProfile
+        The spot model.
+
+    Returns
+    -------
+    ndarray of float64
+        P, the shape of ``r``.
+    """
     if prof.is_gaussian_disk:
         return disk_blur_profile(r, radius_px, prof.psf[0][1])
     out = np.zeros(np.shape(r))
@@ -133,7 +202,24 @@ def glare_components(r0_px: float, gamma: float, n: int = GLARE_COMPONENTS,
     """A power-law halo (1 + r^2/r0^2)^-gamma (gamma > 1) as ``n`` equal-weight Gaussians
     (precision quantiles of Gamma(gamma - 1, 2/r0^2)); sigmas capped at ``max_sigma_px``
     (default 4 r0: the farthest wing is pulled in so the render window stays small).
-    ((w, sigma px), ...): add the disk's and the pixel's variance per component."""
+    ((w, sigma px), ...): add the disk's and the pixel's variance per component.
+
+    Parameters
+    ----------
+    r0_px : float
+        Core radius r0, px.
+    gamma : float
+        Power-law exponent (> 1).
+    n : int
+        Number of Gaussians.
+    max_sigma_px : float, optional
+        Cap on the sigmas, px (default 4 r0).
+
+    Returns
+    -------
+    tuple of (float, float)
+        ``n`` pairs (weight, sigma in px).
+    """
     cap = 4.0 * r0_px if max_sigma_px is None else max_sigma_px
     p = (np.arange(n) + 0.5) / n
     tau = gammaincinv(gamma - 1.0, p) * (2.0 / r0_px ** 2)
@@ -165,7 +251,25 @@ def make_table(radius_px: float, sigma_px: float, rel_cut: float = REL_CUT,
                n_entries: int = 8192, profile: SpotProfile | None = None) -> SpotTable:
     """Tabulate P for disk radius R (px) and blur s (px), cut where P < rel_cut; with
     ``profile`` (not the plain Gaussian disk), P of that spot model (``sigma_px`` is then
-    only recorded)."""
+    only recorded).
+
+    Parameters
+    ----------
+    radius_px : float
+        Disk radius R, px.
+    sigma_px : float
+        Gaussian blur s, px (at least 1e-3 is used).
+    rel_cut : float
+        P below which the profile is cut to 0.
+    n_entries : int
+        Table bins (in r^2).
+    profile : SpotProfile, optional
+        A spot model other than the Gaussian disk.
+
+    Returns
+    -------
+    SpotTable
+    """
     if profile is not None and not profile.is_gaussian_disk:
         return _make_profile_table(radius_px, profile, rel_cut, n_entries)
     s = max(sigma_px, 1e-3)
@@ -218,7 +322,22 @@ class TableCache:
     def get(self, radius_px: float, sigma_px: float,
             profile: SpotProfile | None = None) -> SpotTable:
         """The table of radius ``radius_px`` (quantized) and blur ``sigma_px``, or of spot
-        model ``profile`` when it is not the plain Gaussian disk."""
+        model ``profile`` when it is not the plain Gaussian disk.
+
+        Parameters
+        ----------
+        radius_px : float
+            Disk radius R, px.
+        sigma_px : float
+            Gaussian blur s, px.
+        profile : SpotProfile, optional
+            A spot model other than the Gaussian disk.
+
+        Returns
+        -------
+        SpotTable
+            Tabulated at the quantized radius (its ``radius_px``).
+        """
         b = int(round(math.log(max(radius_px, 1e-6)) / self.log_step))
         plain = profile is None or profile.is_gaussian_disk
         key = (b, round(sigma_px, 9)) if plain else (b, profile)
@@ -244,7 +363,20 @@ class Canvas:
 
 
 def source_box(u: np.ndarray, v: np.ndarray, half: int) -> tuple[int, int, int, int]:
-    """(x0, y0, x1, y1) half-open pixel box holding windows of ``half`` around all (u, v)."""
+    """(x0, y0, x1, y1) half-open pixel box holding windows of ``half`` around all (u, v).
+
+    Parameters
+    ----------
+    u, v : ndarray
+        (n,) source centres, px (n >= 1).
+    half : int
+        Half-size of each source's window, px.
+
+    Returns
+    -------
+    x0, y0, x1, y1 : int
+        Box, px (x1, y1 exclusive).
+    """
     x0 = int(np.floor(u.min() + 0.5)) - half - 1
     y0 = int(np.floor(v.min() + 0.5)) - half - 1
     x1 = int(np.floor(u.max() + 0.5)) + half + 2
@@ -279,6 +411,25 @@ def footprint(x0: int, y0: int, shape: tuple[int, int], u: np.ndarray, v: np.nda
     """Precompute the pixels of sources at (u, v) px in the canvas at (x0, y0) of ``shape``.
 
     Every source's (2*half+1)^2 window must lie inside the canvas (see :func:`source_box`).
+
+    Parameters
+    ----------
+    x0, y0 : int
+        Image px of the canvas's pixel (0, 0).
+    shape : tuple of int
+        (H, W) of the canvas, px.
+    u, v : ndarray
+        (n,) source centres, image px.
+    tab : SpotTable
+        The core profile of every source.
+    glare_sigma_px : float
+        Glare Gaussian sigma, px (0: no glare).
+    grid : tuple of int, optional
+        (m, q) when the n = m q sources form a row-major grid (shared rows and columns).
+
+    Returns
+    -------
+    Footprint
     """
     H, W = shape
     h = tab.half
@@ -315,7 +466,24 @@ def footprint(x0: int, y0: int, shape: tuple[int, int], u: np.ndarray, v: np.nda
 def render(fp: Footprint, amp: np.ndarray, flux: np.ndarray | None = None,
            out: np.ndarray | None = None) -> np.ndarray:
     """Sources of footprint ``fp`` with core peak scales ``amp`` (n,) DN and glare fluxes
-    ``flux`` (n,) DN px^2, as a float64 (H, W) canvas (added into ``out`` if given)."""
+    ``flux`` (n,) DN px^2, as a float64 (H, W) canvas (added into ``out`` if given).
+
+    Parameters
+    ----------
+    fp : Footprint
+        Where the sources land.
+    amp : ndarray
+        (n,) core peak scales, DN.
+    flux : ndarray, optional
+        (n,) glare fluxes, DN px^2 (None: no glare).
+    out : ndarray, optional
+        (H, W) float64 canvas to add into (in place).
+
+    Returns
+    -------
+    ndarray of float64
+        (H, W) canvas, DN (``out`` if given).
+    """
     H, W = fp.shape
     w = fp.kern * amp.astype(np.float32)[:, None]
     acc = np.bincount(fp.flat, w.ravel(), minlength=H * W).reshape(H, W)
@@ -332,7 +500,19 @@ def render(fp: Footprint, amp: np.ndarray, flux: np.ndarray | None = None,
 
 def add_cores(canvas: Canvas, u: np.ndarray, v: np.ndarray, amp: np.ndarray,
               tab: SpotTable) -> None:
-    """Add amp_i * P(|x - (u_i, v_i)|) of every source into ``canvas`` (in place)."""
+    """Add amp_i * P(|x - (u_i, v_i)|) of every source into ``canvas`` (in place).
+
+    Parameters
+    ----------
+    canvas : Canvas
+        The image window, DN.
+    u, v : ndarray
+        (n,) source centres, image px.
+    amp : ndarray
+        (n,) core peak scales, DN.
+    tab : SpotTable
+        The core profile P.
+    """
     if u.size == 0:
         return
     fp = footprint(canvas.x0, canvas.y0, canvas.data.shape, u, v, tab)
@@ -344,6 +524,17 @@ def add_glare(canvas: Canvas, u: np.ndarray, v: np.ndarray, flux: np.ndarray,
     """Add Gaussian halos (total ``flux`` DN px^2 each, sigma px) at (u, v) into ``canvas``.
 
     Separable: canvas += (Gy * flux) @ Gx^T with Gy[y, i] = N(y - v_i; s), Gx likewise.
+
+    Parameters
+    ----------
+    canvas : Canvas
+        The image window, DN.
+    u, v : ndarray
+        (n,) halo centres, image px.
+    flux : ndarray
+        (n,) total flux of each halo, DN px^2.
+    sigma_px : float
+        Halo sigma s, px.
     """
     if u.size == 0:
         return
@@ -367,7 +558,22 @@ def _gauss(x: np.ndarray, mu: np.ndarray, s: float) -> np.ndarray:
 
 
 def spot_size_px(radius_px: float, sigma_px: float, level: float = 0.1) -> float:
-    """Full width (px) of the continuous core profile at ``level`` of its peak."""
+    """Full width (px) of the continuous core profile at ``level`` of its peak.
+
+    Parameters
+    ----------
+    radius_px : float
+        Disk radius R, px.
+    sigma_px : float
+        Gaussian blur s, px.
+    level : float
+        Fraction of the peak, 0..1.
+
+    Returns
+    -------
+    float
+        Full width, px.
+    """
     s = max(sigma_px, 1e-3)
     rr = np.linspace(0.0, radius_px + 8 * s, 4001)
     p = disk_blur_profile(rr, radius_px, s)

@@ -85,7 +85,22 @@ VIEW_MARGIN_PX = 40
 
 def randomized(cfg: Config, seed: int, *, motion: dict[str, Any] | None = None) -> Config:
     """``cfg`` with the simulator's physics drawn for ``seed`` (see module docstring);
-    deterministic in (cfg, seed, motion). ``motion``: [scene] keys fixed instead of drawn."""
+    deterministic in (cfg, seed, motion). ``motion``: [scene] keys fixed instead of drawn.
+
+    Parameters
+    ----------
+    cfg : Config
+        The base config (transmitter array, apertures, baseline, distance, speed, scene seed
+        and distractors are kept).
+    seed : int
+        Seed of the draw (recorded as ``scene.randomized_seed``).
+    motion : dict, optional
+        ``[scene]`` keys (e.g. ``distance_m``, m; ``speed_mps``, m/s) fixed instead of drawn.
+
+    Returns
+    -------
+    Config
+    """
     rng = np.random.default_rng([seed & 0xFFFFFFFF, 0x7A4D])
     motion = dict(motion or {})
     base = override(cfg, scene=motion) if motion else cfg
@@ -103,7 +118,20 @@ def randomized(cfg: Config, seed: int, *, motion: dict[str, Any] | None = None) 
 
 def drawn(cfg: Config) -> dict[str, Any]:
     """The values :func:`randomized` draws, read back from a config (``section.key``: value),
-    JSON-ready: what ``iscd simulate --randomize`` records in the truth's meta."""
+    JSON-ready: what ``iscd simulate --randomize`` records in the truth's meta.
+
+    Parameters
+    ----------
+    cfg : Config
+        A (randomized) config.
+
+    Returns
+    -------
+    dict
+        ``section.key`` -> value, in the config's units; also ``transmitter.radiance_dn``,
+        ``effective_radiance_dn`` (radiance_dn exposure_s / 1 ms, DN) and
+        ``scene.randomized_seed``.
+    """
     keys = [*RANGES, *CHOICES]
     out: dict[str, Any] = {}
     for k in keys:
@@ -196,7 +224,20 @@ def lateral_interval_m(cfg: Config, led_diameter_m: float | None = None
     """(lo, hi) m: where the array centre X may be so that the whole array stays
     :data:`VIEW_MARGIN_PX` inside both images (left at f X/Z, right at f (X - b)/Z from the
     centre) at every distance of :data:`RUN_S` s of the approach, intersected with
-    :data:`RANGES`; lo > hi when it never fits."""
+    :data:`RANGES`; lo > hi when it never fits.
+
+    Parameters
+    ----------
+    cfg : Config
+        Camera, transmitter array and scene motion.
+    led_diameter_m : float, optional
+        LED diameter, m (default ``transmitter.led_diameter_m``).
+
+    Returns
+    -------
+    lo, hi : float
+        Bounds on X, m.
+    """
     sc, cam, tx = cfg.scene, cfg.camera, cfg.transmitter
     z = min(sc.distance_m, max(sc.distance_m - sc.speed_mps * RUN_S, sc.min_distance_m))
     half_w = (tx.cols - 1) / 2 * tx.pitch_m + (led_diameter_m or tx.led_diameter_m) / 2

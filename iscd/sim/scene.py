@@ -305,7 +305,21 @@ class Scene:
 
     # ------------------------------------------------------------------ per-frame state
     def frame_state(self, frames: np.ndarray) -> dict[str, np.ndarray]:
-        """Per-frame geometry and on-times (the per-frame part of :meth:`truth`)."""
+        """Per-frame geometry and on-times (the per-frame part of :meth:`truth`).
+
+        Parameters
+        ----------
+        frames : ndarray
+            (F,) frame indices, >= 0.
+
+        Returns
+        -------
+        dict of str to ndarray
+            ``frames`` (F,); ``t_s`` (F,) exposure starts, s; ``z_m`` (F,) distance at
+            mid-exposure, m; ``vib`` (F, 2) rig vibration, px; ``shift_left``, ``shift_right``
+            (F, 2) image shifts (vibration + jitter), px; ``u_left``, ``v_left``, ``u_right``,
+            ``v_right`` (F, N) LED centres, px; ``on_fraction`` (F, N) on-time / exposure, 0..1.
+        """
         f = np.asarray(frames, dtype=np.int64).reshape(-1)
         if f.size and f.min() < 0:
             raise ValueError("frame indices must be >= 0")
@@ -367,14 +381,33 @@ class Scene:
         return time.perf_counter() - t0
 
     def render_pair(self, n: int) -> tuple[np.ndarray, np.ndarray]:
-        """Frame ``n`` of both cameras as new (H, W) uint8 arrays."""
+        """Frame ``n`` of both cameras as new (H, W) uint8 arrays.
+
+        Parameters
+        ----------
+        n : int
+            Frame index, >= 0.
+
+        Returns
+        -------
+        left, right : ndarray of uint8
+            Each (H, W), DN.
+        """
         out_l = np.empty((self.height, self.width), np.uint8)
         out_r = np.empty((self.height, self.width), np.uint8)
         self.render_pair_into(n, out_l, out_r)
         return out_l, out_r
 
     def render_pair_into(self, n: int, out_l: np.ndarray, out_r: np.ndarray) -> None:
-        """Render frame ``n`` (>= 0) of both cameras into ``out_l``/``out_r`` ((H, W) uint8)."""
+        """Render frame ``n`` (>= 0) of both cameras into ``out_l``/``out_r`` ((H, W) uint8).
+
+        Parameters
+        ----------
+        n : int
+            Frame index, >= 0.
+        out_l, out_r : ndarray of uint8
+            (H, W) left and right frames, overwritten.
+        """
         n = int(n)
         if n < 0:
             raise ValueError(f"frame index must be >= 0, got {n}")
@@ -383,7 +416,17 @@ class Scene:
         self._render_camera(self.cams[1], n, st, i, out_r)
 
     def render(self, n: int, camera: int, out: np.ndarray) -> None:
-        """Render frame ``n`` of one camera (0 = left, 1 = right) into ``out``."""
+        """Render frame ``n`` of one camera (0 = left, 1 = right) into ``out``.
+
+        Parameters
+        ----------
+        n : int
+            Frame index, >= 0.
+        camera : int
+            0 = left, 1 = right.
+        out : ndarray of uint8
+            (H, W) frame, overwritten.
+        """
         st, i = self._chunk(int(n))
         self._render_camera(self.cams[camera], int(n), st, i, out)
 
@@ -551,7 +594,17 @@ class Scene:
 
     # ------------------------------------------------------------------ truth
     def truth(self, frames: np.ndarray | range) -> Truth:
-        """Ground truth of ``frames`` (ascending frame indices), see :class:`Truth`."""
+        """Ground truth of ``frames`` (ascending frame indices), see :class:`Truth`.
+
+        Parameters
+        ----------
+        frames : array_like of int or range
+            Frame indices, >= 0 (sorted and deduplicated; at least one).
+
+        Returns
+        -------
+        Truth
+        """
         f = np.asarray(frames, dtype=np.int64).reshape(-1)
         if f.size == 0:
             raise ValueError("truth of no frames")
@@ -617,7 +670,19 @@ class Scene:
 def spot_profile(op: OpticsConfig, extra_var_px2: float) -> SpotProfile:
     """The spot model of ``optics`` in a camera whose PSF gets ``extra_var_px2`` px^2 of
     Gaussian blur on top (pixel area 1/12, right-camera defocus): the Gaussian or Moffat
-    PSF of width ``psf_sigma_px`` and the diffuser's nested disks."""
+    PSF of width ``psf_sigma_px`` and the diffuser's nested disks.
+
+    Parameters
+    ----------
+    op : OpticsConfig
+        ``psf_model``, ``psf_sigma_px`` (px), ``psf_beta`` and ``diffuser_falloff``.
+    extra_var_px2 : float
+        Extra Gaussian variance, px^2.
+
+    Returns
+    -------
+    SpotProfile
+    """
     disks = diffuser_disks(op.diffuser_falloff)
     if op.psf_model == "moffat":
         psf = moffat_components(op.psf_sigma_px, op.psf_beta, extra_var_px2)

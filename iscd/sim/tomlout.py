@@ -54,7 +54,20 @@ def _table(name: str, d: dict[str, Any], out: list[str]) -> None:
 
 
 def config_to_toml(cfg: Config, header: str = "") -> str:
-    """TOML text that :func:`iscd.config.loads` reads back into an equal config."""
+    """TOML text that :func:`iscd.config.loads` reads back into an equal config.
+
+    Parameters
+    ----------
+    cfg : Config
+        The config to write.
+    header : str
+        Text written first as ``#`` comment lines ('' for none).
+
+    Returns
+    -------
+    str
+        The TOML document, ending in a newline.
+    """
     d = to_dict(cfg)
     extra = d.pop("extra", {}) or {}
     out: list[str] = [f"# {line}" for line in header.splitlines()] + ([""] if header else [])

@@ -30,7 +30,18 @@ class LevelSource(Protocol):
     n_leds: int
 
     def levels(self, k0: int, k1: int) -> np.ndarray:
-        """(k1 - k0, N) uint8 levels 1..M of symbols k0..k1-1 (k < 0: level 1)."""
+        """(k1 - k0, N) uint8 levels 1..M of symbols k0..k1-1 (k < 0: level 1).
+
+        Parameters
+        ----------
+        k0, k1 : int
+            Symbol index range (LED clock), k1 exclusive.
+
+        Returns
+        -------
+        ndarray of uint8
+            (k1 - k0, N) levels.
+        """
         ...
 
 
@@ -38,6 +49,17 @@ def fixed_payload(cfg: PayloadConfig, capacity: int) -> bytes | None:
     """The fixed payload of ``[payload]`` (None for ``source = "random"``).
 
     Raises ConfigError naming ``payload.value`` if it cannot be read or is too long.
+
+    Parameters
+    ----------
+    cfg : PayloadConfig
+        ``source`` (random, text, hex or file) and ``value``.
+    capacity : int
+        Payload capacity of a packet, bytes.
+
+    Returns
+    -------
+    bytes or None
     """
     if cfg.source == "random":
         return None
@@ -82,7 +104,21 @@ class PacketSource:
 
     @classmethod
     def from_config(cls, cfg: "object") -> "PacketSource":
-        """From an :class:`iscd.config.Config` (transmitter, payload, scene.seed)."""
+        """From an :class:`iscd.config.Config` (transmitter, payload, scene.seed).
+
+        Parameters
+        ----------
+        cfg : Config
+            The config.
+
+        Returns
+        -------
+        PacketSource
+
+        References
+        ----------
+        SPEC section 3.
+        """
         air = AirInterface.from_config(cfg.transmitter)  # type: ignore[attr-defined]
         return cls(air, fixed_payload(cfg.payload, air.payload_bytes),  # type: ignore[attr-defined]
                    seed=cfg.scene.seed)  # type: ignore[attr-defined]
@@ -93,14 +129,35 @@ class PacketSource:
         return self.air.period_symbols
 
     def payload(self, p: int) -> bytes:
-        """Payload (exactly ``air.payload_bytes`` bytes, zero-padded) of packet ``p`` >= 0."""
+        """Payload (exactly ``air.payload_bytes`` bytes, zero-padded) of packet ``p`` >= 0.
+
+        Parameters
+        ----------
+        p : int
+            Packet index, >= 0.
+
+        Returns
+        -------
+        bytes
+        """
         if self._fixed is not None:
             return self._fixed.ljust(self.air.payload_bytes, b"\0")
         rng = np.random.default_rng([self.seed & 0xFFFFFFFF, 0x9A7, int(p)])
         return random_payload(self.air, rng)
 
     def packet(self, p: int) -> np.ndarray:
-        """(period, N) levels of packet ``p``."""
+        """(period, N) levels of packet ``p``.
+
+        Parameters
+        ----------
+        p : int
+            Packet index, >= 0.
+
+        Returns
+        -------
+        ndarray of uint8
+            (period, N) levels 1..M, idle symbols included (a cached array: do not modify).
+        """
         if self._fixed is not None:
             if self._fixed_packet is None:
                 self._fixed_packet = self.air.packet(self._fixed)
@@ -116,6 +173,18 @@ class PacketSource:
         return lv
 
     def levels(self, k0: int, k1: int) -> np.ndarray:
+        """(k1 - k0, N) uint8 levels 1..M of symbols k0..k1-1 (k < 0: level 1).
+
+        Parameters
+        ----------
+        k0, k1 : int
+            Symbol index range, k1 exclusive (symbol 0 = start of packet 0).
+
+        Returns
+        -------
+        ndarray of uint8
+            (k1 - k0, N) levels.
+        """
         out = np.ones((max(0, k1 - k0), self.n_leds), dtype=np.uint8)
         P = self.period
         k = max(k0, 0)
@@ -142,6 +211,19 @@ class ArraySource:
         self.repeat = repeat
 
     def levels(self, k0: int, k1: int) -> np.ndarray:
+        """(k1 - k0, N) uint8 levels of symbols k0..k1-1: the array's rows, level 1 outside it
+        (unless ``repeat``).
+
+        Parameters
+        ----------
+        k0, k1 : int
+            Symbol index range, k1 exclusive (symbol 0 = the array's first row).
+
+        Returns
+        -------
+        ndarray of uint8
+            (k1 - k0, N) levels.
+        """
         k = np.arange(k0, k1)
         n = self._lv.shape[0]
         if self.repeat:

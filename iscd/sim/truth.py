@@ -61,20 +61,48 @@ class Truth:
         return int(self.frames.size)
 
     def row(self, frame: int) -> int:
-        """Index into the per-frame arrays of frame number ``frame`` (KeyError if absent)."""
+        """Index into the per-frame arrays of frame number ``frame`` (KeyError if absent).
+
+        Parameters
+        ----------
+        frame : int
+            Frame index.
+
+        Returns
+        -------
+        int
+        """
         i = np.searchsorted(self.frames, frame)
         if i >= self.frames.size or self.frames[i] != frame:
             raise KeyError(f"frame {frame} is not in this truth")
         return int(i)
 
     def levels_of(self, k0: int, k1: int) -> np.ndarray:
-        """(k1 - k0, N) levels of symbols k0..k1-1 (must lie in ``symbol_index``)."""
+        """(k1 - k0, N) levels of symbols k0..k1-1 (must lie in ``symbol_index``).
+
+        Parameters
+        ----------
+        k0, k1 : int
+            Symbol index range, k1 exclusive.
+
+        Returns
+        -------
+        ndarray
+            (k1 - k0, N) levels 1..M (a view of ``levels``).
+        """
         i0 = int(k0 - self.symbol_index[0])
         if i0 < 0 or k1 - self.symbol_index[0] > self.symbol_index.size:
             raise KeyError(f"symbols {k0}..{k1} are outside this truth")
         return self.levels[i0:i0 + (k1 - k0)]
 
     def save(self, directory: str | Path) -> None:
+        """Write ``truth.npz`` (arrays) and ``truth.json`` (meta, payloads as hex).
+
+        Parameters
+        ----------
+        directory : str or Path
+            Output directory (created if missing).
+        """
         d = Path(directory)
         d.mkdir(parents=True, exist_ok=True)
         np.savez_compressed(d / "truth.npz", **{k: getattr(self, k) for k in _ARRAYS})
@@ -83,6 +111,17 @@ class Truth:
 
     @classmethod
     def load(cls, directory: str | Path) -> "Truth":
+        """Read a truth written by :meth:`save`.
+
+        Parameters
+        ----------
+        directory : str or Path
+            The directory holding ``truth.npz`` and ``truth.json``.
+
+        Returns
+        -------
+        Truth
+        """
         d = Path(directory)
         with np.load(d / "truth.npz") as z:
             arrays = {k: z[k] for k in _ARRAYS}
