@@ -498,11 +498,12 @@ def track_array(frames: np.ndarray, prev: GridFit, *, margin: float | None = Non
     """Refine ``prev`` on a new block of frames (the array moved and grew a little).
 
     Only a window of ``margin`` px (default: 2 pitches + 4 px) around the previous fit is
-    read, so tracking touches only the pixels it needs. The grid score (mean activity at
-    the grid points) is evaluated for a small set of shifts (+-0.5 px in 0.25 px steps,
-    plus a whole-pitch search when the score is poor) and pitch scales (+-2 %) in one
-    vectorized interpolation; tracking is iterative, so each block moves the fit at most
-    that far.
+    read, so tracking touches only the pixels it needs. The window's light map
+    (:func:`light_map`: temporal mean minus minimum, less its median, smoothed) is scored at
+    the grid points (the mean of the light there) for a small set of shifts (+-0.5 px in
+    0.25 px steps) and pitch scales (+-2 %) in one vectorized interpolation; there is no
+    whole-pitch search, so each block moves the fit at most that far and tracking relies on
+    being called often (a single LED is refitted in the window instead).
 
     Parameters
     ----------
