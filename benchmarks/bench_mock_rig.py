@@ -51,7 +51,7 @@ def _page_aligned(shape: tuple[int, ...]) -> np.ndarray:
 
 
 def bench(n_pairs: int) -> dict[str, float]:
-    from drivers.mock import MockRig
+    from iscd.drivers.mock import MockRig
     from iscd.config import default_config
     from iscd.sim.presets import override
 

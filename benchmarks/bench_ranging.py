@@ -114,7 +114,7 @@ LIVE_BLOCK = 16
 
 def live(min_total: float, repeats: int, frames: int) -> None:
     """Time :class:`iscd.stereo_range.StereoRanger` on rendered frames (module docstring)."""
-    from calibration.io import StereoCalibration
+    from iscd.calibration.io import StereoCalibration
     from iscd.config import default_config
     from iscd.receiver.detect import detect_array
     from iscd.sim.presets import single_led

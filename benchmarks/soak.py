@@ -376,6 +376,11 @@ def analyze(directory: Path, *, warmup_s: float = 20.0, window_before: int = 100
                    host_other_cores_median=round(_median([b * (os.cpu_count() or 1) - c for _, b, c in host]), 3)
                    if host else None)
     checks["drops_only_in_faults"] = {"ok": out_f == 0, "outside": outside[:30]}
+    # drops after the warm-up but before the first fault: this machine cannot serve the rig
+    # at all (a slow or shared host), so where later drops fall says nothing about faults
+    first = min((a for a, _ in wins), default=None)
+    pre = sum(d for a, b, d, _ in outside if first is not None and b <= first)
+    summary.update(frames_dropped_before_first_fault=pre, keeps_up=pre == 0)
     # the same with the drops while the host's every core was >= 90 % busy forgiven
     checks["drops_only_in_faults_or_saturated_host"] = {"ok": out_f - sat == 0}
     # -- every packet outside the faults is decoded, no CRC-valid packet is wrong

@@ -8,7 +8,7 @@ JSON, preview PNG), ``live`` (guided capture from the rig), ``synthetic`` (rende
 seen by a known rig, for tests). See docs/calibration.md.
 """
 
-from calibration.io import (CalibrationError, StereoCalibration, load_calibration,
+from iscd.calibration.io import (CalibrationError, StereoCalibration, load_calibration,
                             project_points, rectify_points, save_calibration)
 
 __all__ = ["CalibrationError", "StereoCalibration", "load_calibration", "project_points",

@@ -16,7 +16,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from calibration.boards import BoardSpec
+from iscd.calibration.boards import BoardSpec
 
 SUBPIX_PRESMOOTH_PX = 1.0
 """Gaussian sigma (px) of the smoothing applied before cv2.cornerSubPix."""

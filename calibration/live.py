@@ -9,7 +9,7 @@ in a row) and the view is new (mean corner distance to every earlier capture at 
 Rerun recording is attached, shown live so the operator knows where the board is still missing.
 
 :class:`CaptureLogic` is pure (images in, events out) and testable without cameras;
-:func:`run_capture` drives it from two :class:`drivers.base.Camera` objects.
+:func:`run_capture` drives it from two :class:`iscd.drivers.base.Camera` objects.
 """
 
 from __future__ import annotations
@@ -23,9 +23,9 @@ from typing import Any
 import cv2
 import numpy as np
 
-from calibration.boards import BoardSpec
-from calibration.detect import Detection, PairObservation, detect, pair_detections, to_gray8
-from drivers.base import Camera, CameraError, CameraTimeout, Frame
+from iscd.calibration.boards import BoardSpec
+from iscd.calibration.detect import Detection, PairObservation, detect, pair_detections, to_gray8
+from iscd.drivers.base import Camera, CameraError, CameraTimeout, Frame
 
 log = logging.getLogger(__name__)
 

@@ -1,6 +1,6 @@
 """From image files to board observations: globbing, pairing, reading, detection.
 
-Everything here raises :class:`calibration.io.CalibrationError` with a one-line message for
+Everything here raises :class:`iscd.calibration.io.CalibrationError` with a one-line message for
 bad input (no images, unequal counts, unreadable or differently sized images).
 """
 
@@ -15,10 +15,10 @@ from pathlib import Path
 
 import numpy as np
 
-from calibration.boards import BoardSpec
-from calibration.detect import Detection, PairObservation, detect, pair_detections, read_image
-from calibration.io import CalibrationError
-from calibration.solve import PairStatus
+from iscd.calibration.boards import BoardSpec
+from iscd.calibration.detect import Detection, PairObservation, detect, pair_detections, read_image
+from iscd.calibration.io import CalibrationError
+from iscd.calibration.solve import PairStatus
 
 log = logging.getLogger(__name__)
 

@@ -10,10 +10,10 @@ from typing import Any
 import cv2
 import numpy as np
 
-from calibration.detect import PairObservation
-from calibration.io import StereoCalibration, atomic_write_text, rectify_points
-from calibration.solve import CalibrationResult
-from calibration.verify import VerifyResult
+from iscd.calibration.detect import PairObservation
+from iscd.calibration.io import StereoCalibration, atomic_write_text, rectify_points
+from iscd.calibration.solve import CalibrationResult
+from iscd.calibration.verify import VerifyResult
 
 
 def summary_dict(res: CalibrationResult) -> dict[str, Any]:

@@ -19,8 +19,8 @@ from datetime import datetime, timezone
 import cv2
 import numpy as np
 
-from calibration.detect import PairObservation
-from calibration.io import CalibrationError, StereoCalibration, rectify_points
+from iscd.calibration.detect import PairObservation
+from iscd.calibration.io import CalibrationError, StereoCalibration, rectify_points
 
 log = logging.getLogger(__name__)
 
@@ -147,7 +147,7 @@ def calibrate_stereo(observations: list[PairObservation], image_size: tuple[int,
                      board_label: str | None = None) -> CalibrationResult:
     """Calibrate a stereo rig from board corners seen in both cameras.
 
-    observations: the usable pairs (see :func:`calibration.detect.pair_detections`).
+    observations: the usable pairs (see :func:`iscd.calibration.detect.pair_detections`).
     image_size: (width, height) px. rejected: pairs already dropped (e.g. board not found),
     carried into the result. min_pairs: fewer usable pairs is an error. outlier_factor,
     outlier_floor_px: a pair is dropped while its per-view RMS error (either camera, mono or

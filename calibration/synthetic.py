@@ -18,8 +18,8 @@ from typing import TYPE_CHECKING
 import cv2
 import numpy as np
 
-from calibration.boards import BoardSpec
-from calibration.io import StereoCalibration, Which
+from iscd.calibration.boards import BoardSpec
+from iscd.calibration.io import StereoCalibration, Which
 
 if TYPE_CHECKING:  # pragma: no cover
     from iscd.config import CameraConfig
@@ -47,7 +47,7 @@ def nonideal_rig(camera_cfg: "CameraConfig", k1: float = -0.05, k2: float = 0.02
     principal points off centre (left +offset, right -offset, px), the right focal length
     ``focal_ratio_right`` times the left's, and the right camera rotated by ``rotation_deg``
     (Rodrigues components about x, y, z, degrees). Render with
-    :func:`calibration.io.project_points`; the returned calibration is the truth."""
+    :func:`iscd.calibration.io.project_points`; the returned calibration is the truth."""
     w, h, f = camera_cfg.width, camera_cfg.height, camera_cfg.focal_px
     cx, cy = (w - 1) / 2.0, (h - 1) / 2.0
     dx, dy = principal_offset_px

@@ -20,9 +20,9 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
-from calibration.boards import BoardSpec
-from calibration.detect import PairObservation
-from calibration.io import StereoCalibration, rectify_points
+from iscd.calibration.boards import BoardSpec
+from iscd.calibration.detect import PairObservation
+from iscd.calibration.io import StereoCalibration, rectify_points
 
 
 @dataclass

@@ -3,7 +3,7 @@
 Any GenTL-compliant camera (GigE Vision, USB3 Vision, CoaXPress, Camera Link HS)
 works through its vendor's GenTL producer; the camera is picked by serial number or
 user id (``DeviceUserID``), and its SFNC features are set from
-:class:`~drivers.base.CameraSettings`:
+:class:`~iscd.drivers.base.CameraSettings`:
 
 ======================  =====================================================
 setting                 SFNC nodes (skipped, and logged, when absent)
@@ -55,8 +55,8 @@ from typing import Any
 
 import numpy as np
 
-from drivers import urls
-from drivers.base import (Camera, CameraError, CameraLost, CameraSettings, CameraTimeout, Frame,
+from iscd.drivers import urls
+from iscd.drivers.base import (Camera, CameraError, CameraLost, CameraSettings, CameraTimeout, Frame,
                           Roi, TriggerMode)
 
 log = logging.getLogger(__name__)

@@ -1,4 +1,4 @@
-"""The mock stereo rig: two :class:`~drivers.base.Camera` objects on one shared trigger,
+"""The mock stereo rig: two :class:`~iscd.drivers.base.Camera` objects on one shared trigger,
 showing the simulated scene (:class:`iscd.sim.Scene`).
 
     left, right = MockRig.from_config(cfg)
@@ -35,8 +35,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from drivers import urls
-from drivers.base import (Camera, CameraError, CameraLost, CameraSettings, CameraTimeout, Frame, PairMeta,
+from iscd.drivers import urls
+from iscd.drivers.base import (Camera, CameraError, CameraLost, CameraSettings, CameraTimeout, Frame, PairMeta,
                           Roi, StereoPairSource)
 from iscd.config import Config, ConfigError, FaultConfig
 

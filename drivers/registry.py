@@ -1,16 +1,16 @@
 """The stereo pair of a config, by camera URL: list the cameras, build and open the rig.
 
-The cameras of ``[rig]`` are camera URLs (:mod:`drivers.urls`, as pyserial's
+The cameras of ``[rig]`` are camera URLs (:mod:`iscd.drivers.urls`, as pyserial's
 ``serial_for_url``): ``url = "mock://default"`` for a rig that is one device (the
-simulated rig, :mod:`drivers.mock`), or ``left`` / ``right`` =
-``genicam://SERIAL?cti=PATH`` (:mod:`drivers.genicam`, harvesters + a GenTL producer) or
-``v4l2:///dev/videoN`` (:mod:`drivers.v4l2`, linuxpy). The old form (``backend`` with
+simulated rig, :mod:`iscd.drivers.mock`), or ``left`` / ``right`` =
+``genicam://SERIAL?cti=PATH`` (:mod:`iscd.drivers.genicam`, harvesters + a GenTL producer) or
+``v4l2:///dev/videoN`` (:mod:`iscd.drivers.v4l2`, linuxpy). The old form (``backend`` with
 serial numbers or device paths) is mapped to those URLs by :mod:`iscd.config`. Each
 backend registers itself under its scheme; hardware libraries are imported only when a
 camera is opened or listed.
 
 With ``[board] emulate = true`` the mock rig's transmitter is an emulated LED board
-(:class:`drivers.board.emulator.PtyEmulator`, served on a pty linked at ``[board] port``
+(:class:`iscd.drivers.board.emulator.PtyEmulator`, served on a pty linked at ``[board] port``
 for as long as the cameras exist): ``iscd tx`` loads it, and the simulated LEDs show what
 it sends (:class:`BoardOnSceneClock`). The cameras are built inside the daemon's
 acquisition process, so the board lives there too.
@@ -26,8 +26,8 @@ from typing import Any
 
 import numpy as np
 
-from drivers import urls
-from drivers.base import Camera, CameraError, CameraSettings, Roi
+from iscd.drivers import urls
+from iscd.drivers.base import Camera, CameraError, CameraSettings, Roi
 
 log = logging.getLogger(__name__)
 
@@ -63,7 +63,7 @@ def check_stereo_config(cfg: Any) -> str | None:
     parent process can refuse a bad config before spawning the acquisition): raises
     :class:`iscd.config.ConfigError` (one line, naming the key). Returns the emulated
     board's link path (``[board] emulate``), else None."""
-    from drivers.board.settings import emulated_board_link
+    from iscd.drivers.board.settings import emulated_board_link
     from iscd.config import ConfigError
 
     rig = cfg.rig
@@ -83,7 +83,7 @@ def check_stereo_config(cfg: Any) -> str | None:
 
 def make_stereo(cfg: Any) -> tuple[Camera, Camera]:
     """The (left, right) cameras of ``cfg.rig``, constructed but not opened, by the backend
-    of their URL (:func:`drivers.urls.rig_for_url`); with ``[board] emulate``, the mock
+    of their URL (:func:`iscd.drivers.urls.rig_for_url`); with ``[board] emulate``, the mock
     rig's emulated board is served from now on."""
     rig = cfg.rig
     link = check_stereo_config(cfg)
@@ -149,7 +149,7 @@ class BoardOnSceneClock:
     """
 
     def __init__(self, board: Any, tx: Any) -> None:
-        from drivers.board.protocol import BoardConfig
+        from iscd.drivers.board.protocol import BoardConfig
 
         self.board = board
         self.n_leds = int(tx.rows * tx.cols)
@@ -210,7 +210,7 @@ def _mock_rig_with_board(cfg: Any, link: str) -> tuple[Camera, Camera]:
     """The mock rig's (left, right) cameras whose transmitter is an emulated board served
     on a pty at ``link``; the board is closed (link removed) when the rig is collected or
     at interpreter exit."""
-    from drivers.board.emulator import PtyEmulator
+    from iscd.drivers.board.emulator import PtyEmulator
 
     emu = PtyEmulator(link=link)
     source = BoardOnSceneClock(emu.board, cfg.transmitter)

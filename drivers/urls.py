@@ -8,14 +8,14 @@ A camera URL names a backend by its scheme and a device by the rest::
     genicam://*?cti=simulated           the first camera of a producer ('' = '*')
     v4l2:///dev/video0                  a V4L2 device (an absolute path: three slashes)
 
-    from drivers.urls import camera_for_url, rig_for_url
+    from iscd.drivers.urls import camera_for_url, rig_for_url
     cam = camera_for_url("v4l2:///dev/video0", name="left")        # one camera
     left, right = rig_for_url("mock://default")                    # a rig that is one device
     left, right = rig_for_url("genicam://0?cti=simulated", "genicam://1?cti=simulated")
 
 Backends register into :data:`BACKENDS` (scheme -> :class:`Backend`) with
-:func:`register`; the built-in ones (:mod:`drivers.mock`, :mod:`drivers.genicam`,
-:mod:`drivers.v4l2`) register themselves when imported, and are imported on the first
+:func:`register`; the built-in ones (:mod:`iscd.drivers.mock`, :mod:`iscd.drivers.genicam`,
+:mod:`iscd.drivers.v4l2`) register themselves when imported, and are imported on the first
 look-up (the modules of :data:`BUILTIN_MODULES`, as pyserial imports its
 ``protocol_handler_packages``). A backend's hardware library is still imported only when a
 camera is opened or listed.
@@ -26,7 +26,7 @@ a **camera** backend (the URL is one camera, :func:`camera_for_url`; a rig is tw
 left = trigger master, right = slave).
 
 Bad URLs raise :class:`CameraURLError` with one line naming the URL and the known forms.
-This module imports nothing of the project but :mod:`drivers.base`.
+This module imports nothing of the project but :mod:`iscd.drivers.base`.
 """
 
 from __future__ import annotations
@@ -39,11 +39,11 @@ from dataclasses import dataclass, field
 from typing import Any
 from urllib.parse import parse_qsl, quote, unquote, urlencode, urlsplit
 
-from drivers.base import Camera, CameraError
+from iscd.drivers.base import Camera, CameraError
 
 log = logging.getLogger(__name__)
 
-BUILTIN_MODULES = ("drivers.mock", "drivers.genicam", "drivers.v4l2")
+BUILTIN_MODULES = ("iscd.drivers.mock", "iscd.drivers.genicam", "iscd.drivers.v4l2")
 """Modules that register a backend when imported (imported on the first look-up)."""
 
 

@@ -37,8 +37,8 @@ from typing import Any
 
 import numpy as np
 
-from drivers import urls
-from drivers.base import (Camera, CameraError, CameraLost, CameraSettings, CameraTimeout, Frame,
+from iscd.drivers import urls
+from iscd.drivers.base import (Camera, CameraError, CameraLost, CameraSettings, CameraTimeout, Frame,
                           Roi)
 
 log = logging.getLogger(__name__)

@@ -7,7 +7,7 @@ spawned process that attaches to the ring by name; :class:`Acquisition` alone ru
 threads of the calling process (tests, replay, single-core use)::
 
     ring = StereoRing.create(height=512, width=512, capacity=capacity_for(100, 1000))
-    acq = AcquisitionProcess(functools.partial(drivers.registry.make_stereo, cfg), ring,
+    acq = AcquisitionProcess(functools.partial(iscd.drivers.registry.make_stereo, cfg), ring,
                              settings=(settings_from_config(cfg, "left"),
                                        settings_from_config(cfg, "right")))
     acq.start()
@@ -17,7 +17,7 @@ threads of the calling process (tests, replay, single-core use)::
 Inside the worker each camera has its own reader thread (a stalled or reopening camera
 never blocks the other); frames go through one lock into the pairer and complete pairs
 are copied into the ring. A rig that delivers both frames of a trigger at once
-(:class:`drivers.base.StereoPairSource`, the mock rig without injected faults) instead
+(:class:`iscd.drivers.base.StereoPairSource`, the mock rig without injected faults) instead
 fills each ring slot itself from one thread: no pairing and no copies; on any camera
 error it falls back to the per-camera readers. A frame that must wait for its partner is copied first (drivers
 may reuse the buffer on the next read). Camera faults never end the worker:
@@ -49,7 +49,7 @@ from typing import Any
 
 import numpy as np
 
-from drivers.base import Camera, CameraError, CameraLost, CameraSettings, CameraTimeout, Frame, StereoPairSource
+from iscd.drivers.base import Camera, CameraError, CameraLost, CameraSettings, CameraTimeout, Frame, StereoPairSource
 from iscd.pairing import StereoPairer
 from iscd.ringbuffer import RingError, StereoRing
 
@@ -96,7 +96,7 @@ class AcquisitionOptions:
     stats_interval_s: float = _opt(0.005, "how often the counters are published, s", lo=0)
     finish_ring: bool = _opt(True, "mark the ring finished when the worker stops")
     pairs_at_once: bool = _opt(True, "let a rig that delivers both frames of a trigger at once "
-                               "(drivers.base.StereoPairSource: the mock rig) fill the ring "
+                               "(iscd.drivers.base.StereoPairSource: the mock rig) fill the ring "
                                "slots itself (no pairing, no copies)")
 
     def tolerance_ns(self, fps: float | None) -> int:

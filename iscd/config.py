@@ -237,8 +237,8 @@ class RigConfig:
 
 def _resolve_rig(rig: RigConfig) -> tuple[str, tuple[str, str], str]:
     """(stereo URL, (left URL, right URL), backend) of ``[rig]``, checked against the camera
-    registry (:mod:`drivers.urls`, which names the backends); ConfigError names the key."""
-    from drivers import urls
+    registry (:mod:`iscd.drivers.urls`, which names the backends); ConfigError names the key."""
+    from iscd.drivers import urls
 
     def parse(key: str, value: str) -> Any:
         try:
@@ -341,7 +341,7 @@ EXTRA_SECTION_CLASSES: dict[str, str] = {
     "ranging": "iscd.ranging.config:RangingSettings",
     "output": "iscd.outputs:OutputConfig",
     "rerun": "iscd.outputs:RerunConfig",
-    "board": "drivers.board.settings:BoardSettings",
+    "board": "iscd.drivers.board.settings:BoardSettings",
     "acquisition": "iscd.acquisition:AcquisitionOptions",
 }
 """Sections owned by other modules: ``name -> "module:Class"`` (validated by

@@ -157,8 +157,8 @@ class Daemon:
     # ------------------------------------------------------------------ main loop
     def run(self) -> dict[str, Any]:
         """Run until the duration elapses or a stop is requested; returns the final stats."""
-        from calibration.io import load_calibration
-        from drivers.registry import make_stereo, settings_from_config
+        from iscd.calibration.io import load_calibration
+        from iscd.drivers.registry import make_stereo, settings_from_config
         from iscd.acquisition import AcquisitionProcess, AcquisitionStats
         from iscd.notify import Notifier
         from iscd.overload import OverloadPolicy

@@ -43,7 +43,7 @@ from typing import Literal
 
 import numpy as np
 
-from drivers.base import Frame
+from iscd.drivers.base import Frame
 
 Side = Literal["left", "right"]
 _SIDES: tuple[Side, Side] = ("left", "right")

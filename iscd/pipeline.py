@@ -29,7 +29,7 @@ from typing import Any
 
 import numpy as np
 
-from calibration.io import StereoCalibration
+from iscd.calibration.io import StereoCalibration
 from iscd.airinterface import AirInterface
 from iscd.config import Config, build_section
 from iscd.demod_pipe import PipeDemodWorker as DemodWorker

@@ -38,7 +38,7 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
-from calibration.io import StereoCalibration, rectify_points
+from iscd.calibration.io import StereoCalibration, rectify_points
 from iscd.ranging.config import PROJECT_METHODS, RangingSettings
 from iscd.ranging.estimators import Estimator, get_estimator
 from iscd.ranging.project_kernel import block_minima, range_block

@@ -48,7 +48,7 @@ def release_harvesters() -> Iterator[None]:
     """Release the GenICam harvesters (producer handles) after a module's tests; use it
     with ``pytestmark = pytest.mark.usefixtures("release_harvesters")``."""
     yield
-    gc = sys.modules.get("drivers.genicam")
+    gc = sys.modules.get("iscd.drivers.genicam")
     if gc is not None:
         gc.release_all()
 

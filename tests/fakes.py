@@ -6,7 +6,7 @@ factories here can be handed to :class:`iscd.acquisition.AcquisitionProcess`).
   (``fake_clock.install(module)``, the ``fake_clock`` fixture in ``conftest.py``);
 * :func:`wait_until`: poll a condition with a generous timeout instead of sleeping a
   fixed time and hoping;
-* :class:`FakeCamera` and :func:`fake_rig`: a scripted :class:`~drivers.base.Camera` on a
+* :class:`FakeCamera` and :func:`fake_rig`: a scripted :class:`~iscd.drivers.base.Camera` on a
   shared trigger clock, with injected faults;
 * :data:`LIGHT` and :func:`run_daemon_until`: the daemon on a light mock transmitter, run
   until what a test waits for has been written (not for a fixed wall time);
@@ -26,7 +26,7 @@ from typing import Any, TypeVar
 import numpy as np
 import pytest
 
-from drivers.base import Camera, CameraError, CameraLost, CameraSettings, CameraTimeout, Frame
+from iscd.drivers.base import Camera, CameraError, CameraLost, CameraSettings, CameraTimeout, Frame
 
 T = TypeVar("T")
 

@@ -16,7 +16,7 @@ from collections.abc import Callable, Iterator
 import numpy as np
 import pytest
 
-from drivers.base import Camera, CameraError, CameraSettings, Frame
+from iscd.drivers.base import Camera, CameraError, CameraSettings, Frame
 from fakes import PATTERN_SHAPE, FakeCamera, fake_rig, wait_until
 from fakes import pattern_image as image
 from iscd.acquisition import (Acquisition, AcquisitionOptions, AcquisitionProcess,
@@ -257,12 +257,12 @@ def test_factory_failure_is_reported(ring: StereoRing) -> None:
 
 # ---------------------------------------------------------------------- the mock rig
 def test_mock_rig_with_faults_feeds_only_true_pairs() -> None:
-    """drivers.mock.MockRig (the simulated scene) with a dropped left frame, a duplicated
+    """iscd.drivers.mock.MockRig (the simulated scene) with a dropped left frame, a duplicated
     right frame, the right camera's ids stepping out of line and the right camera
     vanishing for 40 ms: every pair in the ring is one trigger's two rendered images
     (checked against the scene), and pairs flow again after each fault."""
-    mock = pytest.importorskip("drivers.mock")
-    from drivers.registry import settings_from_config
+    mock = pytest.importorskip("iscd.drivers.mock")
+    from iscd.drivers.registry import settings_from_config
     from iscd.config import loads
 
     cfg = loads("""

@@ -11,8 +11,8 @@ import usb.backend
 import usb.core
 from serial.tools.list_ports_common import ListPortInfo
 
-from drivers.board.discovery import DEFAULT_PID, DEFAULT_VID, FoundBoard, find_boards, usb_devices
-from drivers.board.settings import BoardSettings, board_settings
+from iscd.drivers.board.discovery import DEFAULT_PID, DEFAULT_VID, FoundBoard, find_boards, usb_devices
+from iscd.drivers.board.settings import BoardSettings, board_settings
 from iscd.config import ConfigError, loads
 
 

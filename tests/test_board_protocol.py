@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from drivers.board import protocol as P
+from iscd.drivers.board import protocol as P
 
 DOC = Path(__file__).resolve().parents[1] / "docs" / "board-protocol.md"
 

@@ -12,9 +12,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from drivers.board import protocol as P
-from drivers.board.client import BoardClient, BoardNak, BoardPortError, BoardTimeout
-from drivers.board.emulator import DEFAULT_INFO, Board, PtyEmulator
+from iscd.drivers.board import protocol as P
+from iscd.drivers.board.client import BoardClient, BoardNak, BoardPortError, BoardTimeout
+from iscd.drivers.board.emulator import DEFAULT_INFO, Board, PtyEmulator
 from iscd.airinterface import AirInterface
 
 TIMEOUT = 0.1
@@ -381,7 +381,7 @@ def test_killed_emulator_process_then_restarted(tmp_path: Path) -> None:
     link = tmp_path / "board"
 
     def spawn() -> subprocess.Popen[str]:
-        proc = subprocess.Popen([sys.executable, "-m", "drivers.board.emulator", "--pty", "--link", str(link)],
+        proc = subprocess.Popen([sys.executable, "-m", "iscd.drivers.board.emulator", "--pty", "--link", str(link)],
                                 stdout=subprocess.PIPE, text=True)
         assert proc.stdout is not None
         assert proc.stdout.readline().strip() == str(link)

@@ -9,9 +9,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from drivers.board import discovery
-from drivers.board import protocol as P
-from drivers.board.emulator import DEFAULT_INFO, Board, PtyEmulator
+from iscd.drivers.board import discovery
+from iscd.drivers.board import protocol as P
+from iscd.drivers.board.emulator import DEFAULT_INFO, Board, PtyEmulator
 from iscd.airinterface import AirInterface
 from iscd.cli import main
 

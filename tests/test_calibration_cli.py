@@ -11,8 +11,8 @@ import cv2
 import numpy as np
 import pytest
 
-from calibration.io import StereoCalibration, load_calibration, save_calibration
-from calibration.synthetic import make_pairs
+from iscd.calibration.io import StereoCalibration, load_calibration, save_calibration
+from iscd.calibration.synthetic import make_pairs
 from iscd.cli import main
 from iscd.config import CameraConfig
 

@@ -1,4 +1,4 @@
-"""calibration.io: the calibration file contract (SPEC section 7) and its geometry helpers."""
+"""iscd.calibration.io: the calibration file contract (SPEC section 7) and its geometry helpers."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ import cv2
 import numpy as np
 import pytest
 
-from calibration.io import (CalibrationError, StereoCalibration, dumps_calibration,
+from iscd.calibration.io import (CalibrationError, StereoCalibration, dumps_calibration,
                             load_calibration, project_points, rectify_points, save_calibration)
 from iscd.config import CameraConfig
 

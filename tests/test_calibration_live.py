@@ -11,11 +11,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from calibration.boards import BoardSpec
-from calibration.live import CaptureLogic, LiveSettings, RerunView, read_pair, run_capture
-from calibration.solve import calibrate_stereo
-from calibration.synthetic import BoardRenderer, default_board, default_rig, random_poses
-from drivers.base import CameraSettings, Frame
+from iscd.calibration.boards import BoardSpec
+from iscd.calibration.live import CaptureLogic, LiveSettings, RerunView, read_pair, run_capture
+from iscd.calibration.solve import calibrate_stereo
+from iscd.calibration.synthetic import BoardRenderer, default_board, default_rig, random_poses
+from iscd.drivers.base import CameraSettings, Frame
 from fakes import FakeCamera
 from iscd.cli import main
 
@@ -155,16 +155,16 @@ def test_live_command(scene, tmp_path: Path, monkeypatch: pytest.MonkeyPatch,  #
     cams: list[ScriptCamera] = []
 
     def open_stereo(cfg):  # type: ignore[no-untyped-def]
-        """As drivers.registry.open_stereo: opened and configured, not started."""
+        """As iscd.drivers.registry.open_stereo: opened and configured, not started."""
         cams[:] = [ScriptCamera(script, 0), ScriptCamera(script, 1)]
         for c, trig in zip(cams, ("master", "slave")):
             c.open()
             c.configure(CameraSettings(fps=20.0, exposure_s=1e-3, trigger=trig))
         return cams[0], cams[1]
 
-    fake = types.ModuleType("drivers.registry")
+    fake = types.ModuleType("iscd.drivers.registry")
     fake.open_stereo = open_stereo  # type: ignore[attr-defined]
-    monkeypatch.setitem(sys.modules, "drivers.registry", fake)
+    monkeypatch.setitem(sys.modules, "iscd.drivers.registry", fake)
     out = tmp_path / "live.yml"
     rrd = tmp_path / "capture.rrd"
     rc = main(["calibrate", "--live", "--board", "9x6", "--square", "0.08", "--out", str(out),
@@ -184,11 +184,11 @@ def test_live_command(scene, tmp_path: Path, monkeypatch: pytest.MonkeyPatch,  #
 
 def test_live_without_camera_backends_is_a_clear_error(tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
                                                        capsys: pytest.CaptureFixture[str]) -> None:
-    monkeypatch.setitem(sys.modules, "drivers.registry", None)  # import fails
+    monkeypatch.setitem(sys.modules, "iscd.drivers.registry", None)  # import fails
     rc = main(["calibrate", "--live", "--board", "9x6", "--square", "0.08",
                "--out", str(tmp_path / "x.yml")])
     assert rc == 2
-    assert "live capture needs drivers.registry" in capsys.readouterr().err
+    assert "live capture needs iscd.drivers.registry" in capsys.readouterr().err
     assert not (tmp_path / "x.yml").exists()
 
 

@@ -4,14 +4,14 @@ Claim: "Ranging on a simulated rig with distortion and a small rotation, after c
 is as accurate as on the ideal rig (within 10 %)."
 
 1. The true rig: the chapter 3 rig (f = 3500 px, 512x512, b = 0.6 m) made imperfect by
-   :func:`calibration.synthetic.nonideal_rig` -- k1 = -0.05, k2 = 0.02, principal points
+   :func:`iscd.calibration.synthetic.nonideal_rig` -- k1 = -0.05, k2 = 0.02, principal points
    3/2 px off centre, the right focal length 0.3 % longer, the right camera rotated by
    (0.03, 0.08, 0.02) deg about (x, y, z) (0.08 deg about y alone shifts the right image
    by 4.9 px: 7 % of the disparity at 30 m).
 2. Its calibration: a 10x7-square chessboard of 0.15 m squares (1.5 m x 1.05 m, 9x6 inner
    corners) rendered through the true rig at 10-25 m (the narrow 8.4 deg field of view
    needs a large, distant board: at 10 m both cameras share only 0.86 m of width), tilted
-   up to 40 deg, detected with OpenCV and calibrated by :func:`calibration.solve.calibrate_stereo`
+   up to 40 deg, detected with OpenCV and calibrated by :func:`iscd.calibration.solve.calibrate_stereo`
    (k1 k2 model) -- no truth reaches it.
 3. Single-LED scenes (chapter 3 setup: PWM-8, textured background, 0.05 px air jitter per
    camera, right camera defocused 0.3 px), the LED ~120 px off the image centre where the
@@ -31,11 +31,11 @@ from functools import lru_cache
 import numpy as np
 import pytest
 
-from calibration.boards import BoardSpec
-from calibration.io import StereoCalibration
-from calibration.pipeline import detect_image_pairs
-from calibration.solve import calibrate_stereo
-from calibration.synthetic import make_pairs, nonideal_rig
+from iscd.calibration.boards import BoardSpec
+from iscd.calibration.io import StereoCalibration
+from iscd.calibration.pipeline import detect_image_pairs
+from iscd.calibration.solve import calibrate_stereo
+from iscd.calibration.synthetic import make_pairs, nonideal_rig
 from iscd.config import Config, default_config
 from iscd.ranging.config import RangingSettings
 from iscd.receiver.detect import detect_array

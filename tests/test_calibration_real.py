@@ -11,9 +11,9 @@ import cv2
 import numpy as np
 import pytest
 
-from calibration.boards import BoardSpec
-from calibration.io import load_calibration, save_calibration
-from calibration.pipeline import detect_files, pair_files
+from iscd.calibration.boards import BoardSpec
+from iscd.calibration.io import load_calibration, save_calibration
+from iscd.calibration.pipeline import detect_files, pair_files
 from iscd.cli import main
 
 SHARED = Path(__file__).resolve().parents[1].parent / "shared"

@@ -7,10 +7,10 @@ import cv2
 import numpy as np
 import pytest
 
-from calibration.boards import BoardSpec
-from calibration.detect import Detection, Miss, detect, pair_detections
-from calibration.solve import calibrate_stereo
-from calibration.synthetic import default_rig, make_pairs
+from iscd.calibration.boards import BoardSpec
+from iscd.calibration.detect import Detection, Miss, detect, pair_detections
+from iscd.calibration.solve import calibrate_stereo
+from iscd.calibration.synthetic import default_rig, make_pairs
 
 
 def rel(a: float, b: float) -> float:
@@ -134,8 +134,8 @@ def test_nonideal_rig_pieces_for_ranging() -> None:
     """The pieces the simulator/ranging test will use: render LED positions through a
     non-ideal rig (project_points) and range them through its calibration (rectify_points,
     Z = f*b/d): exact with the true calibration, badly off with the ideal one."""
-    from calibration.io import StereoCalibration, project_points, rectify_points
-    from calibration.synthetic import nonideal_rig
+    from iscd.calibration.io import StereoCalibration, project_points, rectify_points
+    from iscd.calibration.synthetic import nonideal_rig
     from iscd.config import CameraConfig
 
     cfg = CameraConfig()

@@ -1,4 +1,4 @@
-"""Cameras opened by URL (drivers.urls): parsing, dispatch by scheme to the registered
+"""Cameras opened by URL (iscd.drivers.urls): parsing, dispatch by scheme to the registered
 backends, the config's [rig] URLs and the old keys they replace, and `iscd devices`.
 
 The backends run for real where the repo's tests can run them: the mock rig; GenICam through
@@ -17,8 +17,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from drivers import registry, urls
-from drivers.base import CameraError
+from iscd.drivers import registry, urls
+from iscd.drivers.base import CameraError
 from fakes import FakeCamera
 from iscd import cli
 from iscd.config import ConfigError, default_config, loads
@@ -145,7 +145,7 @@ def test_stereo_and_camera_urls_are_not_mixed_up():
 # ------------------------------------------------------------------ mock://
 
 def test_mock_default_is_the_embedded_default_scene_or_the_configs_own():
-    from drivers.mock import MockCamera
+    from iscd.drivers.mock import MockCamera
 
     left, right = urls.rig_for_url("mock://default")
     assert isinstance(left, MockCamera) and left.rig is right.rig
@@ -187,7 +187,7 @@ def test_mock_url_and_old_backend_key_give_the_same_rig():
 
 # ------------------------------------------------------------------ genicam://
 
-gc = pytest.importorskip("drivers.genicam")
+gc = pytest.importorskip("iscd.drivers.genicam")
 try:
     import harvesters  # noqa: F401
 
@@ -296,8 +296,8 @@ needs_linuxpy = pytest.mark.skipif(not HAVE_LINUXPY, reason="linuxpy is not inst
 
 @needs_linuxpy
 def test_v4l2_url_streams_from_the_fake_device(fake):
-    from drivers import v4l2
-    from drivers.base import CameraSettings, Roi
+    from iscd.drivers import v4l2
+    from iscd.drivers.base import CameraSettings, Roi
 
     cam = urls.camera_for_url(f"v4l2://{fake.path}?buffers=4", name="right")
     assert isinstance(cam, v4l2.V4L2Camera)
@@ -316,7 +316,7 @@ def test_v4l2_url_streams_from_the_fake_device(fake):
 @needs_linuxpy
 def test_v4l2_config_urls_and_old_keys_give_the_same_cameras(fake, tmp_path: Path,
                                                              monkeypatch: pytest.MonkeyPatch, capsys):
-    from drivers import v4l2
+    from iscd.drivers import v4l2
 
     for n in (0, 1):
         (tmp_path / f"video{n}").symlink_to(fake.path)

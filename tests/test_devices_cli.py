@@ -1,7 +1,7 @@
-"""``iscd devices`` and drivers.registry (list_cameras, make_stereo, open_stereo).
+"""``iscd devices`` and iscd.drivers.registry (list_cameras, make_stereo, open_stereo).
 
 GenICam cameras come from the simulated producer shipped with the genicam wheel; LED
-boards from a stand-in for drivers.board.discovery.find_boards.
+boards from a stand-in for iscd.drivers.board.discovery.find_boards.
 """
 
 from __future__ import annotations
@@ -11,12 +11,12 @@ from pathlib import Path
 
 import pytest
 
-from drivers import registry
-from drivers.base import Camera, CameraError
+from iscd.drivers import registry
+from iscd.drivers.base import Camera, CameraError
 from iscd import cli
 from iscd.config import ConfigError, loads
 
-gc = pytest.importorskip("drivers.genicam")
+gc = pytest.importorskip("iscd.drivers.genicam")
 VIKY = gc.simulated_producer()
 needs_viky = pytest.mark.skipif(VIKY is None, reason="the genicam wheel ships no simulated producer (*.cti)")
 
@@ -75,7 +75,7 @@ def test_devices_bad_producer_is_a_one_line_error(capsys, tmp_path: Path):
 
 
 def test_devices_lists_boards_with_the_configured_usb_id(capsys, monkeypatch, tmp_path: Path, no_env):
-    discovery = pytest.importorskip("drivers.board.discovery")
+    discovery = pytest.importorskip("iscd.drivers.board.discovery")
     seen: list[tuple[int, int]] = []
 
     def find_boards(vid: int = discovery.DEFAULT_VID, pid: int = discovery.DEFAULT_PID, **kw):
@@ -96,7 +96,7 @@ def test_devices_lists_boards_with_the_configured_usb_id(capsys, monkeypatch, tm
 
 
 def test_devices_survives_a_failing_board_search(capsys, monkeypatch, no_env):
-    discovery = pytest.importorskip("drivers.board.discovery")
+    discovery = pytest.importorskip("iscd.drivers.board.discovery")
 
     def broken(*a, **kw):
         raise OSError("libusb exploded")
@@ -181,7 +181,7 @@ def test_settings_from_config_makes_left_master_right_slave():
 
 
 def test_mock_backend_through_the_registry():
-    pytest.importorskip("drivers.mock", reason="drivers.mock (the mock rig) is not written yet")
+    pytest.importorskip("iscd.drivers.mock", reason="iscd.drivers.mock (the mock rig) is not written yet")
     from iscd.config import load
 
     left, right = registry.make_stereo(load(None))

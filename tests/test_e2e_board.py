@@ -2,9 +2,9 @@
 board drives the simulator's transmitter, and ``iscd run`` on the mock rig decodes exactly
 that payload (issue 6).
 
-``[board] emulate = true`` makes :func:`drivers.registry.make_stereo` (inside the daemon's
+``[board] emulate = true`` makes :func:`iscd.drivers.registry.make_stereo` (inside the daemon's
 acquisition process) serve an emulated board on a pty linked at ``[board] port`` and show
-its LEDs in the mock rig's scene (:class:`drivers.registry.BoardOnSceneClock`). The unit
+its LEDs in the mock rig's scene (:class:`iscd.drivers.registry.BoardOnSceneClock`). The unit
 tests below check the clock alignment against the scene's ground truth; the last test
 runs the real commands as subprocesses.
 """
@@ -27,9 +27,9 @@ from typing import Any
 import numpy as np
 import pytest
 
-from drivers.board.client import BoardClient
-from drivers.board.protocol import BoardConfig
-from drivers.registry import BoardOnSceneClock, check_stereo_config, make_stereo
+from iscd.drivers.board.client import BoardClient
+from iscd.drivers.board.protocol import BoardConfig
+from iscd.drivers.registry import BoardOnSceneClock, check_stereo_config, make_stereo
 from iscd.airinterface import AirInterface
 from iscd.config import ConfigError, loads
 

@@ -240,7 +240,7 @@ def test_block_ranging_in_one_call_matches_the_reference(rendered_default, fits)
 
     L, R = rendered_default
     fl, fr = fits
-    from calibration.io import StereoCalibration
+    from iscd.calibration.io import StereoCalibration
 
     cal = StereoCalibration.ideal(default_config().camera)
     a, b = StereoRanger(cal, compiled=False), StereoRanger(cal, compiled=True)

@@ -1,6 +1,6 @@
 """Property-based fuzzing (hypothesis) of the LED board protocol and the air interface's
 packet decoder: any input gives a value or the module's own error type
-(:class:`~drivers.board.protocol.ProtocolError` and its subclasses,
+(:class:`~iscd.drivers.board.protocol.ProtocolError` and its subclasses,
 :class:`~iscd.airinterface.AirInterfaceError`), never another exception.
 
 Bounds: inputs up to 4 KiB of bytes per call (the protocol's MAX_ENCODED is far less), the
@@ -19,8 +19,8 @@ from fuzzing import fuzz
 from hypothesis import example, given
 from hypothesis import strategies as st
 
-from drivers.board import protocol as P
-from drivers.board.emulator import Board
+from iscd.drivers.board import protocol as P
+from iscd.drivers.board.emulator import Board
 from iscd.airinterface import AirInterface, AirInterfaceError
 
 pytestmark = pytest.mark.filterwarnings("error::RuntimeWarning")  # e.g. a NaN cast is a finding

@@ -1,8 +1,8 @@
 """Property-based fuzzing (hypothesis) of the two text files a user hands iscd: the TOML
 config (:func:`iscd.config.loads` plus :func:`iscd.config.check_extra_sections`, as ``iscd
-run`` does) and the stereo calibration (:func:`calibration.io.loads_calibration`). Any text
+run`` does) and the stereo calibration (:func:`iscd.calibration.io.loads_calibration`). Any text
 gives a value or the module's own error (:class:`~iscd.config.ConfigError`,
-:class:`~calibration.io.CalibrationError`), whose message is one line.
+:class:`~iscd.calibration.io.CalibrationError`), whose message is one line.
 
 Bounds: config texts of up to ~40 keys drawn from the real schema (every section and key, plus
 unknown ones) with values of every TOML type (integers up to 2**70, NaN, inf, strings,
@@ -24,7 +24,7 @@ from fuzzing import fuzz
 from hypothesis import example, given
 from hypothesis import strategies as st
 
-from calibration.io import CalibrationError, StereoCalibration, dumps_calibration, loads_calibration
+from iscd.calibration.io import CalibrationError, StereoCalibration, dumps_calibration, loads_calibration
 from iscd import config as C
 from iscd.sim.tomlout import _scalar as _toml_value  # the project's own TOML scalar writer
 
@@ -164,7 +164,7 @@ def test_calibration_reader_raw_text(text: str) -> None:
 def test_calibration_file_size_is_bounded(tmp_path: "os.PathLike[str]") -> None:
     from pathlib import Path
 
-    from calibration.io import MAX_CALIBRATION_BYTES, load_calibration
+    from iscd.calibration.io import MAX_CALIBRATION_BYTES, load_calibration
 
     p = Path(tmp_path) / "big.yml"
     p.write_text(GOOD + "#" * (MAX_CALIBRATION_BYTES + 1))
@@ -175,7 +175,7 @@ def test_calibration_file_size_is_bounded(tmp_path: "os.PathLike[str]") -> None:
 def test_calibration_text_outside_opencv_subset_never_reaches_opencv(monkeypatch: pytest.MonkeyPatch) -> None:
     """Regression: OpenCV's FileStorage parser aborted/segfaulted the whole fuzz run on malformed
     text (not reproducible alone: heap state). Such text is refused in Python, before cv2."""
-    import calibration.io as io
+    import iscd.calibration.io as io
 
     def boom(text: str, source: str) -> object:
         raise AssertionError("OpenCV's parser was reached")
@@ -200,7 +200,7 @@ def test_malformed_matrix_blocks_are_refused_before_opencv(mutation: tuple[str, 
                                                            monkeypatch: pytest.MonkeyPatch) -> None:
     """Regression (fuzzer finding): a matrix block without cols made OpenCV read uninitialised
     memory ("free(): invalid next size", the test process aborted)."""
-    import calibration.io as io
+    import iscd.calibration.io as io
 
     monkeypatch.setattr(io, "_read_storage", lambda *a: pytest.fail("OpenCV's parser was reached"))
     text = GOOD.replace(*mutation, 1)

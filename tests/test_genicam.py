@@ -20,8 +20,8 @@ import pytest
 pytest.importorskip("harvesters")
 gentl = pytest.importorskip("genicam.gentl")
 
-from drivers import genicam as gc  # noqa: E402
-from drivers.base import CameraError, CameraLost, CameraSettings, CameraTimeout, Roi  # noqa: E402
+from iscd.drivers import genicam as gc  # noqa: E402
+from iscd.drivers.base import CameraError, CameraLost, CameraSettings, CameraTimeout, Roi  # noqa: E402
 
 VIKY = gc.simulated_producer()
 needs_viky = pytest.mark.skipif(VIKY is None, reason="the genicam wheel ships no simulated producer (*.cti)")
@@ -373,7 +373,7 @@ def test_open_errors_are_clear(monkeypatch: pytest.MonkeyPatch):
 
 
 def test_backends_import_without_their_libraries():
-    code = ("import sys, drivers.genicam, drivers.v4l2, drivers.registry, iscd.commands.devices; "
+    code = ("import sys, iscd.drivers.genicam, iscd.drivers.v4l2, iscd.drivers.registry, iscd.commands.devices; "
             "bad = [m for m in ('harvesters', 'genicam', 'linuxpy') if m in sys.modules]; "
             "assert not bad, bad")
     subprocess.run([sys.executable, "-c", code], check=True, timeout=60)
@@ -383,7 +383,7 @@ def test_backends_import_without_their_libraries():
 
 import queue  # noqa: E402
 
-from drivers.base import Camera, Frame  # noqa: E402
+from iscd.drivers.base import Camera, Frame  # noqa: E402
 
 
 class _TwinLeft(Camera):

@@ -18,7 +18,7 @@ import cv2
 import numpy as np
 import pytest
 
-from calibration.io import StereoCalibration, save_calibration
+from iscd.calibration.io import StereoCalibration, save_calibration
 from iscd.cli import main
 from iscd.config import default_config
 from iscd.recording import IscrWriter
@@ -227,7 +227,7 @@ def test_replay_calibration_scaled_explicitly(tmp_path: Path, capsys: pytest.Cap
 
 
 def test_scale_calibration_uniform() -> None:
-    from calibration.io import CalibrationError, scale_calibration
+    from iscd.calibration.io import CalibrationError, scale_calibration
 
     cal = _ideal_cal(1024, 1024)
     half = scale_calibration(cal, 512, 512)
@@ -253,7 +253,7 @@ def test_run_calibration_for_another_size_refused(tmp_path: Path, no_daemon: Non
 def test_run_scale_calibration_hands_a_matching_file_to_the_daemon(
         tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]) -> None:
     import iscd.daemon
-    from calibration.io import load_calibration
+    from iscd.calibration.io import load_calibration
 
     got: dict[str, object] = {}
 
@@ -371,7 +371,7 @@ def test_devices_producer_shared_library_without_gentl(capsys: pytest.CaptureFix
 
 
 def test_devices_simulated_producer_still_lists(capsys: pytest.CaptureFixture[str]) -> None:
-    from drivers import genicam
+    from iscd.drivers import genicam
 
     if genicam.simulated_producer() is None:
         pytest.skip("genicam wheel (viky.cti) not installed")
@@ -452,15 +452,15 @@ def test_genicam_frame_rate_clamp_is_a_warning(caplog: pytest.LogCaptureFixture)
     it belongs to iscd/acquisition.py (see docs/hardening.md)."""
     import logging
 
-    from drivers import genicam as gc
-    from drivers.base import CameraSettings
+    from iscd.drivers import genicam as gc
+    from iscd.drivers.base import CameraSettings
 
     if gc.simulated_producer() is None:
         pytest.skip("genicam wheel (viky.cti) not installed")
     cam = gc.GenICamCamera(serial="2", producer=gc.simulated_producer(), num_buffers=3)
     cam.open()
     try:
-        with caplog.at_level(logging.INFO, logger="drivers.genicam"):
+        with caplog.at_level(logging.INFO, logger="iscd.drivers.genicam"):
             acc = cam.configure(CameraSettings(fps=1000, exposure_s=1e-3))
     finally:
         cam.close()
@@ -489,7 +489,7 @@ def test_devices_env_path_skips_a_file_that_is_not_gentl(tmp_path: Path, monkeyp
                                                          capsys: pytest.CaptureFixture[str]) -> None:
     """A bogus .cti in GENICAM_GENTL64_PATH is skipped with a warning (harvesters would crash or
     list nothing), the real producers beside it still list."""
-    from drivers import genicam as gc
+    from iscd.drivers import genicam as gc
 
     (tmp_path / "bogus.cti").write_text("not a library\n")
     sim = gc.simulated_producer()

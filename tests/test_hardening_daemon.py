@@ -85,7 +85,7 @@ def test_duration_ends_on_time_when_the_decoder_is_behind(tmp_path: Path, monkey
 def _viky() -> str:
     pytest.importorskip("harvesters")
     pytest.importorskip("genicam.gentl")
-    from drivers import genicam as gc
+    from iscd.drivers import genicam as gc
 
     viky = gc.simulated_producer()
     if viky is None:

@@ -8,10 +8,14 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 PACKAGES = ("iscd", "drivers", "calibration")
+MAPPED = {"drivers": "iscd.drivers", "calibration": "iscd.calibration"}
+"""Folders installed under another name (pyproject's ``package-dir``)."""
 
 
 def _module_name(path: Path, root: Path = ROOT) -> str:
     parts = list(path.relative_to(root).with_suffix("").parts)
+    if parts[0] in MAPPED:
+        parts[:1] = MAPPED[parts[0]].split(".")
     if parts[-1] == "__init__":
         parts.pop()
     return ".".join(parts)
@@ -106,14 +110,14 @@ DECODE = ("iscd.receiver", "iscd.ranging", "iscd.pipeline", "iscd.stereo_range",
 SERVICE = ("iscd.daemon", "iscd.acquisition", "iscd.pairing", "iscd.ringbuffer")
 TOP = ("iscd.commands", "iscd.cli", "iscd.eval")
 CONTRACT: list[tuple[tuple[str, ...], tuple[str, ...], str]] = [
-    (DECODE, ("drivers", "iscd.outputs", *SERVICE, *TOP),
+    (DECODE, ("iscd.drivers", "iscd.outputs", *SERVICE, *TOP),
      "decode reads frames handed to it: no cameras, rig, outputs, service or command line"),
-    (("drivers",), (*DECODE, "iscd.outputs", *SERVICE, *TOP, "calibration"),
+    (("iscd.drivers",), (*DECODE, "iscd.outputs", *SERVICE, *TOP, "iscd.calibration"),
      "drivers talk to devices (the mock rig renders with iscd.sim)"),
-    (("iscd.sim",), (*DECODE, "drivers", "iscd.outputs", *SERVICE, *TOP),
+    (("iscd.sim",), (*DECODE, "iscd.drivers", "iscd.outputs", *SERVICE, *TOP),
      "the simulator renders; it knows nothing of the receiver"),
-    (("iscd.outputs",), ("drivers", *SERVICE, *TOP), "outputs take records"),
-    (("calibration",), (*DECODE, "iscd.outputs", *SERVICE, *TOP),
+    (("iscd.outputs",), ("iscd.drivers", *SERVICE, *TOP), "outputs take records"),
+    (("iscd.calibration",), (*DECODE, "iscd.outputs", *SERVICE, *TOP),
      "calibration is a tool over the rig model and the cameras"),
 ]
 """(importers, what they must not import, why): the layers as they stand (issue 13 moves

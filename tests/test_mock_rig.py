@@ -7,9 +7,9 @@ import time
 import numpy as np
 import pytest
 
-from drivers.base import CameraError, CameraLost, CameraSettings, CameraTimeout, Roi
-from drivers import mock
-from drivers.mock import MockCamera, MockRig
+from iscd.drivers.base import CameraError, CameraLost, CameraSettings, CameraTimeout, Roi
+from iscd.drivers import mock
+from iscd.drivers.mock import MockCamera, MockRig
 from iscd.config import default_config
 from iscd.sim.presets import override
 

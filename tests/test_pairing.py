@@ -13,7 +13,7 @@ from collections.abc import Callable, Iterable, Sequence
 import numpy as np
 import pytest
 
-from drivers.base import Frame
+from iscd.drivers.base import Frame
 from iscd.pairing import StereoPair, StereoPairer
 
 PERIOD = 1_000_000  # ns: 1000 fps

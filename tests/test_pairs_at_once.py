@@ -1,4 +1,4 @@
-"""Pairs at once (drivers.base.StereoPairSource): the mock rig renders both frames of a
+"""Pairs at once (iscd.drivers.base.StereoPairSource): the mock rig renders both frames of a
 trigger straight into the acquisition's ring slots. The same frames, ids and timestamps
 as reading the cameras one by one; the per-camera path where faults are injected."""
 
@@ -7,9 +7,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from drivers.base import CameraError
-from drivers import mock
-from drivers.mock import MockRig
+from iscd.drivers.base import CameraError
+from iscd.drivers import mock
+from iscd.drivers.mock import MockRig
 from iscd.acquisition import Acquisition, AcquisitionOptions
 from iscd.config import default_config
 from iscd.ringbuffer import StereoRing

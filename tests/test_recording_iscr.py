@@ -139,7 +139,7 @@ def test_killed_writer_keeps_flushed_frames(tmp_path: Path) -> None:
 
 
 def test_settings_dataclass_is_stored(tmp_path: Path) -> None:
-    from drivers.base import CameraSettings, Roi
+    from iscd.drivers.base import CameraSettings, Roi
 
     st = CameraSettings(fps=500.0, exposure_s=1e-3, gain_db=3.0, roi=Roi(0, 0, W, H), trigger="slave")
     with IscrWriter(tmp_path / "s.iscr", width=W, height=H, fps=st.fps, settings=st):

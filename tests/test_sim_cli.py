@@ -63,7 +63,7 @@ def test_simulate_writes_a_reproducible_recording(tmp_path, config_file, capsys)
     with open_recording(out / "right.iscr") as a, open_recording(out2 / "right.iscr") as b:
         assert np.array_equal(a.read(), b.read())
     try:
-        import calibration.io as cio  # noqa: F401
+        import iscd.calibration.io as cio  # noqa: F401
     except ImportError:
         return
     if hasattr(cio.StereoCalibration, "ideal"):

@@ -1,7 +1,7 @@
 """The simulator rendering through a non-ideal rig (``Scene(cfg, rig=...)``).
 
 A rig equal to the ideal one must reproduce the ideal frames; a rotated, distorted rig must
-place the spots where :func:`calibration.io.project_points` says its cameras image the LED
+place the spots where :func:`iscd.calibration.io.project_points` says its cameras image the LED
 (checked on the spot centroids of noise-free frames, not only on the truth arrays).
 """
 
@@ -10,8 +10,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from calibration.io import StereoCalibration, project_points
-from calibration.synthetic import nonideal_rig
+from iscd.calibration.io import StereoCalibration, project_points
+from iscd.calibration.synthetic import nonideal_rig
 from iscd.config import default_config
 from iscd.sim import ArraySource, Scene
 from iscd.sim.geometry import project_rig

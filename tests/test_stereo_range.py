@@ -20,7 +20,7 @@ from functools import lru_cache
 import numpy as np
 import pytest
 
-from calibration.io import StereoCalibration
+from iscd.calibration.io import StereoCalibration
 from iscd.config import Config, ConfigError, build_section, default_config
 from iscd.ranging.config import PROJECT_METHODS, RangingSettings
 from iscd.ranging.estimators import METHODS

@@ -167,7 +167,7 @@ def parse_rules(path: Path = RULES) -> list[list[dict[str, str]]]:
 
 
 def test_udev_rules_match_the_board_and_the_unit() -> None:
-    from drivers.board.discovery import DEFAULT_PID, DEFAULT_VID
+    from iscd.drivers.board.discovery import DEFAULT_PID, DEFAULT_VID
 
     rules = parse_rules()
     groups = set(unit_keys()["Service.SupplementaryGroups"][0].split())
@@ -202,7 +202,7 @@ def test_udev_rule_parser_rejects_garbage(tmp_path: Path) -> None:
 
 
 def test_example_config_is_valid() -> None:
-    from drivers.board.settings import board_settings
+    from iscd.drivers.board.settings import board_settings
     from iscd.config import load
     from iscd.outputs import output_config, rerun_config
 

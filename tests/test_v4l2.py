@@ -24,8 +24,8 @@ from linuxpy import util as lp_util  # noqa: E402
 from linuxpy.video import device as vd  # noqa: E402
 from linuxpy.video import raw  # noqa: E402
 
-from drivers import v4l2  # noqa: E402
-from drivers.base import CameraError, CameraLost, CameraSettings, CameraTimeout, Roi  # noqa: E402
+from iscd.drivers import v4l2  # noqa: E402
+from iscd.drivers.base import CameraError, CameraLost, CameraSettings, CameraTimeout, Roi  # noqa: E402
 
 IOC = raw.IOC
 PAGE = 4096

@@ -32,7 +32,7 @@ from dataclasses import dataclass
 import numpy as np
 import serial
 
-from drivers.board.protocol import (
+from iscd.drivers.board.protocol import (
     ALL_FAULTS,
     CONFIG_FIELDS,
     FAULT_MASK,

@@ -16,7 +16,7 @@ driver talks to it exactly as to a USB serial device::
     with PtyEmulator(link="/tmp/iscd-board") as emu:      # emu.port -> /tmp/iscd-board
         client = BoardClient(emu.port)
 
-``python -m drivers.board.emulator --pty`` serves one until Ctrl-C and prints its path,
+``python -m iscd.drivers.board.emulator --pty`` serves one until Ctrl-C and prints its path,
 for demos with ``iscd tx --port /dev/pts/N``.
 """
 
@@ -37,7 +37,7 @@ from pathlib import Path
 
 import numpy as np
 
-from drivers.board.protocol import (
+from iscd.drivers.board.protocol import (
     CRITICAL_FAULTS,
     FAULT_MASK,
     LOAD_PROGRESS,
@@ -492,9 +492,9 @@ class PtyEmulator:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """``python -m drivers.board.emulator --pty``: serve an emulated board until Ctrl-C."""
+    """``python -m iscd.drivers.board.emulator --pty``: serve an emulated board until Ctrl-C."""
     ap = argparse.ArgumentParser(
-        prog="python -m drivers.board.emulator",
+        prog="python -m iscd.drivers.board.emulator",
         description="Emulate the LED transmitter board (protocol v1) on a pseudo-terminal and "
                     "print its path, for 'iscd tx --port PATH'. Runs until Ctrl-C / SIGTERM.")
     ap.add_argument("--pty", action="store_true", required=True,

@@ -1,8 +1,8 @@
 """LED board serial protocol v1: framing, CRC and message layouts (pure functions, no I/O).
 
 The reference for firmware authors is ``docs/board-protocol.md``; this module is its
-executable form, shared by the host driver (:mod:`drivers.board.client`) and the board
-emulator (:mod:`drivers.board.emulator`).
+executable form, shared by the host driver (:mod:`iscd.drivers.board.client`) and the board
+emulator (:mod:`iscd.drivers.board.emulator`).
 
 A frame on the wire is ``0x00 || COBS(body) || 0x00`` with
 

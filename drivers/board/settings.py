@@ -10,7 +10,7 @@
     retries = 3
 
 For demos without hardware, ``emulate = true`` makes the daemon's mock rig run an emulated
-board (:class:`drivers.board.emulator.PtyEmulator`) whose LEDs are the simulated
+board (:class:`iscd.drivers.board.emulator.PtyEmulator`) whose LEDs are the simulated
 transmitter; its pseudo-terminal appears at ``port`` (a symlink), where ``iscd tx
 --config`` (same file) finds it::
 
@@ -25,8 +25,8 @@ import os
 from dataclasses import dataclass, field
 from typing import Any
 
-from drivers.board.client import DEFAULT_BAUDRATE, DEFAULT_RETRIES, DEFAULT_TIMEOUT_S
-from drivers.board.discovery import DEFAULT_PID, DEFAULT_VID
+from iscd.drivers.board.client import DEFAULT_BAUDRATE, DEFAULT_RETRIES, DEFAULT_TIMEOUT_S
+from iscd.drivers.board.discovery import DEFAULT_PID, DEFAULT_VID
 
 
 def _meta(lo: float | None = None, hi: float | None = None, lo_open: bool = False, doc: str = "") -> dict[str, Any]:

@@ -10,6 +10,7 @@ import operator
 import re
 import sys
 from dataclasses import dataclass
+from pathlib import Path
 
 BENCHES = {
     "mock_rig": "the mock rig delivering 512x512 stereo pairs of the 8x8 scene (pace off)",
@@ -101,17 +102,32 @@ class _Tee(io.TextIOBase):
         self.out.flush()
 
 
+def benchmarks_root() -> Path | None:
+    """The source checkout whose ``benchmarks/`` folder holds the benchmarks (the folder
+    beside the ``iscd`` package of an editable install), or None for an installed wheel,
+    which ships only ``iscd``."""
+    import iscd
+
+    root = Path(iscd.__file__).resolve().parents[1]
+    return root if (root / "benchmarks" / "__init__.py").is_file() else None
+
+
 def run(args: argparse.Namespace) -> int:
     from iscd.errors import UserError
 
     names = args.names or list(BENCHES)
+    checkout = benchmarks_root()
+    if checkout is None:
+        raise UserError("the benchmarks are not installed with iscd (only the package is): run "
+                        "'iscd bench' from a source checkout installed with 'pip install -e .'")
+    if str(checkout) not in sys.path:
+        sys.path.insert(0, str(checkout))
     rc = 0
     for name in names:
         try:
             mod = importlib.import_module(f"benchmarks.bench_{name}")
         except ModuleNotFoundError as e:
-            raise UserError(f"benchmark {name!r} is not installed ({e}); run from a source checkout "
-                            "installed with 'pip install -e .'") from None
+            raise UserError(f"benchmark {name!r} could not be loaded from {checkout}/benchmarks ({e})") from None
         print(f"== {name}: {BENCHES[name]}", flush=True)
         tee = _Tee(sys.stdout)
         with contextlib.redirect_stdout(tee):

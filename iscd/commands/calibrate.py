@@ -106,7 +106,7 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
 
 
 def _board(args: argparse.Namespace):  # -> BoardSpec
-    from calibration.boards import BoardError, BoardSpec, parse_board_size
+    from iscd.calibration.boards import BoardError, BoardSpec, parse_board_size
 
     try:
         cols, rows = parse_board_size(args.board)
@@ -134,7 +134,7 @@ def _check_args(args: argparse.Namespace) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from calibration.io import CalibrationError
+    from iscd.calibration.io import CalibrationError
 
     _check_args(args)
     board = _board(args)
@@ -151,18 +151,18 @@ def _progress(args: argparse.Namespace, n: int) -> bool:
 
 
 def _run_files(args: argparse.Namespace, board) -> int:  # type: ignore[no-untyped-def]
-    from calibration.pipeline import detect_files, pair_files
+    from iscd.calibration.pipeline import detect_files, pair_files
 
     if args.verify:
-        from calibration.io import load_calibration
+        from iscd.calibration.io import load_calibration
 
         cal = load_calibration(args.verify)  # fail before the slow part
     pairs = pair_files(args.left, args.right)
     det = detect_files(pairs, board, progress=_progress(args, len(pairs)))
     if args.verify:
         return _verify(args, board, cal, det)
-    from calibration.detect import read_image
-    from calibration.pipeline import pair_name
+    from iscd.calibration.detect import read_image
+    from iscd.calibration.pipeline import pair_name
 
     by_name = {pair_name(lp, rp): (lp, rp) for lp, rp in pairs}
 
@@ -175,10 +175,10 @@ def _run_files(args: argparse.Namespace, board) -> int:  # type: ignore[no-untyp
 
 def _calibrate(args: argparse.Namespace, board, det, images) -> int:  # type: ignore[no-untyped-def]
     """Calibrate, write the file and the report; ``images(name)`` gives a pair's images."""
-    from calibration.io import save_calibration
-    from calibration.pipeline import no_board_message
-    from calibration.report import write_report
-    from calibration.solve import calibrate_stereo
+    from iscd.calibration.io import save_calibration
+    from iscd.calibration.pipeline import no_board_message
+    from iscd.calibration.report import write_report
+    from iscd.calibration.solve import calibrate_stereo
 
     msg = no_board_message(det, board)
     if msg:
@@ -220,9 +220,9 @@ def res_first_used(res, det):  # type: ignore[no-untyped-def]
 
 
 def _verify(args: argparse.Namespace, board, cal, det) -> int:  # type: ignore[no-untyped-def]
-    from calibration.pipeline import no_board_message
-    from calibration.report import write_verify_report
-    from calibration.verify import VerifyThresholds, verify_calibration
+    from iscd.calibration.pipeline import no_board_message
+    from iscd.calibration.report import write_verify_report
+    from iscd.calibration.verify import VerifyThresholds, verify_calibration
 
     if det.image_size != cal.image_size:
         raise UserError(f"the images are {det.image_size[0]}x{det.image_size[1]} px but "
@@ -243,19 +243,19 @@ def _verify(args: argparse.Namespace, board, cal, det) -> int:  # type: ignore[n
 def _run_live(args: argparse.Namespace, board) -> int:  # type: ignore[no-untyped-def]
     import cv2
 
-    from calibration.live import LiveSettings, RerunView, run_capture
-    from calibration.pipeline import Detected
-    from drivers.base import CameraError
+    from iscd.calibration.live import LiveSettings, RerunView, run_capture
+    from iscd.calibration.pipeline import Detected
+    from iscd.drivers.base import CameraError
     from iscd.config import load
 
     cfg = load(args.config)
     try:
-        from drivers.registry import open_stereo
+        from iscd.drivers.registry import open_stereo
     except ImportError:
-        raise UserError("live capture needs drivers.registry (camera backends), which is not "
+        raise UserError("live capture needs iscd.drivers.registry (camera backends), which is not "
                         "installed") from None
     if args.verify:
-        from calibration.io import load_calibration
+        from iscd.calibration.io import load_calibration
 
         cal = load_calibration(args.verify)
     view = None

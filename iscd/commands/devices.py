@@ -40,8 +40,8 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def _genicam(producers: list[str] | None, notes: list[str]) -> dict[str, Any]:
-    from drivers.base import CameraError
-    from drivers import genicam
+    from iscd.drivers.base import CameraError
+    from iscd.drivers import genicam
     from iscd.errors import UserError
 
     try:
@@ -65,8 +65,8 @@ def _genicam(producers: list[str] | None, notes: list[str]) -> dict[str, Any]:
 
 
 def _v4l2(notes: list[str]) -> dict[str, Any]:
-    from drivers.base import CameraError
-    from drivers import v4l2
+    from iscd.drivers.base import CameraError
+    from iscd.drivers import v4l2
 
     try:
         cams = [{**c, "url": v4l2.device_url(c)} for c in v4l2.list_devices()]
@@ -78,14 +78,14 @@ def _v4l2(notes: list[str]) -> dict[str, Any]:
 
 def _boards(cfg: Any, notes: list[str]) -> list[dict[str, Any]]:
     try:
-        from drivers.board import discovery
+        from iscd.drivers.board import discovery
     except ImportError:
         notes.append("boards: board discovery is not available")
         return []
     kwargs: dict[str, Any] = {}
     if cfg is not None:
         try:
-            from drivers.board.settings import board_settings
+            from iscd.drivers.board.settings import board_settings
 
             bs = board_settings(cfg)
             kwargs = {"vid": bs.vid, "pid": bs.pid}
@@ -102,7 +102,7 @@ def _boards(cfg: Any, notes: list[str]) -> list[dict[str, Any]]:
 def collect(producers: list[str] | None = None, backend: str = "all", boards: bool = True,
             cfg: Any = None) -> dict[str, Any]:
     """Everything ``iscd devices`` reports, as a JSON-ready dict."""
-    from drivers import urls
+    from iscd.drivers import urls
     from iscd.errors import UserError
 
     known = urls.schemes()
@@ -127,7 +127,7 @@ def collect(producers: list[str] | None = None, backend: str = "all", boards: bo
 def _config_producers(cfg: Any) -> list[str]:
     """The GenTL producers a config names: the cti of its genicam camera URLs (which hold
     ``[rig] producer`` where they had none), else ``[rig] producer``."""
-    from drivers import urls
+    from iscd.drivers import urls
 
     ctis = [urls.parse_url(u).option("cti") for u in cfg.rig.camera_urls if u.startswith("genicam:")]
     ctis = [c for c in dict.fromkeys(ctis) if c]

@@ -74,7 +74,7 @@ def config_mismatch(rec: object, camera: object) -> tuple[list[str], list[str]]:
 
 
 def run(args: argparse.Namespace) -> int:
-    from calibration.io import CalibrationError, load_calibration
+    from iscd.calibration.io import CalibrationError, load_calibration
     from iscd import config as C
     from iscd.outputs.jsonl import JsonlWriter
     from iscd.pipeline import StreamDecoder

@@ -99,7 +99,7 @@ def checked_calibration(path: str, width: int, height: int, *, scale: bool, what
     """(calibration, scaled): the calibration at ``path`` for ``width`` x ``height`` images
     (scaled to it with ``scale``, then ``scaled`` is True), or UserError naming the file and,
     for a size mismatch, both sizes."""
-    from calibration.io import CalibrationError, check_image_size, load_calibration, scale_calibration
+    from iscd.calibration.io import CalibrationError, check_image_size, load_calibration, scale_calibration
     from iscd.errors import UserError
 
     try:
@@ -126,7 +126,7 @@ def run(args: argparse.Namespace) -> int:
     from iscd import config as C
     from iscd.daemon import Daemon, DaemonSettings
 
-    from drivers.registry import check_stereo_config
+    from iscd.drivers.registry import check_stereo_config
 
     cfg = C.load(args.config)
     C.check_extra_sections(cfg)
@@ -143,7 +143,7 @@ def run(args: argparse.Namespace) -> int:
                                           scale=args.scale_calibration, what="[camera] width/height")
         if scaled:
             # the daemon reads a calibration file: hand it the scaled one
-            from calibration.io import save_calibration
+            from iscd.calibration.io import save_calibration
 
             tmp_dir = tempfile.TemporaryDirectory(prefix="iscd-cal-")
             cal_path = str(Path(tmp_dir.name) / "scaled.yml")

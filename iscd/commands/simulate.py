@@ -168,9 +168,9 @@ def write_recording(scene: object, out: Path, n_frames: int, block: int = 32,
 
 def _write_calibration(cfg: object, path: Path) -> str:
     try:
-        from calibration.io import StereoCalibration, save_calibration
+        from iscd.calibration.io import StereoCalibration, save_calibration
     except ImportError:
-        return " (no calibration: calibration.io is not available)"
+        return " (no calibration: iscd.calibration.io is not available)"
     if not hasattr(StereoCalibration, "ideal"):
         return " (no calibration: StereoCalibration.ideal is not available)"
     save_calibration(StereoCalibration.ideal(cfg.camera), path)  # type: ignore[attr-defined]

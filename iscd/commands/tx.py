@@ -108,7 +108,7 @@ def _levels(path: str, tx: Any) -> np.ndarray:
 
 
 def _find_port(settings: Any) -> str:
-    from drivers.board.discovery import find_boards
+    from iscd.drivers.board.discovery import find_boards
     from iscd.errors import UserError
 
     found = [b for b in find_boards(settings.vid, settings.pid) if b.device]
@@ -122,10 +122,10 @@ def _find_port(settings: Any) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
-    from drivers.board.client import BoardClient, BoardError, BoardPortError
-    from drivers.board.discovery import find_boards
-    from drivers.board.protocol import BoardConfig, ProtocolError
-    from drivers.board.settings import board_settings
+    from iscd.drivers.board.client import BoardClient, BoardError, BoardPortError
+    from iscd.drivers.board.discovery import find_boards
+    from iscd.drivers.board.protocol import BoardConfig, ProtocolError
+    from iscd.drivers.board.settings import board_settings
     from iscd.airinterface import AirInterface
     from iscd.errors import UserError
     from iscd.config import load
@@ -164,7 +164,7 @@ def run(args: argparse.Namespace) -> int:
 
     emu = None
     if args.emulate:
-        from drivers.board.emulator import PtyEmulator
+        from iscd.drivers.board.emulator import PtyEmulator
 
         emu = PtyEmulator().start()
         port = emu.port

@@ -26,7 +26,7 @@ from typing import Any, Callable, Iterator, Sequence
 
 import numpy as np
 
-from calibration.io import StereoCalibration
+from iscd.calibration.io import StereoCalibration
 from iscd.airinterface import AirInterface
 from iscd.config import Config, build_section
 from iscd.eval.metrics import (ErrorStats, bit_errors, error_stats, goodput_kbps, match_packets,

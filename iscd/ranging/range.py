@@ -10,7 +10,7 @@ LED positions in one stereo pair (per LED, or per group); the live pipeline's bl
 is :class:`iscd.stereo_range.StereoRanger`, which uses the same formulas.
 
 The calibration is any object with ``focal_px`` (f/rho, px) and ``baseline_m`` (b, m) --
-e.g. ``calibration.io.StereoCalibration`` -- and optionally ``M1 D1 R1 P1 M2 D2 R2 P2``
+e.g. ``iscd.calibration.io.StereoCalibration`` -- and optionally ``M1 D1 R1 P1 M2 D2 R2 P2``
 (OpenCV ``stereoRectify`` conventions) for the rectification.
 """
 

@@ -80,7 +80,7 @@ class IscrWriter:
       bit_depth: significant bits (default 8 for uint8, 16 for uint16).
       meta: free JSON-serializable dict (e.g. the config, ground truth pointers).
       settings: camera settings as a JSON-serializable dict (e.g. gain_db, roi, trigger) or
-        a dataclass such as ``drivers.base.CameraSettings``.
+        a dataclass such as ``iscd.drivers.base.CameraSettings``.
 
     ``append``/``append_many`` raise ValueError for a wrong shape or dtype. ``flush()``
     hands everything appended so far to the OS (survives a killed process);
@@ -119,7 +119,7 @@ class IscrWriter:
         self._shape = (self.height, self.width)
 
         if dataclasses.is_dataclass(settings) and not isinstance(settings, type):
-            settings = dataclasses.asdict(settings)  # e.g. drivers.base.CameraSettings
+            settings = dataclasses.asdict(settings)  # e.g. iscd.drivers.base.CameraSettings
         now = time.time_ns()
         metadata = {
             "format": "iscr",

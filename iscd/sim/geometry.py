@@ -25,7 +25,7 @@ import numpy as np
 from iscd.config import CameraConfig, SceneConfig, TransmitterConfig
 
 if TYPE_CHECKING:  # pragma: no cover
-    from calibration.io import StereoCalibration
+    from iscd.calibration.io import StereoCalibration
 
 
 @dataclass(frozen=True)
@@ -108,12 +108,12 @@ def project_rig(rig: "StereoCalibration", x_m: np.ndarray, y_m: np.ndarray, z_m:
     """(u_left, v_left, u_right, v_right) in px of points (X, Y, Z) in m (left-camera
     coordinates, broadcasting) as imaged by a non-ideal rig: each camera's intrinsics and lens
     distortion and the right camera's pose (R, T), via
-    :func:`calibration.io.project_points` (cv2.projectPoints). A rig equal to the ideal one
+    :func:`iscd.calibration.io.project_points` (cv2.projectPoints). A rig equal to the ideal one
     gives :meth:`StereoGeometry.project` up to rounding.
 
     Parameters
     ----------
-    rig : calibration.io.StereoCalibration
+    rig : iscd.calibration.io.StereoCalibration
         The rig (M1, D1, M2, D2, R, T; T in m).
     x_m, y_m, z_m : ndarray
         Point coordinates in the left camera's frame, m.
@@ -123,7 +123,7 @@ def project_rig(rig: "StereoCalibration", x_m: np.ndarray, y_m: np.ndarray, z_m:
     u_left, v_left, u_right, v_right : ndarray of float64
         Image coordinates, px; the broadcast shape of the inputs.
     """
-    from calibration.io import project_points
+    from iscd.calibration.io import project_points
 
     x, y, z = np.broadcast_arrays(np.asarray(x_m, np.float64), np.asarray(y_m, np.float64),
                                   np.asarray(z_m, np.float64))

@@ -46,7 +46,7 @@ from iscd.sim.transmitter import LevelSource, PacketSource
 from iscd.sim.truth import Truth
 
 if TYPE_CHECKING:  # pragma: no cover
-    from calibration.io import StereoCalibration
+    from iscd.calibration.io import StereoCalibration
 
 REF_F_NUMBER = 4.0
 """radiance_dn, background_dn and brightness_dn are grey levels at f/4 ..."""
@@ -160,7 +160,7 @@ class Scene:
     level_source: what the LEDs send (default: back-to-back packets per [payload]).
     noise: False renders noise-free frames (PRNU, shot and read noise off), for tests.
     bank_size: noisy background frames per camera.
-    rig: a non-ideal stereo rig (e.g. :func:`calibration.synthetic.nonideal_rig`): the LED
+    rig: a non-ideal stereo rig (e.g. :func:`iscd.calibration.synthetic.nonideal_rig`): the LED
     spots are placed where its cameras image them (:func:`iscd.sim.geometry.project_rig`:
     lens distortion, principal points, focal lengths, rotation R and translation T); spot
     shapes, distractors and the background stay those of the ideal rig (docs/calibration.md).
