@@ -3,7 +3,7 @@ every frame) on pre-rendered frames, as the daemon runs it.
 
     python -m benchmarks.bench_decode_loop [--frames N] [--block B] [--scene default|pwm16|single] [--quick]
 
-The frames are rendered first (not timed), then fed to :class:`iscd.pipeline.StreamDecoder`
+The frames are rendered first (not timed), then fed to :class:`iscd.decode.stream.StreamDecoder`
 in blocks of ``--block`` pairs exactly as the daemon does. Prints pairs/s, the ratio to the
 1000 fps camera rate (the target: >= 10 for an 8x8 array with ranging every frame)
 and the ratio to an in-process baseline (copying each pair's two 512x512 frames, the least
@@ -28,7 +28,7 @@ PROFILE_LINES = 18
 
 
 def _config(scene: str):  # -> Config
-    from iscd.config import default_config
+    from iscd.core.config import default_config
     from iscd.sim.presets import override, single_led
 
     cfg = default_config()
@@ -40,7 +40,7 @@ def _config(scene: str):  # -> Config
 
 
 def bench(n_frames: int, block: int, scene: str, profile: bool = False) -> dict[str, float]:
-    from iscd.pipeline import StreamDecoder
+    from iscd.decode.stream import StreamDecoder
     from iscd.sim.scene import Scene
 
     cfg = _config(scene)
@@ -53,11 +53,11 @@ def bench(n_frames: int, block: int, scene: str, profile: bool = False) -> dict[
     ids = np.arange(n_frames)
     t_s = ids / cfg.camera.fps
     dec = StreamDecoder(cfg)
-    from iscd.jit import warm_up
+    from iscd.core.jit import warm_up
 
     warm_up()  # compiled kernels loaded (or compiled) before the clock starts, as the daemon does
     # time spent demodulating (in line here; the daemon does it in a worker process)
-    from iscd.receiver.packets import PacketAssembler
+    from iscd.decode.comms.packets import PacketAssembler
 
     demod_s = [0.0, 0.0]  # wall, CPU
     asm_push = PacketAssembler.push

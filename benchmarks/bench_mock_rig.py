@@ -52,7 +52,7 @@ def _page_aligned(shape: tuple[int, ...]) -> np.ndarray:
 
 def bench(n_pairs: int) -> dict[str, float]:
     from iscd.drivers.mock import MockRig
-    from iscd.config import default_config
+    from iscd.core.config import default_config
     from iscd.sim.presets import override
 
     cfg = override(default_config(), rig={"pace": False})

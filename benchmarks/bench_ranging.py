@@ -10,7 +10,7 @@ Each line prints estimates/s, frames/s (calls/s: one call covers one frame) and 
 to 1000 frames/s (>= 1 keeps up on one core), and the time per call as a multiple of a
 baseline measured in the same process: one ``np.fft.fft2`` of the same batch of patches.
 
-Then the live ranger (:class:`iscd.stereo_range.StereoRanger`, what the pipeline runs every
+Then the live ranger (:class:`iscd.decode.ranging.stereo.StereoRanger`, what the pipeline runs every
 frame) on rendered frames in blocks of 16 pairs, as the daemon calls it: the embedded default
 scene (8x8 array at 30 m, HDR f/4 + f/8) and one LED at 40 m. Per method: microseconds per
 frame (the issue's budget: <= ~100 us so that the whole decode loop reaches 3x the 1000 fps
@@ -34,8 +34,8 @@ os.environ.setdefault("OMP_NUM_THREADS", "1")
 
 import numpy as np  # noqa: E402
 
-from iscd.ranging.estimators import METHODS, get_estimator  # noqa: E402
-from iscd.ranging.synth import disk_spots, sensor  # noqa: E402
+from iscd.decode.ranging.estimators import METHODS, get_estimator  # noqa: E402
+from iscd.decode.ranging.synth import disk_spots, sensor  # noqa: E402
 
 TARGET_PER_S = 1000.0
 """frames per second of the rig"""
@@ -113,13 +113,13 @@ LIVE_BLOCK = 16
 
 
 def live(min_total: float, repeats: int, frames: int) -> None:
-    """Time :class:`iscd.stereo_range.StereoRanger` on rendered frames (module docstring)."""
+    """Time :class:`iscd.decode.ranging.stereo.StereoRanger` on rendered frames (module docstring)."""
     from iscd.calibration.io import StereoCalibration
-    from iscd.config import default_config
-    from iscd.receiver.detect import detect_array
+    from iscd.core.config import default_config
+    from iscd.decode.tracking.detect import detect_array
     from iscd.sim.presets import single_led
     from iscd.sim.scene import Scene
-    from iscd.stereo_range import RangingSettings, StereoRanger
+    from iscd.decode.ranging.stereo import RangingSettings, StereoRanger
 
     print(f"\nlive ranger (StereoRanger.measure, blocks of {LIVE_BLOCK} pairs, running background)")
     print(f"{'scene':<26} {'method':<10} {'us/frame':>9} {'frames/s':>9} {'ratio':>7} {'x iscd':>7}")

@@ -1,8 +1,8 @@
 """Receiver throughput: frames demodulated per second, as a ratio to the 1000 frames/s rig.
 
-Input: synthetic luminance (``iscd.receiver.synth``) of an 8x8 array sending PWM-16 with
+Input: synthetic luminance (``iscd.decode.comms.synth``) of an 8x8 array sending PWM-16 with
 100 ppm clock drift, seen by an f/4 (saturating) and an f/8 camera, pushed into a
-:class:`~iscd.receiver.packets.PacketAssembler` in blocks of 100 frame pairs, as the
+:class:`~iscd.decode.comms.packets.PacketAssembler` in blocks of 100 frame pairs, as the
 daemon does. Cases:
 
 - ``iscd``: the default rule (header search, drift tracking, per-LED channel, straddling
@@ -20,7 +20,7 @@ daemon does. Cases:
 ``--assembler [SCENE]`` instead times the packet assembler alone on a rendered scene
 (default: the daemon's 8x8 PWM-8 HDR scene at 30 m; pwm16: PWM-16 at 50 m; single: one
 LED at 40 m): the frames are rendered once (:mod:`iscd.sim`), their luminance extracted by
-the pipeline (:class:`iscd.pipeline.StreamDecoder`, whose pushes to the assembler are
+the pipeline (:class:`iscd.decode.stream.StreamDecoder`, whose pushes to the assembler are
 recorded), then only :meth:`PacketAssembler.push` is timed on that luminance in the
 daemon's blocks of 16 pairs: seconds per packet (the blocks that complete one), per block
 that completes none, and the assembler's share of a 1000 fps core; the baseline is the
@@ -49,12 +49,12 @@ os.environ.setdefault("OMP_NUM_THREADS", "1")
 
 import numpy as np  # noqa: E402
 
-from iscd.airinterface import AirInterface  # noqa: E402
-from iscd.config import TransmitterConfig  # noqa: E402
-from iscd.receiver.luminance import SpotLuminance, follow_and_measure, grid_sample, roi_mean  # noqa: E402
-from iscd.receiver.packets import PacketAssembler  # noqa: E402
-from iscd.receiver.settings import ReceiverConfig  # noqa: E402
-from iscd.receiver.synth import SynthCamera, render_spots, synth_recording  # noqa: E402
+from iscd.core.airinterface import AirInterface  # noqa: E402
+from iscd.core.config import TransmitterConfig  # noqa: E402
+from iscd.decode.tracking.luminance import SpotLuminance, follow_and_measure, grid_sample, roi_mean  # noqa: E402
+from iscd.decode.comms.packets import PacketAssembler  # noqa: E402
+from iscd.decode.comms.settings import ReceiverConfig  # noqa: E402
+from iscd.decode.comms.synth import SynthCamera, render_spots, synth_recording  # noqa: E402
 
 RIG_FPS = 1000.0
 BLOCK = 100
@@ -143,10 +143,10 @@ def bench(n_packets: int, repeats: int, n_image_frames: int) -> list[tuple[str, 
 def _captured_luminance(scene: str, packets: int) -> tuple[list[tuple], object]:
     """Render ``packets`` packets of ``scene``, run the pipeline on them and return the
     luminance blocks it pushed into its packet assembler, and the assembler's arguments."""
-    from iscd.airinterface import AirInterface as Air
-    from iscd.config import default_config
+    from iscd.core.airinterface import AirInterface as Air
+    from iscd.core.config import default_config
     from iscd.eval.sweeps import frames_for_packets
-    from iscd.pipeline import StreamDecoder
+    from iscd.decode.stream import StreamDecoder
     from iscd.sim.presets import override, single_led
     from iscd.sim.scene import Scene
 
@@ -186,7 +186,7 @@ def _captured_luminance(scene: str, packets: int) -> tuple[list[tuple], object]:
 def bench_assembler(scene: str, packets: int, repeats: int) -> dict[str, float]:
     """Seconds per packet and per packet-less block of :meth:`PacketAssembler.push` on the
     captured luminance of ``scene`` (best of ``repeats`` runs), and the baseline."""
-    from iscd.jit import warm_up
+    from iscd.core.jit import warm_up
 
     pushes, (tx, fps, exposure_s, cfg) = _captured_luminance(scene, packets)
     warm_up()

@@ -1,6 +1,6 @@
 """Benchmark: stereo pairs per second through the shared-memory ring, across processes.
 
-A producer process writes 512x512 uint8 pairs into a :class:`iscd.ringbuffer.StereoRing`
+A producer process writes 512x512 uint8 pairs into a :class:`iscd.rig.ringbuffer.StereoRing`
 as fast as the queue has room; this process reads them (zero-copy, and with a copy out).
 Printed as ratios to the 1000 pairs/s the 1000 fps rig needs and to a baseline measured in
 the same run: a plain in-process numpy copy of the same bytes (two 512x512 uint8 images
@@ -19,7 +19,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from iscd.ringbuffer import StereoRing
+from iscd.rig.ringbuffer import StereoRing
 
 H = W = 512
 TARGET = 1000.0  # pairs/s: the rig's 1000 fps

@@ -283,7 +283,7 @@ def truth_packets(last_frame: int, chunk: int = 200_000) -> list[tuple[int, byte
     """(start frame, payload) of every packet the scene sent before ``last_frame``."""
     import numpy as np
 
-    from iscd import config as C
+    from iscd.core import config as C
     from iscd.sim.scene import Scene
 
     cfg = C.loads(LIGHT)

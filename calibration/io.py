@@ -28,7 +28,7 @@ import cv2
 import numpy as np
 
 if TYPE_CHECKING:  # pragma: no cover
-    from iscd.config import CameraConfig
+    from iscd.core.config import CameraConfig
 
 Which = Literal["left", "right"]
 

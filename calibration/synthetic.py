@@ -22,7 +22,7 @@ from iscd.calibration.boards import BoardSpec
 from iscd.calibration.io import StereoCalibration, Which
 
 if TYPE_CHECKING:  # pragma: no cover
-    from iscd.config import CameraConfig
+    from iscd.core.config import CameraConfig
 
 
 def default_rig() -> StereoCalibration:

@@ -176,7 +176,7 @@ class StereoPairSource(abc.ABC):
     """A rig that delivers both frames of one trigger at once, straight into buffers the
     caller owns (a hardware-synchronized stereo grabber; the mock rig). The acquisition
     then writes each pair into its ring slot without pairing or copying
-    (:class:`iscd.acquisition.Acquisition`); cameras offer one through
+    (:class:`iscd.rig.acquisition.Acquisition`); cameras offer one through
     ``Camera.pair_source()``, which returns None where they cannot."""
 
     @abc.abstractmethod

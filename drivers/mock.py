@@ -15,7 +15,7 @@ dropped (like a camera without free buffers) and counted in ``stats``. With ``pa
 frames are delivered as fast as they are read and never dropped (the rig waits for the
 consumer; timestamps still say t0 + n / fps).
 
-Injected faults (``[[rig.faults]]``, :class:`iscd.config.FaultConfig`), per camera:
+Injected faults (``[[rig.faults]]``, :class:`iscd.core.config.FaultConfig`), per camera:
 ``drop`` (frame ``frame`` never arrives), ``duplicate`` (delivered twice), ``stall``
 (frames triggered during ``duration_ms`` from ``frame`` are lost, then it resumes),
 ``id_offset`` (``offset`` added to frame ids from ``frame`` on), ``vanish`` (from trigger
@@ -38,7 +38,7 @@ import numpy as np
 from iscd.drivers import urls
 from iscd.drivers.base import (Camera, CameraError, CameraLost, CameraSettings, CameraTimeout, Frame, PairMeta,
                           Roi, StereoPairSource)
-from iscd.config import Config, ConfigError, FaultConfig
+from iscd.core.config import Config, ConfigError, FaultConfig
 
 _START_DELAY_NS = 10_000_000
 _CACHE_MAX = 64
@@ -497,7 +497,7 @@ def _open_url(u: urls.CameraURL, cfg: Config | None = None, *, level_source: obj
     and noise-free frames if asked; queues of ``buffer_frames`` (default ``[rig]
     buffer_frames``)."""
     if cfg is None:
-        from iscd.config import default_config
+        from iscd.core.config import default_config
 
         cfg = default_config()
     seed = urls.int_option(u, "seed")

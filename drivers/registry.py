@@ -5,7 +5,7 @@ The cameras of ``[rig]`` are camera URLs (:mod:`iscd.drivers.urls`, as pyserial'
 simulated rig, :mod:`iscd.drivers.mock`), or ``left`` / ``right`` =
 ``genicam://SERIAL?cti=PATH`` (:mod:`iscd.drivers.genicam`, harvesters + a GenTL producer) or
 ``v4l2:///dev/videoN`` (:mod:`iscd.drivers.v4l2`, linuxpy). The old form (``backend`` with
-serial numbers or device paths) is mapped to those URLs by :mod:`iscd.config`. Each
+serial numbers or device paths) is mapped to those URLs by :mod:`iscd.core.config`. Each
 backend registers itself under its scheme; hardware libraries are imported only when a
 camera is opened or listed.
 
@@ -61,10 +61,10 @@ def settings_from_config(cfg: Any, side: str) -> CameraSettings:
 def check_stereo_config(cfg: Any) -> str | None:
     """Check what :func:`make_stereo` needs from ``cfg`` without building anything (so a
     parent process can refuse a bad config before spawning the acquisition): raises
-    :class:`iscd.config.ConfigError` (one line, naming the key). Returns the emulated
+    :class:`iscd.core.config.ConfigError` (one line, naming the key). Returns the emulated
     board's link path (``[board] emulate``), else None."""
     from iscd.drivers.board.settings import emulated_board_link
-    from iscd.config import ConfigError
+    from iscd.core.config import ConfigError
 
     rig = cfg.rig
     link = emulated_board_link(cfg)  # ConfigError for a board that cannot be emulated
@@ -99,7 +99,7 @@ def open_stereo(cfg: Any) -> tuple[Camera, Camera]:
     (left = trigger master, right = slave), not started: start the slave first.
 
     On failure, whatever was opened is closed again and :class:`CameraError` (or
-    :class:`iscd.config.ConfigError` for a bad ``[rig]``) propagates.
+    :class:`iscd.core.config.ConfigError` for a bad ``[rig]``) propagates.
     """
     left, right = make_stereo(cfg)
     hardware = urls.backend(cfg.rig.backend).hardware

@@ -1,5 +1,5 @@
 import sys
 
-from iscd.cli import main
+from iscd.cli.main import main
 
 sys.exit(main())

@@ -68,7 +68,7 @@ def rendered_default():
     30 m, textured background, noise), frames 0-255, rendered once per test session."""
     import numpy as np
 
-    from iscd.config import default_config
+    from iscd.core.config import default_config
     from iscd.sim.scene import Scene
 
     sc = Scene(default_config())

@@ -1,6 +1,6 @@
 """Shared test doubles and helpers (import them as ``from fakes import ...``; pytest puts
 ``tests/`` on ``sys.path``, and a spawned worker process inherits that path, so the
-factories here can be handed to :class:`iscd.acquisition.AcquisitionProcess`).
+factories here can be handed to :class:`iscd.rig.acquisition.AcquisitionProcess`).
 
 * :class:`FakeClock`: virtual time for code that reads a module's ``time``
   (``fake_clock.install(module)``, the ``fake_clock`` fixture in ``conftest.py``);
@@ -296,8 +296,8 @@ def run_daemon_until(text: str, tmp_path: Path, done: Callable[[list[dict]], boo
     ``timeout_s`` s of wall time (a safety net: a loaded machine only takes longer);
     returns the daemon, the records of its output file and the :class:`StopWhen`
     (``met_at_s`` None: the condition never held)."""
-    from iscd import config as C
-    from iscd.daemon import Daemon
+    from iscd.core import config as C
+    from iscd.service.daemon import Daemon
 
     out = tmp_path / "out.jsonl"
     d = Daemon(C.loads(text), out=str(out), duration_s=timeout_s, install_signals=False)

@@ -19,9 +19,9 @@ import pytest
 from iscd.drivers.base import Camera, CameraError, CameraSettings, Frame
 from fakes import PATTERN_SHAPE, FakeCamera, fake_rig, wait_until
 from fakes import pattern_image as image
-from iscd.acquisition import (Acquisition, AcquisitionOptions, AcquisitionProcess,
+from iscd.rig.acquisition import (Acquisition, AcquisitionOptions, AcquisitionProcess,
                               AcquisitionStats)
-from iscd.ringbuffer import ReadSlot, StereoRing
+from iscd.rig.ringbuffer import ReadSlot, StereoRing
 
 pytestmark = pytest.mark.skipif(not os.path.isdir("/dev/shm"), reason="needs Linux /dev/shm")
 SHAPE = PATTERN_SHAPE
@@ -183,7 +183,7 @@ def test_stop_from_another_thread_is_prompt(ring: StereoRing) -> None:
 
 
 def test_options_come_from_a_toml_table(ring: StereoRing) -> None:
-    from iscd.config import ConfigError, build_section
+    from iscd.core.config import ConfigError, build_section
 
     opt = build_section(AcquisitionOptions, {"ts_tolerance_s": 1e-4, "resync_after": 0},
                         "daemon.acquisition")
@@ -263,7 +263,7 @@ def test_mock_rig_with_faults_feeds_only_true_pairs() -> None:
     (checked against the scene), and pairs flow again after each fault."""
     mock = pytest.importorskip("iscd.drivers.mock")
     from iscd.drivers.registry import settings_from_config
-    from iscd.config import loads
+    from iscd.core.config import loads
 
     cfg = loads("""
 [transmitter]

@@ -7,7 +7,7 @@ import zlib
 import numpy as np
 import pytest
 
-from iscd.airinterface import (BARKER13, AirInterface, AirInterfaceError, duty, gray_decode,
+from iscd.core.airinterface import (BARKER13, AirInterface, AirInterfaceError, duty, gray_decode,
                                gray_encode, payload_capacity, random_payload)
 
 

@@ -13,7 +13,7 @@ from serial.tools.list_ports_common import ListPortInfo
 
 from iscd.drivers.board.discovery import DEFAULT_PID, DEFAULT_VID, FoundBoard, find_boards, usb_devices
 from iscd.drivers.board.settings import BoardSettings, board_settings
-from iscd.config import ConfigError, loads
+from iscd.core.config import ConfigError, loads
 
 
 @dataclass

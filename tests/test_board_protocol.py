@@ -165,7 +165,7 @@ def test_message_layouts_round_trip_and_reject_bad_lengths() -> None:
 
 
 def test_board_config_from_transmitter_config() -> None:
-    from iscd.config import default_config
+    from iscd.core.config import default_config
 
     tx = default_config().transmitter
     c = P.BoardConfig.from_transmitter(tx)

@@ -15,7 +15,7 @@ import pytest
 from iscd.drivers.board import protocol as P
 from iscd.drivers.board.client import BoardClient, BoardNak, BoardPortError, BoardTimeout
 from iscd.drivers.board.emulator import DEFAULT_INFO, Board, PtyEmulator
-from iscd.airinterface import AirInterface
+from iscd.core.airinterface import AirInterface
 
 TIMEOUT = 0.1
 RETRIES = 2

@@ -12,8 +12,8 @@ import pytest
 from iscd.drivers.board import discovery
 from iscd.drivers.board import protocol as P
 from iscd.drivers.board.emulator import DEFAULT_INFO, Board, PtyEmulator
-from iscd.airinterface import AirInterface
-from iscd.cli import main
+from iscd.core.airinterface import AirInterface
+from iscd.cli.main import main
 
 SMALL = """
 [transmitter]

@@ -13,8 +13,8 @@ import pytest
 
 from iscd.calibration.io import StereoCalibration, load_calibration, save_calibration
 from iscd.calibration.synthetic import make_pairs
-from iscd.cli import main
-from iscd.config import CameraConfig
+from iscd.cli.main import main
+from iscd.core.config import CameraConfig
 
 
 @pytest.fixture(scope="module")

@@ -11,7 +11,7 @@ import pytest
 
 from iscd.calibration.io import (CalibrationError, StereoCalibration, dumps_calibration,
                             load_calibration, project_points, rectify_points, save_calibration)
-from iscd.config import CameraConfig
+from iscd.core.config import CameraConfig
 
 
 def distorted_rig() -> StereoCalibration:

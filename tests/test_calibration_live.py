@@ -17,7 +17,7 @@ from iscd.calibration.solve import calibrate_stereo
 from iscd.calibration.synthetic import BoardRenderer, default_board, default_rig, random_poses
 from iscd.drivers.base import CameraSettings, Frame
 from fakes import FakeCamera
-from iscd.cli import main
+from iscd.cli.main import main
 
 BOARD = default_board()
 

@@ -17,7 +17,7 @@ is as accurate as on the ideal rig (within 10 %)."
    camera, right camera defocused 0.3 px), the LED ~120 px off the image centre where the
    distortion acts, rendered through the true rig (``Scene(cfg, rig=...)``) and through the
    ideal rig with the same seeds (same noise, same jitter: a paired comparison).
-4. :class:`iscd.stereo_range.StereoRanger` with grid fits from ``detect_array``: the
+4. :class:`iscd.decode.ranging.stereo.StereoRanger` with grid fits from ``detect_array``: the
    non-ideal rig with the estimated calibration vs the ideal rig with the ideal calibration
    (mean absolute error on lit frames within 10 %), and the non-ideal rig with the ideal
    calibration (what an uncalibrated rig gives: clearly worse).
@@ -36,12 +36,12 @@ from iscd.calibration.io import StereoCalibration
 from iscd.calibration.pipeline import detect_image_pairs
 from iscd.calibration.solve import calibrate_stereo
 from iscd.calibration.synthetic import make_pairs, nonideal_rig
-from iscd.config import Config, default_config
-from iscd.ranging.config import RangingSettings
-from iscd.receiver.detect import detect_array
+from iscd.core.config import Config, default_config
+from iscd.decode.ranging.config import RangingSettings
+from iscd.decode.tracking.detect import detect_array
 from iscd.sim.presets import override, single_led
 from iscd.sim.scene import Scene
-from iscd.stereo_range import StereoRanger
+from iscd.decode.ranging.stereo import StereoRanger
 
 ROTATION_DEG = (0.03, 0.08, 0.02)
 BOARD = BoardSpec("chessboard", 9, 6, 0.15)

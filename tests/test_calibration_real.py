@@ -14,7 +14,7 @@ import pytest
 from iscd.calibration.boards import BoardSpec
 from iscd.calibration.io import load_calibration, save_calibration
 from iscd.calibration.pipeline import detect_files, pair_files
-from iscd.cli import main
+from iscd.cli.main import main
 
 SHARED = Path(__file__).resolve().parents[1].parent / "shared"
 DATA = SHARED / "data" / "opencv-stereo-chessboard"

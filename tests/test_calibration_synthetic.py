@@ -136,7 +136,7 @@ def test_nonideal_rig_pieces_for_ranging() -> None:
     Z = f*b/d): exact with the true calibration, badly off with the ideal one."""
     from iscd.calibration.io import StereoCalibration, project_points, rectify_points
     from iscd.calibration.synthetic import nonideal_rig
-    from iscd.config import CameraConfig
+    from iscd.core.config import CameraConfig
 
     cfg = CameraConfig()
     truth, ideal = nonideal_rig(cfg), StereoCalibration.ideal(cfg)

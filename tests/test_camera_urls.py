@@ -20,8 +20,8 @@ import pytest
 from iscd.drivers import registry, urls
 from iscd.drivers.base import CameraError
 from fakes import FakeCamera
-from iscd import cli
-from iscd.config import ConfigError, default_config, loads
+from iscd.cli import main as cli
+from iscd.core.config import ConfigError, default_config, loads
 
 SMALL_CAMERA = "[camera]\nwidth = 128\nheight = 128\n"
 
@@ -269,7 +269,7 @@ def test_devices_lists_urls_that_open_the_cameras(capsys, no_env, tmp_path: Path
     cfg_file = tmp_path / "rig.toml"
     cfg_file.write_text("[camera]\nfps = 200\n[transmitter]\nsymbol_rate_hz = 100\n[rig]\n"
                         + "\n".join(line.strip() for line in rig_lines) + "\n")
-    from iscd.config import load
+    from iscd.core.config import load
 
     cfg = load(cfg_file)
     left, right = registry.open_stereo(cfg)
@@ -409,7 +409,7 @@ def test_cli_refuses_a_bad_url_in_one_line(tmp_path: Path):
 
 
 def test_describe_lists_the_url_keys():
-    from iscd.config import describe
+    from iscd.core.config import describe
 
     text = describe()
     assert "  url = ''  # a stereo rig that is one device: mock://default" in text

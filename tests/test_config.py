@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import pytest
 
-from iscd import config as C
-from iscd.cli import main
+from iscd.core import config as C
+from iscd.cli.main import main
 
 
 def test_empty_config_is_chapter_4_defaults() -> None:

@@ -26,8 +26,8 @@ import pytest
 
 from fakes import LIGHT, run_daemon_until, stats_records
 from fakes import read_records as _records
-from iscd import config as C
-from iscd.daemon import Daemon
+from iscd.core import config as C
+from iscd.service.daemon import Daemon
 
 
 def _run(text: str, tmp_path: Path, duration: float) -> tuple[Daemon, list[dict]]:
@@ -232,14 +232,14 @@ def test_failing_pairing_is_said_once_a_stats_interval(caplog) -> None:
     daemon says so at every stats record while it lasts, and not when pairing works."""
     import logging
 
-    from iscd.daemon import _UnpairedWatch
+    from iscd.service.daemon import _UnpairedWatch
 
     w = _UnpairedWatch()
 
     def rec(frames_in: int, ul: int, ur: int) -> dict:
         return {"frames_in": frames_in, "acquisition": {"unpaired_left": ul, "unpaired_right": ur}}
 
-    with caplog.at_level(logging.WARNING, logger="iscd.daemon"):
+    with caplog.at_level(logging.WARNING, logger="iscd.service.daemon"):
         assert not w.check(rec(2000, 1, 0))  # pairing works: 1 of 2000
         assert w.check(rec(3759, 851, 845))  # 1695 of 1759 without a partner
         assert w.check(rec(5500, 1700, 1690))

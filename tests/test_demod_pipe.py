@@ -1,4 +1,4 @@
-"""The demodulation worker over plain pipes (iscd.demod_pipe): results in submission
+"""The demodulation worker over plain pipes (iscd.decode.pipe): results in submission
 order, the worker's exceptions handed back, submissions that never block the caller
 (more than a pipe holds, queued while the worker is busy), a killed worker seen as
 BrokenProcessPool, and a clean shutdown. No wall-clock assertions."""
@@ -12,9 +12,9 @@ import numpy as np
 import pytest
 from concurrent.futures.process import BrokenProcessPool
 
-from iscd.config import default_config
-from iscd.demod_pipe import PipeDemodWorker
-from iscd.receiver.settings import receiver_config
+from iscd.core.config import default_config
+from iscd.decode.pipe import PipeDemodWorker
+from iscd.decode.comms.settings import receiver_config
 
 
 @pytest.fixture()

@@ -1,5 +1,5 @@
 """The final pass reuses a stretch's decision when its inputs are unchanged
-(:data:`iscd.receiver.demod.REUSE_UNCHANGED`): the packets must be exactly those that
+(:data:`iscd.decode.comms.demod.REUSE_UNCHANGED`): the packets must be exactly those that
 deciding every stretch again gives, with fewer decisions made."""
 
 from __future__ import annotations
@@ -7,11 +7,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-import iscd.receiver.demod as demod
-from iscd.airinterface import AirInterface
-from iscd.config import TransmitterConfig
-from iscd.receiver.packets import PacketAssembler
-from iscd.receiver.synth import SynthCamera, synth_recording
+import iscd.decode.comms.demod as demod
+from iscd.core.airinterface import AirInterface
+from iscd.core.config import TransmitterConfig
+from iscd.decode.comms.packets import PacketAssembler
+from iscd.decode.comms.synth import SynthCamera, synth_recording
 
 
 def _packets(rec, tx: TransmitterConfig, monkeypatch: pytest.MonkeyPatch, reuse: bool) -> tuple[list, int]:

@@ -13,8 +13,8 @@ import pytest
 
 from iscd.drivers import registry
 from iscd.drivers.base import Camera, CameraError
-from iscd import cli
-from iscd.config import ConfigError, loads
+from iscd.cli import main as cli
+from iscd.core.config import ConfigError, loads
 
 gc = pytest.importorskip("iscd.drivers.genicam")
 VIKY = gc.simulated_producer()
@@ -182,7 +182,7 @@ def test_settings_from_config_makes_left_master_right_slave():
 
 def test_mock_backend_through_the_registry():
     pytest.importorskip("iscd.drivers.mock", reason="iscd.drivers.mock (the mock rig) is not written yet")
-    from iscd.config import load
+    from iscd.core.config import load
 
     left, right = registry.make_stereo(load(None))
     assert isinstance(left, Camera) and isinstance(right, Camera)

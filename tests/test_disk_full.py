@@ -108,8 +108,8 @@ def test_daemon_on_a_full_tmpfs_keeps_decoding(small_tmpfs: Path, caplog: pytest
     helper frees the filler's space for a while. The daemon decodes on, counts the records
     it could not write, logs at most once a second, and writes again after the space
     returns; every line of the file parses."""
-    from iscd import config as C
-    from iscd.daemon import Daemon
+    from iscd.core import config as C
+    from iscd.service.daemon import Daemon
 
     out = small_tmpfs / "run.jsonl"
     filler = _fill(small_tmpfs)
@@ -214,8 +214,8 @@ def test_injected_enospc_partial_write_is_cut_back(tmp_path: Path, monkeypatch: 
 def test_injected_enospc_in_the_daemon_stats(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     """The daemon keeps decoding with a writer whose disk is full from the start, and its
     stats (kept in memory: the file takes none of them) count every record not written."""
-    from iscd import config as C
-    from iscd.daemon import Daemon
+    from iscd.core import config as C
+    from iscd.service.daemon import Daemon
 
     def enospc(fd: int, data) -> int:
         raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))

@@ -1,6 +1,6 @@
 """Numpydoc sections on the public functions of the numerical packages.
 
-Covers ``iscd/ranging``, ``iscd/receiver`` and ``iscd/sim``: every public function (module level,
+Covers ``iscd/decode`` (ranging, tracking, comms) and ``iscd/sim``: every public function (module level,
 or a public method of a public class; no leading underscore) must have a docstring with a
 ``Parameters`` section naming each of its parameters (``self``/``cls`` aside; ``*args`` and
 ``**kwargs`` may be listed or left out) and a ``Returns`` (or ``Yields``) section unless it
@@ -19,7 +19,7 @@ import re
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-PACKAGES = ("iscd/ranging", "iscd/receiver", "iscd/sim")
+PACKAGES = ("iscd/decode/ranging", "iscd/decode/tracking", "iscd/decode/comms", "iscd/sim")
 
 _NUMBA = {"njit", "jit", "vectorize", "guvectorize", "stencil", "cfunc"}
 _SKIP_DECORATORS = _NUMBA | {"property", "cached_property", "setter", "deleter", "overload"}

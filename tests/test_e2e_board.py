@@ -30,8 +30,8 @@ import pytest
 from iscd.drivers.board.client import BoardClient
 from iscd.drivers.board.protocol import BoardConfig
 from iscd.drivers.registry import BoardOnSceneClock, check_stereo_config, make_stereo
-from iscd.airinterface import AirInterface
-from iscd.config import ConfigError, loads
+from iscd.core.airinterface import AirInterface
+from iscd.core.config import ConfigError, loads
 
 # A 2x2 array (6 cm pitch: several LEDs also check that the board's LED order is the
 # scene's), PWM-8, b = 0.25 m at 30 m, equal f/4 apertures, F = 100 so that a packet lasts

@@ -8,8 +8,8 @@ from pathlib import Path
 
 import pytest
 
-from iscd.cli import main
-from iscd.config import default_config
+from iscd.cli.main import main
+from iscd.core.config import default_config
 from iscd.eval import report
 from iscd.eval.suites import EvalPlan, run_plan
 

@@ -14,7 +14,7 @@ from functools import lru_cache
 import pytest
 
 from fakes import xfail_where
-from iscd.config import default_config
+from iscd.core.config import default_config
 from iscd.eval.suites import (APPROACH_SPEED_MPS, APPROACH_VIBRATION_PX, CH3_MODES, COMMS_DISTANCES_M,
                               chapter3_cfg, chapter4_cfg, ch4_modes, point_seed)
 from iscd.eval.sweeps import CommsResult, ReceiverMode, run_comms

@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from iscd.airinterface import AirInterface
+from iscd.core.airinterface import AirInterface
 from iscd.eval.metrics import (bit_errors, error_stats, goodput_kbps, match_packets, symbol_errors,
                                throughput_kbps)
 

@@ -2,7 +2,7 @@
 
 Single LED, PWM-8, b = 0.6 m, f/4, right camera slightly defocused (0.3 px), independent air
 jitter 0.05 px RMS per camera, textured background. The receiver's decoder finds and tracks
-the LED; every method of iscd.ranging.estimators.METHODS ranges the same patches of the same
+the LED; every method of iscd.decode.ranging.estimators.METHODS ranges the same patches of the same
 frames; per-frame errors against the true distance on the frames where the LED is lit
 (all of them, and the frames every ranger emits: those that pass the common spot-SNR
 gate).
@@ -18,7 +18,7 @@ from functools import lru_cache
 import pytest
 
 from fakes import xfail_where
-from iscd.config import default_config
+from iscd.core.config import default_config
 from iscd.eval.suites import RANGING_DISTANCES_M, jitter_floor_mae, point_seed, ranging_cfg
 from iscd.eval.report import is_project_method
 from iscd.eval.sweeps import RangingResult, run_ranging

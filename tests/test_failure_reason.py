@@ -5,8 +5,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from iscd.receiver.channel import ChannelModel
-from iscd.receiver.demod import SEPARATION_MIN, failure_reason, level_separation
+from iscd.decode.comms.channel import ChannelModel
+from iscd.decode.comms.demod import SEPARATION_MIN, failure_reason, level_separation
 
 
 def _model(mu_per_cam: list[list[float]], sd: float = 1.0) -> ChannelModel:
@@ -50,10 +50,10 @@ def test_the_worst_stretch_counts() -> None:
 def test_a_saturated_close_led_says_so_in_its_packet_record() -> None:
     """One very bright LED at 8 m: both apertures clip, the packet fails, its record says
     "saturated"; the same LED at 30 m decodes (no reason in a good packet)."""
-    from iscd.airinterface import AirInterface
-    from iscd.config import default_config
+    from iscd.core.airinterface import AirInterface
+    from iscd.core.config import default_config
     from iscd.eval.sweeps import ReceiverMode, _decoder_cfg, frames_for_packets
-    from iscd.pipeline import StreamDecoder
+    from iscd.decode.stream import StreamDecoder
     from iscd.sim.presets import override, single_led
     from iscd.sim.scene import Scene
 

@@ -10,11 +10,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from iscd.config import default_config
-from iscd.receiver.detect import GridFit, detect_array, light_map, track_on_light
-from iscd.receiver.follow_kernel import follow_and_measure_compiled
-from iscd.receiver.luminance import follow_and_measure, grid_sample
-from iscd.receiver.track_kernel import LightAccumulator, track_on_light_compiled
+from iscd.core.config import default_config
+from iscd.decode.tracking.detect import GridFit, detect_array, light_map, track_on_light
+from iscd.decode.tracking.follow_kernel import follow_and_measure_compiled
+from iscd.decode.tracking.luminance import follow_and_measure, grid_sample
+from iscd.decode.tracking.track_kernel import LightAccumulator, track_on_light_compiled
 
 
 def _render(cfg, n: int) -> tuple[np.ndarray, np.ndarray]:
@@ -119,8 +119,8 @@ def test_grid_tracking_matches_the_reference(rendered_default, fits) -> None:
 
 
 def test_ranging_projection_matches_the_reference(rendered_default) -> None:
-    from iscd.ranging.project_kernel import patch_minimum, project_patches
-    from iscd.ranging.projected import ring_indices, robust_level
+    from iscd.decode.ranging.project_kernel import patch_minimum, project_patches
+    from iscd.decode.ranging.projected import ring_indices, robust_level
 
     L, _ = rendered_default
     fr = L[64:80]
@@ -146,7 +146,7 @@ def test_ranging_projection_matches_the_reference(rendered_default) -> None:
 
 @pytest.mark.parametrize("scene", ["default", "pwm16_50m"])
 def test_the_decoder_gives_the_same_records_compiled_or_not(scene, rendered_default) -> None:
-    from iscd.pipeline import StreamDecoder
+    from iscd.decode.stream import StreamDecoder
     from iscd.sim.presets import override
 
     cfg = default_config()
@@ -172,8 +172,8 @@ def test_the_decoder_gives_the_same_records_compiled_or_not(scene, rendered_defa
 
 @pytest.mark.parametrize("w", [40, 63, 80])
 def test_correlation_peak_matches_the_reference(w: int) -> None:
-    from iscd.ranging.project_kernel import correlate_1d_compiled
-    from iscd.ranging.projected import correlate_1d
+    from iscd.decode.ranging.project_kernel import correlate_1d_compiled
+    from iscd.decode.ranging.projected import correlate_1d
 
     rng = np.random.default_rng(w)
     x = np.arange(w)
@@ -192,12 +192,12 @@ def test_correlation_peak_matches_the_reference(w: int) -> None:
 
 
 def test_the_live_path_compiles_nothing_after_the_warm_up(rendered_default) -> None:
-    """After iscd.jit.warm_up() (what the daemon runs before the cameras start) decoding the
+    """After iscd.core.jit.warm_up() (what the daemon runs before the cameras start) decoding the
     default scene as the daemon does -- writable block buffers, ranging every frame --
     compiles no kernel again (a compile mid-stream stalls the frame loop for seconds on
     the first start after an install)."""
-    from iscd import jit
-    from iscd.pipeline import StreamDecoder
+    from iscd.core import jit
+    from iscd.decode.stream import StreamDecoder
 
     L, R = rendered_default
     dec = StreamDecoder(default_config())
@@ -235,8 +235,8 @@ def test_block_ranging_in_one_call_matches_the_reference(rendered_default, fits)
     1.2e-6),
     correlation quality 1e-6 (the reference sums partly in float32: measured 3.5e-8), the
     same valid frames, SNR 1e-6 relative."""
-    from iscd.ranging.project_kernel import block_minima
-    from iscd.stereo_range import StereoRanger
+    from iscd.decode.ranging.project_kernel import block_minima
+    from iscd.decode.ranging.stereo import StereoRanger
 
     L, R = rendered_default
     fl, fr = fits
@@ -268,7 +268,7 @@ def test_deferred_block_tail_gives_the_same_records(rendered_default) -> None:
     """push(defer=True) + finish_block() (the daemon: ranges out before the demodulation
     hand-off and the tracking update) gives exactly the records of push() (as a set; the
     packets come out of finish_block), the same tracking and the same luminance."""
-    from iscd.pipeline import StreamDecoder
+    from iscd.decode.stream import StreamDecoder
 
     L, R = rendered_default
     ids = np.arange(L.shape[0])

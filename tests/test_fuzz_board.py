@@ -1,7 +1,7 @@
 """Property-based fuzzing (hypothesis) of the LED board protocol and the air interface's
 packet decoder: any input gives a value or the module's own error type
 (:class:`~iscd.drivers.board.protocol.ProtocolError` and its subclasses,
-:class:`~iscd.airinterface.AirInterfaceError`), never another exception.
+:class:`~iscd.core.airinterface.AirInterfaceError`), never another exception.
 
 Bounds: inputs up to 4 KiB of bytes per call (the protocol's MAX_ENCODED is far less), the
 deframer's buffer stays <= its max_encoded whatever arrives; packet geometries up to
@@ -21,7 +21,7 @@ from hypothesis import strategies as st
 
 from iscd.drivers.board import protocol as P
 from iscd.drivers.board.emulator import Board
-from iscd.airinterface import AirInterface, AirInterfaceError
+from iscd.core.airinterface import AirInterface, AirInterfaceError
 
 pytestmark = pytest.mark.filterwarnings("error::RuntimeWarning")  # e.g. a NaN cast is a finding
 

@@ -1,7 +1,7 @@
 """Property-based fuzzing (hypothesis) of the two text files a user hands iscd: the TOML
-config (:func:`iscd.config.loads` plus :func:`iscd.config.check_extra_sections`, as ``iscd
+config (:func:`iscd.core.config.loads` plus :func:`iscd.core.config.check_extra_sections`, as ``iscd
 run`` does) and the stereo calibration (:func:`iscd.calibration.io.loads_calibration`). Any text
-gives a value or the module's own error (:class:`~iscd.config.ConfigError`,
+gives a value or the module's own error (:class:`~iscd.core.config.ConfigError`,
 :class:`~iscd.calibration.io.CalibrationError`), whose message is one line.
 
 Bounds: config texts of up to ~40 keys drawn from the real schema (every section and key, plus
@@ -25,7 +25,7 @@ from hypothesis import example, given
 from hypothesis import strategies as st
 
 from iscd.calibration.io import CalibrationError, StereoCalibration, dumps_calibration, loads_calibration
-from iscd import config as C
+from iscd.core import config as C
 from iscd.sim.tomlout import _scalar as _toml_value  # the project's own TOML scalar writer
 
 

@@ -373,7 +373,7 @@ def test_open_errors_are_clear(monkeypatch: pytest.MonkeyPatch):
 
 
 def test_backends_import_without_their_libraries():
-    code = ("import sys, iscd.drivers.genicam, iscd.drivers.v4l2, iscd.drivers.registry, iscd.commands.devices; "
+    code = ("import sys, iscd.drivers.genicam, iscd.drivers.v4l2, iscd.drivers.registry, iscd.cli.commands.devices; "
             "bad = [m for m in ('harvesters', 'genicam', 'linuxpy') if m in sys.modules]; "
             "assert not bad, bad")
     subprocess.run([sys.executable, "-c", code], check=True, timeout=60)
@@ -458,8 +458,8 @@ def test_stream_1000_pairs_through_acquisition_and_ring_without_a_gap():
     frames in the producer (about 16 % here, one camera alone none). So one Viky camera
     is both sides: the right side gets a copy of every left frame.
     """
-    from iscd.acquisition import Acquisition, AcquisitionOptions
-    from iscd.ringbuffer import StereoRing
+    from iscd.rig.acquisition import Acquisition, AcquisitionOptions
+    from iscd.rig.ringbuffer import StereoRing
 
     # 64 GenTL buffers (320 ms at 200 fps; ~10 MB each in Viky) and a 1.3 s ring: slack for a loaded 2-core
     # machine, where this process may wait for a core for tens of ms

@@ -2,7 +2,7 @@
 stderr and exit status 2 (or, for ``bench --check``, a non-zero exit), never a traceback.
 
 The ``iscd run`` checks must happen before the daemon is built: the tests replace
-:class:`iscd.daemon.Daemon` by a stand-in that fails the test if it is ever constructed.
+:class:`iscd.service.daemon.Daemon` by a stand-in that fails the test if it is ever constructed.
 """
 
 from __future__ import annotations
@@ -19,15 +19,15 @@ import numpy as np
 import pytest
 
 from iscd.calibration.io import StereoCalibration, save_calibration
-from iscd.cli import main
-from iscd.config import default_config
+from iscd.cli.main import main
+from iscd.core.config import default_config
 from iscd.recording import IscrWriter
 
 REPO = Path(__file__).resolve().parents[1]
 
 
 class _NoDaemon:
-    """Stands in for iscd.daemon.Daemon: constructing it means a bad input got through."""
+    """Stands in for iscd.service.daemon.Daemon: constructing it means a bad input got through."""
 
     def __init__(self, *a: object, **k: object) -> None:
         raise AssertionError("the daemon was started despite a bad input")
@@ -35,9 +35,9 @@ class _NoDaemon:
 
 @pytest.fixture
 def no_daemon(monkeypatch: pytest.MonkeyPatch) -> None:
-    import iscd.daemon
+    import iscd.service.daemon
 
-    monkeypatch.setattr(iscd.daemon, "Daemon", _NoDaemon)
+    monkeypatch.setattr(iscd.service.daemon, "Daemon", _NoDaemon)
 
 
 def _cli(capsys: pytest.CaptureFixture[str], *argv: str) -> tuple[int, str, str]:
@@ -128,7 +128,7 @@ def test_run_unwritable_out_from_config(tmp_path: Path, no_daemon: None,
 def test_run_writable_out_passes_the_check(tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
                                            capsys: pytest.CaptureFixture[str]) -> None:
     """A good --out (in a folder yet to be made) reaches the daemon, and the check leaves no file."""
-    import iscd.daemon
+    import iscd.service.daemon
 
     seen: dict[str, object] = {}
 
@@ -139,7 +139,7 @@ def test_run_writable_out_passes_the_check(tmp_path: Path, monkeypatch: pytest.M
         seen.update(kw)
         raise _Stop
 
-    monkeypatch.setattr(iscd.daemon, "Daemon", fake)
+    monkeypatch.setattr(iscd.service.daemon, "Daemon", fake)
     out = tmp_path / "new" / "run.jsonl"
     with pytest.raises(_Stop):
         main(["run", "--duration", "1", "--out", str(out)])
@@ -252,7 +252,7 @@ def test_run_calibration_for_another_size_refused(tmp_path: Path, no_daemon: Non
 
 def test_run_scale_calibration_hands_a_matching_file_to_the_daemon(
         tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]) -> None:
-    import iscd.daemon
+    import iscd.service.daemon
     from iscd.calibration.io import load_calibration
 
     got: dict[str, object] = {}
@@ -264,7 +264,7 @@ def test_run_scale_calibration_hands_a_matching_file_to_the_daemon(
         got["cal"] = load_calibration(str(kw["calibration"]))
         raise _Stop
 
-    monkeypatch.setattr(iscd.daemon, "Daemon", fake)
+    monkeypatch.setattr(iscd.service.daemon, "Daemon", fake)
     cal = tmp_path / "rig1024.yml"
     src = _ideal_cal(1024, 1024)
     save_calibration(src, cal)
@@ -424,7 +424,7 @@ def test_bench_without_check_keeps_exit_0(monkeypatch: pytest.MonkeyPatch,
 
 
 def test_bench_check_ringbuffer_lines() -> None:
-    from iscd.commands.bench import check_targets
+    from iscd.cli.commands.bench import check_targets
 
     ok = ("baseline  in-process numpy copy:            9000 pairs/s    9.00x target\n"
           "ring -> other process, zero-copy read:      5000 pairs/s    5.00x target  0.5x baseline\n")
@@ -449,7 +449,7 @@ def test_gitignore_covers_readme_outputs(tmp_path: Path) -> None:
 def test_genicam_frame_rate_clamp_is_a_warning(caplog: pytest.LogCaptureFixture) -> None:
     """viky.cti can do 200 fps: asking for 1000 is clamped, and now said at WARNING (it was
     INFO). The daemon-side check (fps the device reports vs 2 frames per symbol) is not here:
-    it belongs to iscd/acquisition.py (see docs/hardening.md)."""
+    it belongs to iscd/rig/acquisition.py (see docs/hardening.md)."""
     import logging
 
     from iscd.drivers import genicam as gc

@@ -15,8 +15,8 @@ from pathlib import Path
 
 import pytest
 
-from iscd import config as C
-from iscd.daemon import Daemon
+from iscd.core import config as C
+from iscd.service.daemon import Daemon
 
 LIGHT = """
 [transmitter]
@@ -49,7 +49,7 @@ def test_duration_ends_on_time_when_the_decoder_is_behind(tmp_path: Path, monkey
     the block in hand is finished, the records flushed, a final stats record written, and
     the pairs left in the ring dropped and counted. Before the fix the daemon decoded the
     backlog for up to 5 s more."""
-    from iscd import pipeline
+    from iscd.decode import stream as pipeline
 
     orig = pipeline.StreamDecoder.push
     first: list[float] = []

@@ -105,23 +105,34 @@ def test_no_import_cycles() -> None:
     assert cycles(g) == KNOWN
 
 
-DECODE = ("iscd.receiver", "iscd.ranging", "iscd.pipeline", "iscd.stereo_range",
-          "iscd.demod_pipe", "iscd.demod_worker")
-SERVICE = ("iscd.daemon", "iscd.acquisition", "iscd.pairing", "iscd.ringbuffer")
-TOP = ("iscd.commands", "iscd.cli", "iscd.eval")
+DECODE = ("iscd.decode",)
+RIG = ("iscd.rig",)
+SERVICE = ("iscd.service",)
+TOP = ("iscd.cli", "iscd.eval")
 CONTRACT: list[tuple[tuple[str, ...], tuple[str, ...], str]] = [
-    (DECODE, ("iscd.drivers", "iscd.outputs", *SERVICE, *TOP),
+    (("iscd.core",), ("iscd.decode", "iscd.rig", "iscd.service", "iscd.outputs", "iscd.drivers",
+                      "iscd.sim", "iscd.recording", "iscd.calibration", *TOP),
+     "the core is below everything"),
+    (DECODE, ("iscd.drivers", *RIG, "iscd.outputs", *SERVICE, *TOP),
      "decode reads frames handed to it: no cameras, rig, outputs, service or command line"),
-    (("iscd.drivers",), (*DECODE, "iscd.outputs", *SERVICE, *TOP, "iscd.calibration"),
-     "drivers talk to devices (the mock rig renders with iscd.sim)"),
-    (("iscd.sim",), (*DECODE, "iscd.drivers", "iscd.outputs", *SERVICE, *TOP),
+    (("iscd.drivers",), (*DECODE, *RIG, "iscd.outputs", *SERVICE, *TOP, "iscd.calibration",
+                         "iscd.recording"),
+     "drivers talk to devices: they import only the core (and the simulator, which the mock rig renders with)"),
+    (("iscd.sim",), (*DECODE, *RIG, "iscd.drivers", "iscd.outputs", *SERVICE, *TOP),
      "the simulator renders; it knows nothing of the receiver"),
-    (("iscd.outputs",), ("iscd.drivers", *SERVICE, *TOP), "outputs take records"),
+    (RIG, (*DECODE, "iscd.outputs", *SERVICE, *TOP), "the rig moves frames from the cameras to the ring"),
+    (("iscd.outputs",), ("iscd.drivers", *RIG, *SERVICE, *TOP), "outputs take records"),
     (("iscd.calibration",), (*DECODE, "iscd.outputs", *SERVICE, *TOP),
      "calibration is a tool over the rig model and the cameras"),
 ]
-"""(importers, what they must not import, why): the layers as they stand (issue 13 moves
-them into their own folders; the rules stay)."""
+"""(importers, what they must not import, why): the layers, one folder each."""
+
+EXCEPTIONS: dict[tuple[str, str], str] = {
+    ("iscd.core.config", "iscd.drivers.urls"):
+        "[rig] camera URLs are checked against the registered backends at load time; goes when "
+        "each config section is defined by the code that owns it (issue 13, item 3)",
+}
+"""Imports that break the contract, each with why; the list only shrinks."""
 
 
 def _under(m: str, prefixes: tuple[str, ...]) -> bool:
@@ -135,25 +146,27 @@ def contract_breaks(graph: dict[str, set[str]]) -> list[str]:
     for m in sorted(graph):
         for t in sorted(graph[m]):
             for src, bad, why in CONTRACT:
-                if _under(m, src) and _under(t, bad):
+                if _under(m, src) and _under(t, bad) and (m, t) not in EXCEPTIONS:
                     out.append(f"{m} -> {t}: {why}")
-            if _under(t, ("iscd.cli",)) and m != "iscd.__main__":
+            if _under(t, ("iscd.cli",)) and not _under(m, ("iscd.cli", "iscd.__main__")):
                 out.append(f"{m} -> {t}: nothing imports the command line")
-            if _under(t, ("iscd.commands",)) and not _under(m, ("iscd.commands", "iscd.cli")):
+            if _under(t, ("iscd.cli.commands",)) and not _under(m, ("iscd.cli",)):
                 out.append(f"{m} -> {t}: only the command line imports the commands")
     return out
 
 
 def test_the_contract_catches_a_forbidden_import(tmp_path: Path) -> None:
     pkg = tmp_path / "iscd"
-    (pkg / "receiver").mkdir(parents=True)
-    for f in ("__init__.py", "receiver/__init__.py", "daemon.py", "cli.py"):
+    for d in ("decode/comms", "service", "cli"):
+        (pkg / d).mkdir(parents=True)
+    for f in ("__init__.py", "decode/__init__.py", "decode/comms/__init__.py", "service/__init__.py",
+              "service/daemon.py", "cli/__init__.py", "cli/main.py"):
         (pkg / f).write_text("")
-    (pkg / "receiver" / "demod.py").write_text("import iscd.daemon\n")
-    (pkg / "daemon.py").write_text("def f():\n    from iscd.cli import main\n")
+    (pkg / "decode" / "comms" / "demod.py").write_text("import iscd.service.daemon\n")
+    (pkg / "service" / "daemon.py").write_text("def f():\n    from iscd.cli.main import main\n")
     breaks = contract_breaks(import_graph(tmp_path, ("iscd",)))
-    assert breaks == ["iscd.daemon -> iscd.cli: nothing imports the command line",
-                      "iscd.receiver.demod -> iscd.daemon: " + CONTRACT[0][2]]
+    assert breaks == ["iscd.decode.comms.demod -> iscd.service.daemon: " + CONTRACT[1][2],
+                      "iscd.service.daemon -> iscd.cli.main: nothing imports the command line"]
 
 
 def test_the_layers_hold() -> None:

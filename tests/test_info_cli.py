@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from iscd.cli import main
+from iscd.cli.main import main
 from iscd.recording import IscrWriter
 
 SHARED = Path(__file__).resolve().parents[1].parent / "shared"

@@ -10,7 +10,7 @@ import pytest
 from iscd.drivers.base import CameraError, CameraLost, CameraSettings, CameraTimeout, Roi
 from iscd.drivers import mock
 from iscd.drivers.mock import MockCamera, MockRig
-from iscd.config import default_config
+from iscd.core.config import default_config
 from iscd.sim.presets import override
 
 SMALL = {"width": 128, "height": 128}  # fast frames; the transmitter still fits

@@ -1,4 +1,4 @@
-"""iscd.notify against a fake systemd: an AF_UNIX datagram socket (a path, and the '@' abstract form)."""
+"""iscd.service.notify against a fake systemd: an AF_UNIX datagram socket (a path, and the '@' abstract form)."""
 
 from __future__ import annotations
 
@@ -14,7 +14,7 @@ from pathlib import Path
 
 import pytest
 
-from iscd.notify import Notifier, socket_address
+from iscd.service.notify import Notifier, socket_address
 
 
 def _recv_all(sock: socket.socket) -> list[str]:
@@ -110,7 +110,7 @@ def test_child_process_notifies_with_its_own_credentials(fake_systemd: tuple[soc
     credentials on the datagram name the daemon's pid (what NotifyAccess=main checks)."""
     sock, name = fake_systemd
     sock.setsockopt(socket.SOL_SOCKET, socket.SO_PASSCRED, 1)
-    code = ("from iscd.notify import Notifier\n"
+    code = ("from iscd.service.notify import Notifier\n"
             "n = Notifier.from_env()\n"
             "assert n.ready('up'), 'ready not sent'\n"
             "assert n.watchdog(), 'watchdog not sent'\n"

@@ -11,8 +11,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from iscd.cli import main
-from iscd.config import default_config
+from iscd.cli.main import main
+from iscd.core.config import default_config
 from iscd.eval import oracle
 from iscd.eval.oracle import (CHAIN, FLOOR, SPLIT, STAGES, error_profile, genie_sum, nearest_dark,
                               pool, profile_bins, run_oracle, true_clock)
@@ -81,11 +81,11 @@ def test_demod_hooks_fix_the_clock_and_replace_the_channel() -> None:
     """``demodulate_packet(clock=, channel=)``: the clock given is the clock used (no fits),
     and every channel estimate comes from ``channel(clock, a, b)`` over stretches that
     cover the packet; a true-level channel does not do worse than the estimate."""
-    from iscd.airinterface import AirInterface
-    from iscd.config import TransmitterConfig
-    from iscd.receiver.demod import PacketResult, demodulate_packet
-    from iscd.receiver.settings import ReceiverConfig
-    from iscd.receiver.synth import SynthCamera, synth_recording
+    from iscd.core.airinterface import AirInterface
+    from iscd.core.config import TransmitterConfig
+    from iscd.decode.comms.demod import PacketResult, demodulate_packet
+    from iscd.decode.comms.settings import ReceiverConfig
+    from iscd.decode.comms.synth import SynthCamera, synth_recording
 
     tx = TransmitterConfig(rows=1, cols=1, levels=8)
     air = AirInterface.from_config(tx)
@@ -200,7 +200,7 @@ def test_oracle_of_a_recording_is_the_oracle_of_its_scene(tmp_path: Path,
     (tmp_path / "in.toml").write_text(config_to_toml(cfg))
     from iscd.eval.sweeps import frames_for_packets
     from iscd.sim.scene import Scene
-    from iscd.airinterface import AirInterface
+    from iscd.core.airinterface import AirInterface
 
     n = frames_for_packets(Scene(cfg), AirInterface.from_config(cfg.transmitter), 2)
     rec = tmp_path / "rec"

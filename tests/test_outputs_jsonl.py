@@ -128,7 +128,7 @@ def test_disk_full_is_counted_not_raised(tmp_path: Path) -> None:
 
 
 def test_output_config_section() -> None:
-    from iscd.config import ConfigError, loads
+    from iscd.core.config import ConfigError, loads
 
     oc = output_config(loads("[output]\nkeep = 3\nzmq_hwm = 50\n"))
     assert oc.keep == 3 and oc.zmq_hwm == 50 and oc.flush_interval_s == OutputConfig.flush_interval_s

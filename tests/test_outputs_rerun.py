@@ -206,7 +206,7 @@ def test_serve_binds_loopback_and_bad_save_path(tmp_path: Path) -> None:
 
 
 def test_rerun_config_section() -> None:
-    from iscd.config import ConfigError, loads
+    from iscd.core.config import ConfigError, loads
 
     rc = rerun_config(loads('[rerun]\nimage_every = 25\nsave = "/tmp/x.rrd"\n'))
     assert rc.image_every == 25 and rc.save == "/tmp/x.rrd" and rc.serve_bind == RerunConfig.serve_bind

@@ -1,4 +1,4 @@
-"""The overload policy (iscd.overload) driven with made-up ring fills, the decoder's
+"""The overload policy (iscd.service.overload) driven with made-up ring fills, the decoder's
 shedding (ranging every k-th frame, per-LED ranges), and the daemon shedding in order on
 the mock rig when a stage is made slow."""
 
@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from iscd.overload import OverloadPolicy, OverloadSettings
+from iscd.service.overload import OverloadPolicy, OverloadSettings
 
 
 def test_levels_in_order_with_hysteresis_and_return_to_full_service() -> None:
@@ -41,8 +41,8 @@ def test_bad_order_of_thresholds_is_refused() -> None:
 
 
 def test_daemon_refuses_thresholds_out_of_order() -> None:
-    from iscd import config as C
-    from iscd.daemon import Daemon
+    from iscd.core import config as C
+    from iscd.service.daemon import Daemon
 
     cfg = C.loads("[daemon]\nshed_led_fill = 0.5\nshed_ranging_fill = 0.2\n")
     with pytest.raises(C.ConfigError, match="daemon.shed_led_fill"):
@@ -50,8 +50,8 @@ def test_daemon_refuses_thresholds_out_of_order() -> None:
 
 
 def test_decoder_ranges_every_kth_frame_when_told(rendered_default) -> None:
-    from iscd.config import default_config
-    from iscd.pipeline import StreamDecoder
+    from iscd.core.config import default_config
+    from iscd.decode.stream import StreamDecoder
 
     L, R = rendered_default
     ids = np.arange(L.shape[0])
@@ -82,9 +82,9 @@ def test_daemon_sheds_in_order_and_keeps_the_packets(tmp_path: Path, monkeypatch
     """An injected slow stage: full-service ranging costs 40 ms a block of 16 pairs (the
     camera gives 16 ms): the ring fills, the daemon sheds ranging (level 2), keeps every
     packet, says so in the stats, and returns to full service when it has caught up."""
-    from iscd import config as C
-    from iscd.daemon import Daemon
-    from iscd.stereo_range import StereoRanger
+    from iscd.core import config as C
+    from iscd.service.daemon import Daemon
+    from iscd.decode.ranging.stereo import StereoRanger
 
     real = StereoRanger.measure
 

@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from iscd.drivers.base import Frame
-from iscd.pairing import StereoPair, StereoPairer
+from iscd.rig.pairing import StereoPair, StereoPairer
 
 PERIOD = 1_000_000  # ns: 1000 fps
 T0 = 10**12  # ns

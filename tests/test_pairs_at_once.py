@@ -10,9 +10,9 @@ import pytest
 from iscd.drivers.base import CameraError
 from iscd.drivers import mock
 from iscd.drivers.mock import MockRig
-from iscd.acquisition import Acquisition, AcquisitionOptions
-from iscd.config import default_config
-from iscd.ringbuffer import StereoRing
+from iscd.rig.acquisition import Acquisition, AcquisitionOptions
+from iscd.core.config import default_config
+from iscd.rig.ringbuffer import StereoRing
 from iscd.sim.presets import override
 
 

@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 
 from fakes import wait_until
-from iscd.config import default_config
-from iscd.pipeline import StreamDecoder
+from iscd.core.config import default_config
+from iscd.decode.stream import StreamDecoder
 from iscd.sim.presets import override, single_led
 from iscd.sim.scene import Scene
 
@@ -167,7 +167,7 @@ def test_restart_after_an_error_reacquires_and_decodes() -> None:
 def test_16_bit_frames_are_detected() -> None:
     """16-bit frames (Photron 16-bit): the temporal gradient must not overflow, and
     detection finds the LED."""
-    from iscd.receiver.detect import activity_map, detect_array
+    from iscd.decode.tracking.detect import activity_map, detect_array
 
     two = np.zeros((2, 4, 4), np.uint16)
     two[1, 1, 1] = 40_000
@@ -323,7 +323,7 @@ def test_following_that_walked_off_restarts_from_the_grid_fit() -> None:
     fraction of a pitch off), but followed positions most of a pitch away have walked off
     (a randomized 8x8 approach: along a blooming column, 23 px off, then held there by this
     very rule; SER 0.35 -> 3.9e-3): the fit wins and following restarts."""
-    from iscd.receiver.detect import GridFit
+    from iscd.decode.tracking.detect import GridFit
 
     dec = StreamDecoder(default_config())
     fit = GridFit(origin=(200.0, 180.0), pitch_px=6.0, rows=8, cols=8, score=5.0)

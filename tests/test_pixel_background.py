@@ -1,4 +1,4 @@
-"""The per-pixel background (iscd.receiver.luminance.PixelBackground) of the LED following:
+"""The per-pixel background (iscd.decode.tracking.luminance.PixelBackground) of the LED following:
 its compiled kernel against the numpy reference over consecutive blocks (the state evolves
 the same), and what it is for: the light above it stays put when a textured background
 moves under the window.
@@ -12,9 +12,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from iscd.receiver.detect import detect_array
-from iscd.receiver.follow_kernel import follow_and_measure_compiled
-from iscd.receiver.luminance import (PixelBackground, follow_and_measure, gather_patches,
+from iscd.decode.tracking.detect import detect_array
+from iscd.decode.tracking.follow_kernel import follow_and_measure_compiled
+from iscd.decode.tracking.luminance import (PixelBackground, follow_and_measure, gather_patches,
                                      grid_sample)
 
 
@@ -126,6 +126,6 @@ def test_spot_size_kernel_matches_reference_and_grows_with_the_spot(rendered_def
         follow_and_measure_compiled([fr_, fr_], [c, c], 3, [1.0, 1.0], info=info, spot_radius_px=8.0)
         areas.append(info["spot_area"][0])
     assert 3.0 < areas[1] / areas[0] < 5.0
-    from iscd.receiver.luminance import area_sigma
+    from iscd.decode.tracking.luminance import area_sigma
 
     assert abs(area_sigma(areas[1]) - 2.0) < 0.3

@@ -6,7 +6,7 @@ import cv2
 import numpy as np
 import pytest
 
-from iscd.ranging.bicubic import interp_matrix, keys_kernel, sample_positions, upsample
+from iscd.decode.ranging.bicubic import interp_matrix, keys_kernel, sample_positions, upsample
 
 
 def eq_3_3(u: np.ndarray) -> np.ndarray:

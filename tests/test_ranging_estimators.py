@@ -6,10 +6,10 @@ import numpy as np
 import pytest
 from scipy.ndimage import gaussian_filter
 
-from iscd.ranging.compare import PEERS, compare, score
-from iscd.ranging.estimators import METHODS, declip, estimate_shift, get_estimator
-from iscd.ranging.range import DEFAULT_MIN_QUALITY
-from iscd.ranging.synth import disk_spots, fourier_shift, gaussian_spots, sensor
+from iscd.decode.ranging.compare import PEERS, compare, score
+from iscd.decode.ranging.estimators import METHODS, declip, estimate_shift, get_estimator
+from iscd.decode.ranging.range import DEFAULT_MIN_QUALITY
+from iscd.decode.ranging.synth import disk_spots, fourier_shift, gaussian_spots, sensor
 
 SHIFTS = np.array([-2.73, -1.5, -0.31, 0.0, 0.47, 1.25, 2.62])   # left position - right position, px
 N = SHIFTS.size

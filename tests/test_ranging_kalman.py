@@ -7,8 +7,8 @@ import math
 import numpy as np
 import pytest
 
-from iscd.ranging.kalman import RangeKalman
-from iscd.ranging.range import range_sigma
+from iscd.decode.ranging.kalman import RangeKalman
+from iscd.decode.ranging.range import range_sigma
 
 F_PX, B = 3500.0, 0.6
 

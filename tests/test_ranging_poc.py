@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 from scipy.ndimage import gaussian_filter
 
-from iscd.ranging.poc import (continuous_peak, cross_power, integer_peak, peak_kernel, poc_surface,
+from iscd.decode.ranging.poc import (continuous_peak, cross_power, integer_peak, peak_kernel, poc_surface,
                               sinc_fit)
-from iscd.ranging.synth import fourier_shift
+from iscd.decode.ranging.synth import fourier_shift
 
 
 def textures(n: int, size: int, seed: int, smooth: float = 1.0) -> np.ndarray:

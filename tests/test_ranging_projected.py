@@ -1,4 +1,4 @@
-"""The fast 1-D project method ("iscd-fast", iscd.ranging.projected) against known shifts."""
+"""The fast 1-D project method ("iscd-fast", iscd.decode.ranging.projected) against known shifts."""
 
 from __future__ import annotations
 
@@ -6,10 +6,10 @@ import numpy as np
 import pytest
 from scipy.ndimage import gaussian_filter1d
 
-from iscd.ranging.estimators import get_estimator
-from iscd.ranging.projected import (ProjectedShift, correlate_1d, declip_cells, led_cells, make_plan,
+from iscd.decode.ranging.estimators import get_estimator
+from iscd.decode.ranging.projected import (ProjectedShift, correlate_1d, declip_cells, led_cells, make_plan,
                                     row_weights)
-from iscd.ranging.synth import disk_spots, fourier_shift, gaussian_spots, sensor
+from iscd.decode.ranging.synth import disk_spots, fourier_shift, gaussian_spots, sensor
 
 SHIFTS = np.array([-2.73, -1.5, -0.31, 0.0, 0.47, 1.25, 2.62])   # left position - right position, px
 N = SHIFTS.size

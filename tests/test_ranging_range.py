@@ -8,11 +8,11 @@ import cv2
 import numpy as np
 import pytest
 
-from iscd.config import ConfigError, loads
-from iscd.ranging.config import ranging_config
-from iscd.ranging.range import (LedRanger, cut_patches, disparity_from_range, range_from_disparity,
+from iscd.core.config import ConfigError, loads
+from iscd.decode.ranging.config import ranging_config
+from iscd.decode.ranging.range import (LedRanger, cut_patches, disparity_from_range, range_from_disparity,
                                 range_sigma)
-from iscd.ranging.synth import disk_spots, sensor
+from iscd.decode.ranging.synth import disk_spots, sensor
 
 F_PX = 3500.0
 

@@ -8,7 +8,7 @@ from types import ModuleType
 
 import pytest
 
-from iscd.ranging import compare
+from iscd.decode.ranging import compare
 
 
 def _load_bench() -> ModuleType:

@@ -23,7 +23,7 @@ def test_decode_loop_benchmark_profile_shows_where_the_time_goes(capsys: pytest.
 
     assert bench_decode_loop.main(["--quick", "--scene", "single", "--profile"]) == 0
     out = capsys.readouterr().out
-    assert "Ordered by: cumulative time" in out and "pipeline.py" in out and "(push)" in out
+    assert "Ordered by: cumulative time" in out and "stream.py" in out and "(push)" in out
 
 
 def test_daemon_benchmark_quick_reports_the_whole_process_tree(capsys: pytest.CaptureFixture[str]) -> None:

@@ -24,7 +24,7 @@ import numpy as np
 import pytest
 
 from fakes import wait_until
-from iscd.ringbuffer import RingError, StereoRing, capacity_for
+from iscd.rig.ringbuffer import RingError, StereoRing, capacity_for
 
 SHM = "/dev/shm"
 pytestmark = pytest.mark.skipif(not os.path.isdir(SHM), reason="needs Linux /dev/shm")
@@ -368,7 +368,7 @@ def test_an_unrelated_process_attaching_does_not_unlink(
     """Python < 3.13's resource tracker would unlink an attached segment at exit."""
     ring = make_ring()
     ring.write(pattern(5, (8, 6), 0), pattern(5, (8, 6), 1), frame_id=5)
-    code = ("import sys; from iscd.ringbuffer import StereoRing;"
+    code = ("import sys; from iscd.rig.ringbuffer import StereoRing;"
             "r = StereoRing.attach(sys.argv[1]);"
             "p = r.read(); print(p.frame_id); p.release()")
     out = subprocess.run([sys.executable, "-c", code, ring.name], capture_output=True,
@@ -380,7 +380,7 @@ def test_an_unrelated_process_attaching_does_not_unlink(
 
 
 def test_segment_is_removed_when_its_creator_is_killed() -> None:
-    code = ("import sys, time; from iscd.ringbuffer import StereoRing;"
+    code = ("import sys, time; from iscd.rig.ringbuffer import StereoRing;"
             "r = StereoRing.create(height=64, width=64, capacity=4); print(r.name, flush=True);"
             "time.sleep(60)")
     proc = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE,

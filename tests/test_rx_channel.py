@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from iscd.receiver.channel import ChannelModel, estimate_dissertation, estimate_iscd
+from iscd.decode.comms.channel import ChannelModel, estimate_dissertation, estimate_iscd
 
 
 def _samples(rng: np.random.Generator, N: int, M: int, n: int, gains: np.ndarray,

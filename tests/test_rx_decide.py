@@ -4,12 +4,12 @@ from __future__ import annotations
 
 import numpy as np
 
-from iscd.airinterface import AirInterface
-from iscd.receiver.channel import estimate_dissertation, estimate_iscd
-from iscd.receiver.decide import decide_span
-from iscd.receiver.demod import clean_samples, known_levels
-from iscd.receiver.synth import SynthCamera, synth_recording
-from iscd.receiver.timing import SymbolClock, clean_frame, frame_map
+from iscd.core.airinterface import AirInterface
+from iscd.decode.comms.channel import estimate_dissertation, estimate_iscd
+from iscd.decode.comms.decide import decide_span
+from iscd.decode.comms.demod import clean_samples, known_levels
+from iscd.decode.comms.synth import SynthCamera, synth_recording
+from iscd.decode.comms.timing import SymbolClock, clean_frame, frame_map
 
 
 def _setup(peak: float, seed: int = 0, n_leds: int = 4, levels: int = 8):

@@ -1,4 +1,4 @@
-"""Following moving LED spots frame by frame (iscd.receiver.luminance.refine_centres) and
+"""Following moving LED spots frame by frame (iscd.decode.tracking.luminance.refine_centres) and
 the Gaussian-weighted luminance window (gauss_mean), against spots rendered at known
 sub-pixel positions (pixel-integrated Gaussians, so the pixel phase is real)."""
 
@@ -9,7 +9,7 @@ import math
 import numpy as np
 import pytest
 
-from iscd.receiver.luminance import box_cover, gauss_mean, refine_centres, roi_mean
+from iscd.decode.tracking.luminance import box_cover, gauss_mean, refine_centres, roi_mean
 
 
 def _integrated_spots(centres: np.ndarray, amp: np.ndarray, shape: tuple[int, int], sigma: float,
@@ -121,7 +121,7 @@ def test_a_dark_stretch_does_not_walk_the_centres_away() -> None:
     lit = _integrated_spots(np.broadcast_to(base, (F, 64, 2)).copy(), levels * 600.0, (80, 80),
                             sigma=0.85, noise=1.0, seed=2)
     info: dict = {}
-    from iscd.receiver.luminance import gather_patches, refine_in_patches
+    from iscd.decode.tracking.luminance import gather_patches, refine_in_patches
 
     p = gather_patches(lit, base, 3)
     refine_in_patches(p, np.broadcast_to(base, (F, 64, 2)), 3, info=info)

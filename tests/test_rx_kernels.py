@@ -22,14 +22,14 @@ import dataclasses
 import numpy as np
 import pytest
 
-from iscd.airinterface import AirInterface
-from iscd.receiver.channel import ChannelModel, ChannelTrack, estimate_iscd, estimate_iscd_reference
-from iscd.receiver.decide import clean_costs, clean_costs_reference, decide_span, decide_span_reference
-from iscd.receiver.demod import (_match_gain, _match_gain_reference, clean_samples, demodulate_packet,
+from iscd.core.airinterface import AirInterface
+from iscd.decode.comms.channel import ChannelModel, ChannelTrack, estimate_iscd, estimate_iscd_reference
+from iscd.decode.comms.decide import clean_costs, clean_costs_reference, decide_span, decide_span_reference
+from iscd.decode.comms.demod import (_match_gain, _match_gain_reference, clean_samples, demodulate_packet,
                                  known_levels)
-from iscd.receiver.settings import ReceiverConfig
-from iscd.receiver.synth import SynthCamera, synth_recording
-from iscd.receiver.timing import SymbolClock, refine_clock, refine_clock_reference
+from iscd.decode.comms.settings import ReceiverConfig
+from iscd.decode.comms.synth import SynthCamera, synth_recording
+from iscd.decode.comms.timing import SymbolClock, refine_clock, refine_clock_reference
 
 
 def _setup(peak: float = 40.0, seed: int = 0, n_leds: int = 6, levels: int = 8, nan_frac: float = 0.0):
@@ -158,7 +158,7 @@ def _gap_setup():
 
 
 def test_refine_clock_matches_reference_with_a_dark_gap() -> None:
-    """The period search (:func:`iscd.receiver.timing._clock_cost` on a grid) and the
+    """The period search (:func:`iscd.decode.comms.timing._clock_cost` on a grid) and the
     Gauss-Newton steps agree in the kernel and the reference."""
     L, clock, truth, model = _gap_setup()
     for fit_p in (True, False):
@@ -170,8 +170,8 @@ def test_refine_clock_matches_reference_with_a_dark_gap() -> None:
 
 
 def test_clock_cost_matches_reference() -> None:
-    from iscd.receiver.channel import ChannelTrack
-    from iscd.receiver.timing import _clock_cost, clock_cost_reference
+    from iscd.decode.comms.channel import ChannelTrack
+    from iscd.decode.comms.timing import _clock_cost, clock_cost_reference
 
     L, clock, truth, model = _gap_setup()
     track = ChannelTrack.single(model)
@@ -196,10 +196,10 @@ def test_match_gain_matches_reference() -> None:
 def test_demodulate_packet_same_decisions() -> None:
     """The whole packet with all kernels: the same levels as before, to the bit; the clock
     and quality figures within rounding."""
-    import iscd.receiver.channel as ch
-    import iscd.receiver.decide as de
-    import iscd.receiver.demod as dm
-    import iscd.receiver.timing as ti
+    import iscd.decode.comms.channel as ch
+    import iscd.decode.comms.decide as de
+    import iscd.decode.comms.demod as dm
+    import iscd.decode.comms.timing as ti
 
     air, L, clock, truth = _setup(peak=25.0, seed=8)
     cfg = ReceiverConfig()

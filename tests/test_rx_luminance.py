@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from iscd.receiver.luminance import SpotLuminance, gather_windows, roi_mean
-from iscd.receiver.synth import render_spots
+from iscd.decode.tracking.luminance import SpotLuminance, gather_windows, roi_mean
+from iscd.decode.comms.synth import render_spots
 
 
 def _loop_roi_mean(frames: np.ndarray, centres: np.ndarray, size: int) -> np.ndarray:

@@ -1,4 +1,4 @@
-"""Streaming packet assembly end to end on synthetic luminance (iscd.receiver.synth):
+"""Streaming packet assembly end to end on synthetic luminance (iscd.decode.comms.synth):
 every packet found, CRC-valid payloads bit-exact, failed CRCs never delivered as valid."""
 
 from __future__ import annotations
@@ -6,11 +6,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from iscd.airinterface import AirInterface
-from iscd.config import ConfigError, TransmitterConfig
-from iscd.receiver.packets import Packet, PacketAssembler
-from iscd.receiver.settings import ReceiverConfig, receiver_config
-from iscd.receiver.synth import SynthCamera, SynthRecording, synth_recording
+from iscd.core.airinterface import AirInterface
+from iscd.core.config import ConfigError, TransmitterConfig
+from iscd.decode.comms.packets import Packet, PacketAssembler
+from iscd.decode.comms.settings import ReceiverConfig, receiver_config
+from iscd.decode.comms.synth import SynthCamera, SynthRecording, synth_recording
 
 
 def _tx(levels: int = 8, rows: int = 1, data: int = 600, idle: int = 0) -> TransmitterConfig:
@@ -277,8 +277,8 @@ def test_flush_decodes_a_packet_that_just_ended() -> None:
 
 
 def test_a_packet_after_a_long_dark_period_and_a_single_camera() -> None:
-    from iscd.airinterface import random_payload
-    from iscd.receiver.synth import integrated_duty
+    from iscd.core.airinterface import random_payload
+    from iscd.decode.comms.synth import integrated_duty
 
     tx = _tx(8, rows=2, data=100)
     air = AirInterface.from_config(tx)

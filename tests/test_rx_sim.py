@@ -6,10 +6,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from iscd.airinterface import AirInterface
-from iscd.config import default_config
-from iscd.receiver.luminance import SpotLuminance, roi_mean
-from iscd.receiver.packets import Packet, PacketAssembler
+from iscd.core.airinterface import AirInterface
+from iscd.core.config import default_config
+from iscd.decode.tracking.luminance import SpotLuminance, roi_mean
+from iscd.decode.comms.packets import Packet, PacketAssembler
 
 sim = pytest.importorskip("iscd.sim", reason="the simulator (iscd.sim) is not available")
 presets = pytest.importorskip("iscd.sim.presets")

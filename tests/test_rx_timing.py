@@ -5,11 +5,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from iscd.airinterface import BARKER13, AirInterface
-from iscd.receiver.channel import estimate_iscd
-from iscd.receiver.demod import clean_samples, known_levels
-from iscd.receiver.synth import SynthCamera, integrated_duty, synth_recording
-from iscd.receiver.timing import (SymbolClock, clean_frame, coarse_header_search, fine_header,
+from iscd.core.airinterface import BARKER13, AirInterface
+from iscd.decode.comms.channel import estimate_iscd
+from iscd.decode.comms.demod import clean_samples, known_levels
+from iscd.decode.comms.synth import SynthCamera, integrated_duty, synth_recording
+from iscd.decode.comms.timing import (SymbolClock, clean_frame, coarse_header_search, fine_header,
                                   frame_map, header_fraction, normalize_luminance, refine_clock)
 
 
@@ -145,7 +145,7 @@ def test_without_a_gap_the_gap_frames_change_nothing() -> None:
     start = SymbolClock(rec.packet_starts_s[0] * 1000.0 + 0.03, 2.0)
     y, lv = clean_samples(rec.L, start, 1.0, known_levels(air), 0)
     model = estimate_iscd(y, lv, 8)
-    from iscd.receiver.timing import refine_clock_reference
+    from iscd.decode.comms.timing import refine_clock_reference
 
     a, na = refine_clock(rec.L, start, 1.0, lev, 0, model, 2.0, 6e-4)
     b, nb = refine_clock_reference(rec.L, start, 1.0, lev, 0, model, 2.0, 6e-4)

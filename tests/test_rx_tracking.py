@@ -9,14 +9,14 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from iscd.airinterface import AirInterface
-from iscd.config import TransmitterConfig
-from iscd.receiver.channel import ChannelModel, ChannelTrack, estimate_iscd
-from iscd.receiver.demod import _match_gain, demodulate_packet, known_levels
-from iscd.receiver.packets import PacketAssembler
-from iscd.receiver.settings import ReceiverConfig
-from iscd.receiver.synth import SynthCamera, synth_recording
-from iscd.receiver.timing import SymbolClock, refine_clock
+from iscd.core.airinterface import AirInterface
+from iscd.core.config import TransmitterConfig
+from iscd.decode.comms.channel import ChannelModel, ChannelTrack, estimate_iscd
+from iscd.decode.comms.demod import _match_gain, demodulate_packet, known_levels
+from iscd.decode.comms.packets import PacketAssembler
+from iscd.decode.comms.settings import ReceiverConfig
+from iscd.decode.comms.synth import SynthCamera, synth_recording
+from iscd.decode.comms.timing import SymbolClock, refine_clock
 
 
 def test_channel_track_segments() -> None:
@@ -111,7 +111,7 @@ def test_refine_clock_with_a_track_of_one_model_is_the_single_model() -> None:
     u0 = (rec.packet_starts_s[0] - rec.t_s[0]) * rec.fps
     clock = SymbolClock(u0 + 0.05, 2.0)
     y = rec.L[:, :, :]
-    from iscd.receiver.demod import clean_samples
+    from iscd.decode.comms.demod import clean_samples
     ys, lv = clean_samples(y, SymbolClock(u0, 2.0), 1.0, known, 0)
     model = estimate_iscd(ys, lv, 8)
     a, _ = refine_clock(y, clock, 1.0, known, 0, model, 2.0, 6e-4)
@@ -135,8 +135,8 @@ def test_a_steady_lamp_under_vibration_is_not_taken_for_the_led() -> None:
     lamp's edges are the most active pixels, but its integrated flux does not change; the
     one-LED detection takes the LED (it took the lamp before, and the whole approach was
     lost to a candidate that never sends a header)."""
-    from iscd.config import default_config
-    from iscd.receiver.detect import activity_map, detect_array, find_blobs, flux_modulation
+    from iscd.core.config import default_config
+    from iscd.decode.tracking.detect import activity_map, detect_array, find_blobs, flux_modulation
     from iscd.sim.presets import single_led
     from iscd.sim.scene import Scene
 

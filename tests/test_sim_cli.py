@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from iscd.cli import main
-from iscd.config import load
+from iscd.cli.main import main
+from iscd.core.config import load
 from iscd.recording import open_recording
 from iscd.sim import Scene, Truth
 
@@ -100,8 +100,8 @@ def test_simulate_user_errors(tmp_path, config_file, capsys):
 
 
 def test_default_length_is_two_packets(tmp_path, monkeypatch):
-    from iscd.commands import simulate as sim_cmd
-    from iscd.config import default_config
+    from iscd.cli.commands import simulate as sim_cmd
+    from iscd.core.config import default_config
 
     cfg = default_config()
     scene = Scene(cfg)

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from iscd.airinterface import duty
+from iscd.core.airinterface import duty
 from iscd.sim.exposure import LedClock, brute_force_on_time, on_time, partial_on_time
 
 

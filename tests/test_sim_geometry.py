@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from iscd.config import default_config
+from iscd.core.config import default_config
 from iscd.sim import Scene
 from iscd.sim.geometry import Jitter, StereoGeometry, Vibration, distance, led_offsets
 from iscd.sim.presets import override

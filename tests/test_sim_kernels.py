@@ -12,7 +12,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from iscd.config import default_config
+from iscd.core.config import default_config
 from iscd.sim import ArraySource, Scene, kernels, sensor
 from iscd.sim.presets import override, single_led
 

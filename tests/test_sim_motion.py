@@ -13,8 +13,8 @@ import numpy as np
 import pytest
 from scipy.stats import kurtosis
 
-from iscd.cli import main
-from iscd.config import ConfigError, default_config, loads
+from iscd.cli.main import main
+from iscd.core.config import ConfigError, default_config, loads
 from iscd.sim import ArraySource, Scene
 from iscd.sim.geometry import (BumpVibration, EngineVibration, Vibration, make_vibration,
                                vibration_margin)

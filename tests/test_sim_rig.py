@@ -12,7 +12,7 @@ import pytest
 
 from iscd.calibration.io import StereoCalibration, project_points
 from iscd.calibration.synthetic import nonideal_rig
-from iscd.config import default_config
+from iscd.core.config import default_config
 from iscd.sim import ArraySource, Scene
 from iscd.sim.geometry import project_rig
 from iscd.sim.presets import override, single_led

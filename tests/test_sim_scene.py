@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from iscd.airinterface import AirInterface
-from iscd.config import default_config
+from iscd.core.airinterface import AirInterface
+from iscd.core.config import default_config
 from iscd.sim import ArraySource, Scene, Truth
 from iscd.sim.optics import spot_size_px
 from iscd.sim.presets import override, single_led

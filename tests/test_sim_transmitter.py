@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from iscd.airinterface import AirInterface
-from iscd.config import ConfigError, default_config
+from iscd.core.airinterface import AirInterface
+from iscd.core.config import ConfigError, default_config
 from iscd.sim.transmitter import ArraySource, LevelSource, PacketSource
 from iscd.sim.presets import override
 

@@ -46,7 +46,7 @@ def test_fault_schedule_cycles_every_kind() -> None:
     assert [x["name"] for x in f] == list(soak.KINDS)
     assert [x["frame"] for x in f] == [12000, 21000, 30000, 39000, 48000, 57000]
     text = soak.config_text(f, 2000)
-    from iscd import config as C
+    from iscd.core import config as C
 
     cfg = C.loads(text)
     assert [x.kind for x in cfg.rig.faults] == ["stall", "drop", "duplicate", "id_offset", "vanish", "vanish"]

@@ -1,4 +1,4 @@
-"""The live pipeline's ranger (iscd.stereo_range.StereoRanger) on rendered frames.
+"""The live pipeline's ranger (iscd.decode.ranging.stereo.StereoRanger) on rendered frames.
 
 Issue 4's accuracy targets on the chapter 3 setup -- one LED, PWM-8, b = 0.6 m, f/4 + f/4,
 right camera defocused by 0.3 px, independent air jitter of 0.05 px RMS per camera, textured
@@ -21,13 +21,13 @@ import numpy as np
 import pytest
 
 from iscd.calibration.io import StereoCalibration
-from iscd.config import Config, ConfigError, build_section, default_config
-from iscd.ranging.config import PROJECT_METHODS, RangingSettings
-from iscd.ranging.estimators import METHODS
-from iscd.receiver.detect import GridFit, detect_array
+from iscd.core.config import Config, ConfigError, build_section, default_config
+from iscd.decode.ranging.config import PROJECT_METHODS, RangingSettings
+from iscd.decode.ranging.estimators import METHODS
+from iscd.decode.tracking.detect import GridFit, detect_array
 from iscd.sim.presets import override, single_led
 from iscd.sim.scene import Scene
-from iscd.stereo_range import RunningMinimum, StereoRanger
+from iscd.decode.ranging.stereo import RunningMinimum, StereoRanger
 
 TARGET_M = {30.0: 0.05, 60.0: 0.15}
 SUBPIXEL_PX = (0.0, 0.25, 0.5, 0.75)

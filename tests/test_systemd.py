@@ -80,7 +80,7 @@ def test_unit_essentials() -> None:
 
 def test_execstart_is_a_valid_iscd_command_line() -> None:
     """The unit's ExecStart parses with the real iscd argument parser (no drift from the CLI)."""
-    from iscd.cli import build_parser
+    from iscd.cli.main import build_parser
 
     argv = shlex.split(unit_keys()["Service.ExecStart"][0])
     assert argv[0] == SHIPPED_EXEC
@@ -203,7 +203,7 @@ def test_udev_rule_parser_rejects_garbage(tmp_path: Path) -> None:
 
 def test_example_config_is_valid() -> None:
     from iscd.drivers.board.settings import board_settings
-    from iscd.config import load
+    from iscd.core.config import load
     from iscd.outputs import output_config, rerun_config
 
     cfg = load(EXAMPLE)
@@ -213,10 +213,10 @@ def test_example_config_is_valid() -> None:
     assert rc.serve_bind == "127.0.0.1" and not rc.serve
     assert board_settings(cfg).port == "/dev/iscd-board"
     try:
-        from iscd.daemon import DaemonSettings
+        from iscd.service.daemon import DaemonSettings
     except ImportError:
         return
-    from iscd.config import build_section
+    from iscd.core.config import build_section
     from iscd.outputs.socket import is_local_endpoint
 
     ds = build_section(DaemonSettings, dict(cfg.extra.get("daemon", {})), "daemon")

@@ -5,7 +5,7 @@
 same order (docs/board-protocol.md, "Board behaviour"): resynchronise at delimiters,
 check CRC and lengths, answer a repeated sequence number from its reply cache without
 executing the command again, validate every parameter against its limits, and build the
-packets with the air interface (:class:`iscd.airinterface.AirInterface`).
+packets with the air interface (:class:`iscd.core.airinterface.AirInterface`).
 
 For the simulator it is also a level source: :meth:`Board.levels` gives what the LEDs
 show at any symbol index counted from START.
@@ -62,7 +62,7 @@ from iscd.drivers.board.protocol import (
     encode_frame,
     parse_body,
 )
-from iscd.airinterface import AirInterface
+from iscd.core.airinterface import AirInterface
 
 log = logging.getLogger(__name__)
 

@@ -433,7 +433,7 @@ class BoardConfig:
 
     @classmethod
     def from_transmitter(cls, tx: object) -> "BoardConfig":
-        """From a :class:`iscd.config.TransmitterConfig` (rates rounded to mHz / Hz)."""
+        """From a :class:`iscd.core.config.TransmitterConfig` (rates rounded to mHz / Hz)."""
         return cls(levels=tx.levels, rows=tx.rows, cols=tx.cols,  # type: ignore[attr-defined]
                    symbol_rate_mhz=round(tx.symbol_rate_hz * 1000),  # type: ignore[attr-defined]
                    pwm_hz=round(tx.pwm_hz),  # type: ignore[attr-defined]

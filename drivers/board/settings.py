@@ -52,8 +52,8 @@ class BoardSettings:
 
 
 def board_settings(cfg: Any) -> BoardSettings:
-    """The validated ``[board]`` section of a :class:`iscd.config.Config` (defaults if absent)."""
-    from iscd.config import build_section
+    """The validated ``[board]`` section of a :class:`iscd.core.config.Config` (defaults if absent)."""
+    from iscd.core.config import build_section
 
     return build_section(BoardSettings, dict(cfg.extra.get("board", {})), "board")
 
@@ -62,13 +62,13 @@ def emulated_board_link(cfg: Any) -> str | None:
     """Where the emulated board of ``cfg`` appears (``[board] port``), or None when
     ``[board] emulate`` is off.
 
-    Raises :class:`iscd.config.ConfigError` (one line, naming the key) when the board
+    Raises :class:`iscd.core.config.ConfigError` (one line, naming the key) when the board
     cannot be emulated with this config: the rig is not the paced mock rig (the board's
     symbol clock is wall-clock time, so the scene must render in real time), ``port`` is
     empty or a pyserial URL, its directory does not exist, or something other than a
     symlink is already there (it would be replaced).
     """
-    from iscd.config import ConfigError
+    from iscd.core.config import ConfigError
 
     s = board_settings(cfg)
     if not s.emulate:

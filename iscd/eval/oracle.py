@@ -1,6 +1,6 @@
 """Oracle decoding of a simulated recording: where the receiver's symbol errors come from.
 
-The receiver (:class:`iscd.pipeline.StreamDecoder`) runs on the rendered frames as in
+The receiver (:class:`iscd.decode.stream.StreamDecoder`) runs on the rendered frames as in
 ``iscd eval``; then every transmitted packet is decoded again with parts of the receiver
 replaced by the truth (:class:`iscd.sim.truth.Truth`), one stage after the other, so that
 the symbol error rate (SER) splits into what each stage costs:
@@ -12,7 +12,7 @@ stage                        what changes against the row above
 ``+true positions``          luminance measured at the true LED centres (truth ``u``/``v`` per
                              frame) with the receiver's own Gaussian window (its sigma, block by
                              block), on the frames the receiver decoded; then the receiver's
-                             :class:`~iscd.receiver.packets.PacketAssembler` as is
+                             :class:`~iscd.decode.comms.packets.PacketAssembler` as is
                              -> what following the LEDs costs
 ``+true timing``             and the true symbol clock of the packet (truth ``symbol_t_s``; no
                              fine phase, no clock fit): :func:`demodulate_packet` ``clock=``
@@ -42,7 +42,7 @@ term a difference of SERs on the same symbols; a negative term means the truth m
 stage worse, e.g. a true clock that the channel estimate was not fitted to).
 
 Units: positions px, times s (the symbol clock in frame units as in
-:mod:`iscd.receiver.timing`), luminance DN (genie: DN summed over the window's pixels).
+:mod:`iscd.decode.comms.timing`), luminance DN (genie: DN summed over the window's pixels).
 """
 
 from __future__ import annotations
@@ -54,18 +54,18 @@ from typing import Any, Callable, Sequence
 
 import numpy as np
 
-from iscd.airinterface import AirInterface
-from iscd.config import Config
+from iscd.core.airinterface import AirInterface
+from iscd.core.config import Config
 from iscd.eval.metrics import match_packets
 from iscd.eval.sweeps import (CommsResult, ReceiverMode, _blocks, _decoder_cfg, _num, _score,
                               frames_for_packets)
-from iscd.pipeline import StreamDecoder
-from iscd.receiver.channel import ChannelModel, IscdChannelSettings, estimate_iscd
-from iscd.receiver.demod import PacketResult, clean_samples, demodulate_packet
-from iscd.receiver.luminance import gather_patches, gauss_mean
-from iscd.receiver.packets import PacketAssembler
-from iscd.receiver.settings import ReceiverConfig, receiver_config
-from iscd.receiver.timing import SymbolClock
+from iscd.decode.stream import StreamDecoder
+from iscd.decode.comms.channel import ChannelModel, IscdChannelSettings, estimate_iscd
+from iscd.decode.comms.demod import PacketResult, clean_samples, demodulate_packet
+from iscd.decode.tracking.luminance import gather_patches, gauss_mean
+from iscd.decode.comms.packets import PacketAssembler
+from iscd.decode.comms.settings import ReceiverConfig, receiver_config
+from iscd.decode.comms.timing import SymbolClock
 from iscd.sim.optics import PIXEL_VAR
 from iscd.sim.scene import Scene
 from iscd.sim.truth import Truth
@@ -164,7 +164,7 @@ def true_clock(symbol_t_s: np.ndarray, fps: float, frame0: int = 0) -> SymbolClo
     Returns
     -------
     SymbolClock
-        ``u0`` and ``p`` in frame units relative to ``frame0`` (:mod:`iscd.receiver.timing`).
+        ``u0`` and ``p`` in frame units relative to ``frame0`` (:mod:`iscd.decode.comms.timing`).
     """
     t = np.asarray(symbol_t_s, dtype=np.float64).reshape(-1)
     if t.size < 2:
@@ -547,7 +547,7 @@ def oracle_of_recording(directory: str | Path, *, mode: ReceiverMode | None = No
     -------
     OracleResult
     """
-    from iscd.config import load
+    from iscd.core.config import load
     from iscd.recording import open_recording
 
     d = Path(directory)

@@ -28,10 +28,10 @@ import zlib
 from dataclasses import dataclass, field
 from typing import Any, Callable, Sequence
 
-from iscd.airinterface import AirInterface
-from iscd.config import Config
+from iscd.core.airinterface import AirInterface
+from iscd.core.config import Config
 from iscd.eval.sweeps import CommsResult, RangingResult, ReceiverMode, run_comms, run_ranging
-from iscd.ranging.estimators import METHODS
+from iscd.decode.ranging.estimators import METHODS
 from iscd.sim.presets import override, single_led
 
 SUITES = ("comms", "hdr", "ranging")

@@ -1,7 +1,7 @@
 """One simulated evaluation point: render frames, run the real receiver, score against truth.
 
 Communication (:func:`run_comms`): the scene is rendered block by block
-(:class:`iscd.sim.Scene`) and every block goes to one :class:`iscd.pipeline.StreamDecoder`
+(:class:`iscd.sim.Scene`) and every block goes to one :class:`iscd.decode.stream.StreamDecoder`
 per receiver mode (single camera, diversity/HDR, project or dissertation decision rule), all
 on the same frames. The decoders get only images, frame ids and timestamps -- detection,
 tracking, timing and channel estimation are their own; the truth is used only to score:
@@ -10,8 +10,8 @@ symbol of it, and its decided levels are compared with the sent ones.
 
 Ranging (:func:`run_ranging`): the same kind of stream goes to one decoder (it finds and
 tracks the transmitter); for every block after acquisition each method of
-:data:`iscd.ranging.estimators.METHODS` ranges the block through its own
-:class:`iscd.stereo_range.StereoRanger`, on the same patches (the geometry comes from the
+:data:`iscd.decode.ranging.estimators.METHODS` ranges the block through its own
+:class:`iscd.decode.ranging.stereo.StereoRanger`, on the same patches (the geometry comes from the
 decoder's tracked grid fit, the one the daemon's ranging would use for that block). Errors
 are against the truth's distance at mid-exposure, on the frames where the LED is lit.
 """
@@ -27,15 +27,15 @@ from typing import Any, Callable, Iterator, Sequence
 import numpy as np
 
 from iscd.calibration.io import StereoCalibration
-from iscd.airinterface import AirInterface
-from iscd.config import Config, build_section
+from iscd.core.airinterface import AirInterface
+from iscd.core.config import Config, build_section
 from iscd.eval.metrics import (ErrorStats, bit_errors, error_stats, goodput_kbps, match_packets,
                                symbol_errors, throughput_kbps)
-from iscd.pipeline import StreamDecoder
-from iscd.ranging.range import range_from_disparity
-from iscd.ranging.estimators import METHODS
+from iscd.decode.stream import StreamDecoder
+from iscd.decode.ranging.range import range_from_disparity
+from iscd.decode.ranging.estimators import METHODS
 from iscd.sim.scene import Scene
-from iscd.stereo_range import RangingSettings, StereoRanger
+from iscd.decode.ranging.stereo import RangingSettings, StereoRanger
 
 Progress = Callable[[int], None]
 """Called with the number of frames just processed (for a progress bar)."""
@@ -313,8 +313,8 @@ def run_ranging(cfg: Config, frames: int, methods: Sequence[str] | None = None, 
                 lit_fraction: float = 0.1, progress: Progress | None = None) -> RangingResult:
     """Render ``frames`` stereo frames of ``cfg``'s scene, track the transmitter with the
     pipeline's decoder, and range every block after acquisition with each method (default:
-    all of :data:`iscd.ranging.estimators.METHODS`), each through its own
-    :class:`iscd.stereo_range.StereoRanger` with the ``[ranging]`` settings of ``cfg`` and
+    all of :data:`iscd.decode.ranging.estimators.METHODS`), each through its own
+    :class:`iscd.decode.ranging.stereo.StereoRanger` with the ``[ranging]`` settings of ``cfg`` and
     only the method changed.
 
     A frame is scored when the LED (mean over the array) is on for at least

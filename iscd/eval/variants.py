@@ -7,7 +7,7 @@ Each case is one LED (PWM-8, f/4 + f/4, b = 0.6 m, no distractors) with its moti
 (distance, speed, vibration amplitude, approach to 25 m) and everything else drawn by
 :func:`iscd.sim.randomize.randomized` from a seed derived from the case and ``--seeds``
 (vibration model, PSF, glare, diffuser, blooming, noise, exposure, LED drift...). Every
-variant decodes the same rendered frames with its own :class:`~iscd.pipeline.StreamDecoder`;
+variant decodes the same rendered frames with its own :class:`~iscd.decode.stream.StreamDecoder`;
 packets are scored against the simulator's truth as ``iscd eval`` scores them. Prints one
 line per scene (packets delivered of 2, SER per variant) and a total per variant.
 
@@ -49,7 +49,7 @@ def scene_config(case: str, seed: int, randomize: bool = True):  # -> Config
     """The randomized config of ``case`` for ``seed`` (the physics seed is 1000 + seed +
     100 x the case's index, so cases never share a draw); ``randomize=False``: the
     simulator's default physics with the case's motion (0.05 px air jitter)."""
-    from iscd.config import default_config
+    from iscd.core.config import default_config
     from iscd.sim.presets import override, single_led
     from iscd.sim.randomize import randomized
 
@@ -67,9 +67,9 @@ def scene_config(case: str, seed: int, randomize: bool = True):  # -> Config
 def run_scene(cfg, variants: Sequence[str], packets: int = 2, block: int = 16) -> dict[str, tuple[int, float]]:
     """Decode ``packets`` whole packets of ``cfg`` with every variant on the same frames;
     returns variant -> (packets delivered bit-exact, SER over the found packets)."""
-    from iscd.airinterface import AirInterface
+    from iscd.core.airinterface import AirInterface
     from iscd.eval.sweeps import CommsResult, ReceiverMode, _decoder_cfg, _score, frames_for_packets
-    from iscd.pipeline import StreamDecoder
+    from iscd.decode.stream import StreamDecoder
     from iscd.sim.scene import Scene
 
     sc = Scene(cfg)

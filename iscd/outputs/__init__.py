@@ -22,7 +22,7 @@ from iscd.outputs.base import (OutputConfig, OutputError, RerunConfig, output_co
                                rerun_config)
 
 if TYPE_CHECKING:
-    from iscd.config import Config
+    from iscd.core.config import Config
     from iscd.outputs.jsonl import JsonlWriter
     from iscd.outputs.rerun_view import RerunView
     from iscd.outputs.socket import ZmqPublisher

@@ -7,10 +7,10 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
-from iscd.errors import UserError
+from iscd.core.errors import UserError
 
 if TYPE_CHECKING:
-    from iscd.config import Config
+    from iscd.core.config import Config
 
 
 class OutputError(UserError):
@@ -19,7 +19,7 @@ class OutputError(UserError):
 
 def _f(default: Any, *, lo: float | None = None, hi: float | None = None,
        choices: tuple[Any, ...] | None = None, doc: str = "") -> Any:
-    """A config field in iscd.config's style (validated by ``iscd.config.build_section``)."""
+    """A config field in iscd.core.config's style (validated by ``iscd.core.config.build_section``)."""
     return field(default=default,
                  metadata={"lo": lo, "hi": hi, "lo_open": False, "choices": choices, "doc": doc})
 
@@ -58,13 +58,13 @@ class RerunConfig:
 
 def output_config(cfg: "Config") -> OutputConfig:
     """The validated ``[output]`` section of ``cfg`` (defaults when absent)."""
-    from iscd.config import build_section
+    from iscd.core.config import build_section
 
     return build_section(OutputConfig, cfg.extra.get("output", {}), "output")
 
 
 def rerun_config(cfg: "Config") -> RerunConfig:
     """The validated ``[rerun]`` section of ``cfg`` (defaults when absent)."""
-    from iscd.config import build_section
+    from iscd.core.config import build_section
 
     return build_section(RerunConfig, cfg.extra.get("rerun", {}), "rerun")

@@ -16,7 +16,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from iscd.config import DistractorConfig
+from iscd.core.config import DistractorConfig
 
 
 def texture(shape: tuple[int, int], mean_dn: float, rng: np.random.Generator,

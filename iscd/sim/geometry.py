@@ -22,7 +22,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from iscd.config import CameraConfig, SceneConfig, TransmitterConfig
+from iscd.core.config import CameraConfig, SceneConfig, TransmitterConfig
 
 if TYPE_CHECKING:  # pragma: no cover
     from iscd.calibration.io import StereoCalibration

@@ -18,15 +18,15 @@ sums of float32 products), the sensor arithmetic is the same float32 sequence as
 differently (float64, ~1e-16 relative). So frames agree to the last bit except where a
 pixel's signal lies within ~1e-12 DN of a rounding boundary (never seen in the tests).
 
-Units: px, DN (grey levels). All kernels are ``iscd.jit.njit`` (cached, nogil) and
-registered for :func:`iscd.jit.warm_up`; :func:`warm` compiles (or loads) just these.
+Units: px, DN (grey levels). All kernels are ``iscd.core.jit.njit`` (cached, nogil) and
+registered for :func:`iscd.core.jit.warm_up`; :func:`warm` compiles (or loads) just these.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-from iscd.jit import njit
+from iscd.core.jit import njit
 
 # ---------------------------------------------------------------- warm-up arguments
 

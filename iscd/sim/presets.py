@@ -1,4 +1,4 @@
-"""Config helpers for simulations: override keys of a :class:`~iscd.config.Config`.
+"""Config helpers for simulations: override keys of a :class:`~iscd.core.config.Config`.
 
     cfg = override(default_config(), scene={"distance_m": 20, "background": "none"},
                    transmitter={"rows": 1, "cols": 1})
@@ -9,7 +9,7 @@ from __future__ import annotations
 import dataclasses
 from typing import Any
 
-from iscd.config import Config, ConfigError, DistractorConfig, FaultConfig, build_section, to_dict
+from iscd.core.config import Config, ConfigError, DistractorConfig, FaultConfig, build_section, to_dict
 
 
 def override(cfg: Config, **sections: dict[str, Any]) -> Config:

@@ -7,7 +7,7 @@
 and its parameters, the PSF model and width, glare kind and fraction, the diffuser profile,
 blooming, the right camera's defocus, the noise levels, the background, the exposure and
 LED brightness, the LED clock phase and drift, the LED size and a small lateral offset and
-speed, and returns an explicit :class:`~iscd.config.Config` with those values (and
+speed, and returns an explicit :class:`~iscd.core.config.Config` with those values (and
 ``scene.randomized_seed = seed``), so the truth's meta (its ``config``) records what was
 drawn, and a receiver given the recording never sees the draw. ``motion``: [scene] keys
 that are fixed instead of drawn (applied before the lateral bounds are computed, which
@@ -28,7 +28,7 @@ from typing import Any
 
 import numpy as np
 
-from iscd.config import Config
+from iscd.core.config import Config
 from iscd.sim.presets import override
 
 RANGES: dict[str, tuple[float, float]] = {

@@ -31,8 +31,8 @@ from typing import TYPE_CHECKING
 import cv2
 import numpy as np
 
-from iscd.airinterface import AirInterface, duty
-from iscd.config import Config, OpticsConfig, to_dict
+from iscd.core.airinterface import AirInterface, duty
+from iscd.core.config import Config, OpticsConfig, to_dict
 from iscd.sim import kernels
 from iscd.sim.background import background_pair, flicker_gain
 from iscd.sim.exposure import LedClock, on_time

@@ -19,7 +19,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from iscd.config import SensorConfig
+from iscd.core.config import SensorConfig
 
 
 @dataclass(frozen=True)

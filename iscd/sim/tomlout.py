@@ -1,4 +1,4 @@
-"""Write a :class:`~iscd.config.Config` back as TOML (so a simulated run can be reproduced).
+"""Write a :class:`~iscd.core.config.Config` back as TOML (so a simulated run can be reproduced).
 
 Only what configs contain: tables of strings, booleans, numbers and lists (of scalars or of
 tables, written as arrays of tables), and nested tables (e.g. raw extra sections).
@@ -10,7 +10,7 @@ import json
 import math
 from typing import Any
 
-from iscd.config import Config, to_dict
+from iscd.core.config import Config, to_dict
 
 
 def _scalar(v: Any) -> str:
@@ -54,7 +54,7 @@ def _table(name: str, d: dict[str, Any], out: list[str]) -> None:
 
 
 def config_to_toml(cfg: Config, header: str = "") -> str:
-    """TOML text that :func:`iscd.config.loads` reads back into an equal config.
+    """TOML text that :func:`iscd.core.config.loads` reads back into an equal config.
 
     Parameters
     ----------

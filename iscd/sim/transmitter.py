@@ -6,7 +6,7 @@ symbol 0 = start of the first packet). Negative indices are before the first pac
 level 1 (dark). The simulator only ever asks for short ranges, so sources can be
 infinite (generated on demand) and random-access (the same k always gives the same level).
 
-:class:`PacketSource` sends back-to-back packets of :class:`iscd.airinterface.AirInterface`
+:class:`PacketSource` sends back-to-back packets of :class:`iscd.core.airinterface.AirInterface`
 (SPEC section 3) with payloads per ``[payload]``; :class:`ArraySource` replays a fixed
 level array (e.g. from the LED-board emulator).
 """
@@ -19,8 +19,8 @@ from typing import Protocol, runtime_checkable
 
 import numpy as np
 
-from iscd.airinterface import AirInterface, random_payload
-from iscd.config import ConfigError, PayloadConfig
+from iscd.core.airinterface import AirInterface, random_payload
+from iscd.core.config import ConfigError, PayloadConfig
 
 
 @runtime_checkable
@@ -104,7 +104,7 @@ class PacketSource:
 
     @classmethod
     def from_config(cls, cfg: "object") -> "PacketSource":
-        """From an :class:`iscd.config.Config` (transmitter, payload, scene.seed).
+        """From an :class:`iscd.core.config.Config` (transmitter, payload, scene.seed).
 
         Parameters
         ----------

@@ -1,0 +1,72 @@
+"""``iscd info RECORDING``: print what a recording holds, as JSON."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import warnings
+from typing import Any
+
+import numpy as np
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "info", help="describe a recording (frames, size, fps, bit depth) as JSON",
+        description=("Prints a JSON object describing one camera's recording: frames, width, "
+                     "height, fps, bit_depth, dtype, format, path, camera, duration_s, exposure_s, "
+                     "first/last frame id, missing_frame_ids (dropped frames) and format-specific "
+                     "details under 'extra'. RECORDING is a Photron .cih/.cihx/.mraw file (its "
+                     "partner beside it), a folder of PNG/TIFF frames, or an .iscr file. Problems "
+                     "with the recording are printed as one line on stderr (exit status 2)."))
+    p.add_argument("recording", metavar="RECORDING",
+                   help="a .cih/.cihx/.mraw file, a folder of PNG/TIFF frames, or an .iscr file")
+    p.add_argument("--check", action="store_true",
+                   help="also read every frame (finds unreadable or odd-sized frames) and report "
+                        "the pixel minimum and maximum")
+    p.add_argument("--compact", action="store_true", help="print the JSON on one line")
+    p.set_defaults(func=run)
+
+
+def check_pixels(rec: Any, block: int = 64) -> dict[str, Any]:
+    """Read every frame; return pixel_min / pixel_max over the whole recording."""
+    lo, hi = None, None
+    for b in rec.iter_blocks(block):
+        if b.size:
+            bl, bh = int(b.min()), int(b.max())
+            lo = bl if lo is None else min(lo, bl)
+            hi = bh if hi is None else max(hi, bh)
+    return {"pixel_min": lo, "pixel_max": hi}
+
+
+def run(args: argparse.Namespace) -> int:
+    from iscd.core.errors import UserError
+    from iscd.recording import RecordingError, open_recording
+
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        try:
+            with open_recording(args.recording) as rec:
+                info = rec.info()
+                if args.check:
+                    info.update(check_pixels(rec))
+        except RecordingError as e:
+            raise UserError(str(e)) from None
+        except (OSError, ValueError) as e:
+            raise UserError(f"{args.recording}: {e}") from None
+    notes = [str(w.message) for w in caught if issubclass(w.category, UserWarning)]
+    for msg in notes:
+        print(f"iscd info: warning: {msg}", file=sys.stderr)
+    if notes:
+        info["warnings"] = notes
+    print(json.dumps(info, indent=None if args.compact else 2, default=_jsonable))
+    return 0
+
+
+def _jsonable(o: Any) -> Any:
+    if isinstance(o, np.generic):
+        return o.item()
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    return str(o)

@@ -1,0 +1,549 @@
+"""Configuration: TOML file -> typed, validated dataclasses.
+
+Every section is a frozen dataclass; every key has a default (the dissertation's
+chapter 4 setup, SPEC section 2, unless noted), so an empty file is a valid config.
+Errors name the key and the problem, e.g.
+``scene.distance_m: expected a number > 0, got -3``; unknown keys are errors too (a typo
+must not silently fall back to a default).
+
+Units are in the key names: ``_m`` metres, ``_s`` seconds, ``_hz`` hertz, ``_px`` pixels,
+``_dn`` digital numbers (8-bit grey levels), ``_e`` electrons.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import tomllib
+import types
+import typing
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Literal, get_args, get_origin
+
+
+class ConfigError(ValueError):
+    """A config file or value is invalid. ``str(err)`` is one line naming key and problem."""
+
+
+def _check(lo: float | None = None, hi: float | None = None, lo_open: bool = False,
+           choices: tuple[Any, ...] | None = None, doc: str = "") -> dict[str, Any]:
+    return {"lo": lo, "hi": hi, "lo_open": lo_open, "choices": choices, "doc": doc}
+
+
+def _f(default: Any, **kw: Any) -> Any:
+    if isinstance(default, (list, dict)):
+        return field(default_factory=lambda d=default: type(d)(d), metadata=_check(**kw))
+    return field(default=default, metadata=_check(**kw))
+
+
+@dataclass(frozen=True)
+class TransmitterConfig:
+    """The LED transmitter and its air interface (SPEC section 3, table 4.1)."""
+
+    rows: int = _f(8, lo=1, hi=64, doc="LED array rows")
+    cols: int = _f(8, lo=1, hi=64, doc="LED array columns")
+    pitch_m: float = _f(0.06, lo=0, lo_open=True, doc="centre-to-centre LED spacing, m")
+    levels: int = _f(8, choices=(2, 4, 8, 16, 32), doc="M, PWM levels (2 = OOK)")
+    symbol_rate_hz: float = _f(500.0, lo=1, doc="f_sym, symbols per second")
+    pwm_hz: float = _f(50_000.0, lo=1, doc="f_pwm, PWM carrier frequency, Hz")
+    training_symbols: int = _f(40, lo=0, doc="K, training symbol times per packet")
+    data_symbols: int = _f(600, lo=1, doc="F, data symbol times per packet")
+    idle_symbols: int = _f(0, lo=0, doc="G, idle (level 1) symbol times between packets")
+    led_diameter_m: float = _f(0.03, lo=0, lo_open=True,
+                               doc="apparent emitting diameter of one LED (with its glow), m")
+    radiance_dn: float = _f(600.0, lo=0, lo_open=True,
+                            doc="grey level of a fully-on, resolved LED at f/4 and 1 ms")
+
+    @property
+    def n_leds(self) -> int:
+        return self.rows * self.cols
+
+    @property
+    def bits_per_symbol(self) -> int:
+        return int(math.log2(self.levels))
+
+
+@dataclass(frozen=True)
+class CameraConfig:
+    """The stereo camera pair (Photron IDP-Express R2000-F in the dissertation)."""
+
+    fps: float = _f(1000.0, lo=0, lo_open=True, doc="frames per second")
+    exposure_s: float = _f(1e-3, lo=0, lo_open=True, doc="exposure time, s")
+    width: int = _f(512, lo=16, hi=8192, doc="image width, px")
+    height: int = _f(512, lo=16, hi=8192, doc="image height, px")
+    focal_length_m: float = _f(0.035, lo=0, lo_open=True, doc="f, m")
+    pixel_pitch_m: float = _f(10e-6, lo=0, lo_open=True, doc="rho, m")
+    baseline_m: float = _f(0.25, lo=0, lo_open=True, doc="b, m (0.6 in chapter 3)")
+    f_number_left: float = _f(4.0, lo=0.5, doc="left aperture N")
+    f_number_right: float = _f(8.0, lo=0.5, doc="right aperture N (4, 8 or 16 in chapter 4)")
+    bit_depth: int = _f(8, choices=(8, 10, 12, 16), doc="bits per pixel")
+
+    @property
+    def focal_px(self) -> float:
+        """f/rho in px (3500 for the reference rig)."""
+        return self.focal_length_m / self.pixel_pitch_m
+
+    def __post_init__(self) -> None:
+        if self.exposure_s > 1.0 / self.fps + 1e-12:
+            raise ConfigError(
+                f"camera.exposure_s: {self.exposure_s} s is longer than the frame period "
+                f"1/fps = {1.0 / self.fps:g} s")
+
+
+@dataclass(frozen=True)
+class SensorConfig:
+    """Sensor noise model (see docs/simulator.md)."""
+
+    full_well_e: float = _f(20_000.0, lo=1, doc="electrons at the top grey level")
+    read_noise_e: float = _f(20.0, lo=0, doc="read noise RMS, electrons")
+    prnu: float = _f(0.01, lo=0, hi=0.5, doc="pixel response non-uniformity, relative RMS")
+    dark_dn: float = _f(2.0, lo=0, doc="black level, grey levels")
+    blooming: float = _f(0.0, lo=0, hi=1, doc="share of the charge above full well (255 DN) "
+                         "of a saturated pixel that spills along its column (0 = off)")
+    bloom_length_px: float = _f(2.0, lo=0, lo_open=True, hi=16,
+                                doc="decay length of the blooming spill along the column, px")
+
+
+@dataclass(frozen=True)
+class OpticsConfig:
+    """Lens blur and glare (see docs/simulator.md)."""
+
+    psf_sigma_px: float = _f(0.6, lo=0, doc="Gaussian PSF sigma, px")
+    right_defocus_px: float = _f(0.0, lo=0, doc="extra blur sigma of the right camera, px")
+    glare_fraction: float = _f(0.04, lo=0, hi=1, doc="share of a spot's light in the glare halo")
+    glare_sigma_px: float = _f(2.5, lo=0, lo_open=True,
+                               doc="glare halo sigma (gaussian) or core radius r0 (power), px")
+    psf_model: str = _f("gaussian", choices=("gaussian", "moffat"),
+                        doc="lens PSF shape: gaussian, or moffat (same FWHM, heavier wings)")
+    psf_beta: float = _f(2.5, lo=1.2, hi=20, doc="moffat PSF exponent beta (smaller = heavier wings)")
+    glare_model: str = _f("gaussian", choices=("gaussian", "power"),
+                          doc="glare halo shape: gaussian, or power law (1 + r^2/r0^2)^-gamma")
+    glare_power: float = _f(2.0, lo=1.2, hi=10, doc="power-law glare exponent gamma")
+    diffuser_falloff: float = _f(0.0, lo=0, hi=0.9, doc="LED disk brightness drop centre to "
+                                 "edge, b = 1 - k (rho/R)^2 (0 = uniform disk)")
+
+
+@dataclass(frozen=True)
+class DistractorConfig:
+    """A steady light that is not a transmitter (street lamp, reflection)."""
+
+    x_m: float = _f(2.0, doc="lateral position, m (right positive)")
+    y_m: float = _f(-1.0, doc="vertical position, m (down positive)")
+    z_m: float = _f(40.0, lo=0, lo_open=True, doc="distance, m")
+    diameter_m: float = _f(0.2, lo=0, lo_open=True, doc="diameter, m")
+    brightness_dn: float = _f(200.0, lo=0, doc="grey level at f/4")
+    flicker_hz: float = _f(0.0, lo=0, doc="0 = steady; 100 = mains-driven lamp")
+
+
+@dataclass(frozen=True)
+class SceneConfig:
+    """Where the transmitter is and how the rig moves."""
+
+    distance_m: float = _f(30.0, lo=0, lo_open=True, doc="initial distance Z, m")
+    lateral_m: float = _f(0.0, doc="transmitter centre, lateral offset from the left camera axis, m")
+    vertical_m: float = _f(0.0, doc="transmitter centre, vertical offset (down positive), m")
+    speed_mps: float = _f(0.0, doc="closing speed, m/s (11.1 = 40 km/h)")
+    lateral_speed_mps: float = _f(0.0, doc="lateral speed of the transmitter relative to the rig "
+                                  "(right positive), m/s")
+    min_distance_m: float = _f(2.0, lo=0, lo_open=True, doc="the approach stops here, m")
+    vibration_px: float = _f(0.0, lo=0, doc="rig vibration, RMS image shift common to both cameras, px")
+    vibration_model: str = _f("smooth", choices=("smooth", "bumps", "engine"),
+                              doc="rig vibration: smooth random (1-40 Hz), road bumps (damped "
+                              "pitch ringing), engine (20-40 Hz tone + harmonic)")
+    bump_rate_hz: float = _f(2.5, lo=0, lo_open=True, hi=50, doc="bumps: mean bumps per second")
+    bump_freq_hz: float = _f(10.0, lo=0.5, hi=100, doc="bumps: mean ringing frequency after a bump, Hz")
+    bump_damping: float = _f(0.15, lo=0.02, hi=0.9, doc="bumps: damping ratio of the ringing")
+    engine_hz: float = _f(30.0, lo=1, hi=200, doc="engine: mean fundamental frequency, Hz")
+    engine_wander_hz: float = _f(3.0, lo=0, doc="engine: peak slow wander of the fundamental, Hz")
+    engine_harmonic: float = _f(0.4, lo=0, hi=2, doc="engine: 2nd harmonic amplitude / fundamental")
+    jitter_px: float = _f(0.0, lo=0, doc="air jitter, independent RMS shift per camera, px")
+    led_drift_ppm: float = _f(100.0, doc="LED clock rate error against the cameras, ppm")
+    led_phase_s: float = _f(-1.0, doc="LED symbol clock offset at t = 0, s; < 0 = random")
+    background: str = _f("texture", choices=("texture", "flat", "none"), doc="daylight background")
+    background_dn: float = _f(40.0, lo=0, doc="mean background grey level at f/4")
+    background_contrast: float = _f(0.35, lo=0, hi=2, doc="texture: relative RMS contrast")
+    background_distance_m: float = _f(150.0, lo=0, lo_open=True, doc="background distance, m")
+    distractors: list[DistractorConfig] = _f([], doc="steady lights")
+    seed: int = _f(1, doc="random seed of the scene (noise, texture, phases, payloads)")
+    randomized_seed: int = _f(-1, doc="informational: the iscd.sim.randomize seed that drew "
+                              "this config (-1 = not randomized)")
+
+    def __post_init__(self) -> None:
+        if self.engine_wander_hz >= self.engine_hz:
+            raise ConfigError(
+                f"scene.engine_wander_hz: {self.engine_wander_hz:g} Hz must be below "
+                f"scene.engine_hz = {self.engine_hz:g} Hz (the frequency must stay > 0)")
+
+
+@dataclass(frozen=True)
+class PayloadConfig:
+    """What the (simulated) transmitter sends."""
+
+    source: str = _f("random", choices=("random", "text", "hex", "file"),
+                     doc="random bytes per packet (seeded), or a fixed payload")
+    value: str = _f("", doc="the text, hex string or file path for the fixed sources")
+
+
+@dataclass(frozen=True)
+class FaultConfig:
+    """An injected fault of the mock rig."""
+
+    kind: str = _f("drop", choices=("drop", "duplicate", "stall", "id_offset", "vanish"),
+                   doc="what goes wrong")
+    camera: str = _f("left", choices=("left", "right"), doc="which camera")
+    frame: int = _f(0, lo=0, doc="trigger index where it happens")
+    duration_ms: float = _f(0.0, lo=0, doc="stall/vanish duration, ms")
+    offset: int = _f(1, doc="id_offset: added to frame ids from then on")
+
+
+@dataclass(frozen=True)
+class RigConfig:
+    """Which cameras feed the daemon: camera URLs (docs/cameras.md; 'iscd devices' lists them)."""
+
+    backend: str = _f("", doc="old form: the backend whose cameras left/right name by serial number, user "
+                      "id or device path (a camera URL scheme); '' = the scheme of the URLs (the mock "
+                      "rig without any); filled in from the URLs")
+    url: str = _f("", doc="a stereo rig that is one device: mock://default (the simulated rig showing this "
+                  "config's scene; ?seed=N, ?noise=false); '' = the cameras of left and right")
+    left: str = _f("", doc="left camera (trigger master) URL: genicam://SERIAL?cti=PATH or "
+                   "v4l2:///dev/videoN; old form: serial number / user id (genicam) or device path (v4l2)")
+    right: str = _f("", doc="right camera (trigger slave), as left")
+    producer: str = _f("", doc="GenTL producer .cti path of genicam cameras whose URL has no ?cti= "
+                       "(default: GENICAM_GENTL64_PATH)")
+    pace: bool = _f(True, doc="mock: deliver frames at fps in real time (False: as fast as possible)")
+    buffer_frames: int = _f(256, lo=1, hi=4096, doc="mock: frames a camera queues for a late reader "
+                            "(genicam, v4l2: the ?buffers=N of their URL)")
+    faults: list[FaultConfig] = _f([], doc="mock: injected faults")
+
+    def __post_init__(self) -> None:
+        stereo_url, cams, backend = _resolve_rig(self)
+        object.__setattr__(self, "backend", backend)
+        object.__setattr__(self, "_stereo_url", stereo_url)
+        object.__setattr__(self, "_camera_urls", cams)
+
+    @property
+    def stereo_url(self) -> str:
+        """The URL of the rig when it is one device (``mock://default``), else ''."""
+        return self._stereo_url  # type: ignore[attr-defined]
+
+    @property
+    def camera_urls(self) -> tuple[str, str]:
+        """The (left, right) camera URLs ('' where unset) when the rig is two cameras, with
+        the old form mapped (``left = "0"`` of backend genicam -> ``genicam://0``) and
+        ``producer`` as the ``cti`` of genicam URLs that lack it; ('', '') for a stereo URL."""
+        return self._camera_urls  # type: ignore[attr-defined]
+
+
+def _resolve_rig(rig: RigConfig) -> tuple[str, tuple[str, str], str]:
+    """(stereo URL, (left URL, right URL), backend) of ``[rig]``, checked against the camera
+    registry (:mod:`iscd.drivers.urls`, which names the backends); ConfigError names the key."""
+    from iscd.drivers import urls
+
+    def parse(key: str, value: str) -> Any:
+        try:
+            return urls.parse_url(value)
+        except urls.CameraURLError as e:
+            raise ConfigError(f"rig.{key}: {e}") from None
+
+    known = urls.schemes()
+    if rig.backend and rig.backend not in known:
+        raise ConfigError(f"rig.backend: expected one of {list(known)} (the camera URL schemes), "
+                          f"got {rig.backend!r}")
+    if rig.url:
+        u = parse("url", rig.url)
+        if not u.backend.stereo:
+            raise ConfigError(f"rig.url: {rig.url!r} is one camera, not a stereo rig: set the two "
+                              f"cameras as rig.left and rig.right")
+        for side in ("left", "right"):
+            if getattr(rig, side):
+                raise ConfigError(f"rig.{side}: not used with rig.url = {rig.url!r} (that rig gives "
+                                  f"both cameras): remove it")
+        if rig.backend and rig.backend != u.scheme:
+            raise ConfigError(f"rig.backend: {rig.backend!r} contradicts rig.url = {rig.url!r} "
+                              f"(remove rig.backend: the URL names the backend)")
+        return u.url, ("", ""), u.scheme
+    given = {side: getattr(rig, side) for side in ("left", "right")}
+    parsed = {side: parse(side, v) for side, v in given.items() if "://" in v}
+    for side, u in parsed.items():
+        if u.backend.stereo:
+            raise ConfigError(f"rig.{side}: {given[side]!r} is a whole stereo rig (both cameras): "
+                              f"set it as rig.url")
+    if len(parsed) == 1 and all(given.values()):
+        (side, u), = parsed.items()
+        other = "right" if side == "left" else "left"
+        raise ConfigError(f"rig.{other}: give a camera URL like rig.{side} ({u.scheme}://...), "
+                          f"not {given[other]!r}")
+    if len({u.scheme for u in parsed.values()}) > 1:
+        raise ConfigError(f"rig.right: {given['right']!r} is another backend than rig.left "
+                          f"{given['left']!r}: the two cameras of a rig use one backend")
+    if parsed:
+        scheme = next(iter(parsed.values())).scheme
+        if rig.backend and rig.backend != scheme:
+            side = next(iter(parsed))
+            raise ConfigError(f"rig.backend: {rig.backend!r} contradicts rig.{side} = {given[side]!r} "
+                              f"(remove rig.backend: the URLs name the backend)")
+    else:
+        scheme = rig.backend or "mock"
+    b = urls.backend(scheme)
+    if b.stereo:  # the old form: backend = "mock" (left/right unused, as before)
+        return urls.make_url(scheme, b.default_target or ""), ("", ""), scheme
+    cams = []
+    for side, v in given.items():
+        if not v:
+            cams.append("")  # refused when the rig is built (make_stereo), as before
+            continue
+        if side in parsed:
+            u = parsed[side]
+        else:  # the old form: a serial number / user id or a device path
+            if b.target == "path":
+                import os.path
+
+                v = os.path.abspath(v)
+            u = parse(side, urls.make_url(scheme, v))
+        defaults = {opt: getattr(rig, key) for opt, key in b.rig_defaults.items()
+                    if getattr(rig, key, "") and u.option(opt) is None}
+        if defaults:
+            try:
+                u = u.with_options(**defaults)
+            except urls.CameraURLError as e:
+                raise ConfigError(f"rig.{b.rig_defaults[next(iter(defaults))]}: {e}") from None
+        cams.append(u.url)
+    return "", (cams[0], cams[1]), scheme
+
+
+@dataclass(frozen=True)
+class Config:
+    """The whole configuration file."""
+
+    transmitter: TransmitterConfig = field(default_factory=TransmitterConfig)
+    camera: CameraConfig = field(default_factory=CameraConfig)
+    sensor: SensorConfig = field(default_factory=SensorConfig)
+    optics: OpticsConfig = field(default_factory=OpticsConfig)
+    scene: SceneConfig = field(default_factory=SceneConfig)
+    payload: PayloadConfig = field(default_factory=PayloadConfig)
+    rig: RigConfig = field(default_factory=RigConfig)
+    extra: dict[str, Any] = field(default_factory=dict)
+    """Sections this module does not define (owned by other modules, e.g. ``[daemon]``),
+    kept raw so that they can validate them with :func:`build_section`."""
+
+    def replace(self, **sections: Any) -> "Config":
+        return dataclasses.replace(self, **sections)
+
+
+_KNOWN_EXTRA_SECTIONS = {"daemon", "receiver", "tracking", "acquisition", "ranging", "output", "rerun", "board", "eval"}
+
+
+EXTRA_SECTION_CLASSES: dict[str, str] = {
+    "daemon": "iscd.service.daemon:DaemonSettings",
+    "tracking": "iscd.decode.stream:PipelineSettings",
+    "receiver": "iscd.decode.comms.settings:ReceiverConfig",
+    "ranging": "iscd.decode.ranging.config:RangingSettings",
+    "output": "iscd.outputs:OutputConfig",
+    "rerun": "iscd.outputs:RerunConfig",
+    "board": "iscd.drivers.board.settings:BoardSettings",
+    "acquisition": "iscd.rig.acquisition:AcquisitionOptions",
+}
+"""Sections owned by other modules: ``name -> "module:Class"`` (validated by
+:func:`check_extra_sections`, listed by :func:`describe`)."""
+
+
+def _extra_class(name: str) -> type | None:
+    import importlib
+
+    spec = EXTRA_SECTION_CLASSES.get(name)
+    if spec is None:
+        return None
+    mod, _, cls = spec.partition(":")
+    try:
+        return getattr(importlib.import_module(mod), cls)
+    except (ImportError, AttributeError):  # pragma: no cover - a section's module is optional
+        return None
+
+
+def check_extra_sections(cfg: "Config") -> None:
+    """Validate every extra section that has a known owner (ConfigError naming the key)."""
+    for name, table in cfg.extra.items():
+        cls = _extra_class(name)
+        if cls is not None:
+            build_section(cls, dict(table), name)
+
+
+def _type_name(tp: Any) -> str:
+    return {int: "an integer", float: "a number", str: "a string", bool: "true or false"}.get(
+        tp, getattr(tp, "__name__", str(tp)))
+
+
+def _convert(key: str, tp: Any, value: Any, meta: dict[str, Any]) -> Any:
+    origin = get_origin(tp)
+    if origin in (list,):
+        (item_tp,) = get_args(tp)
+        if not isinstance(value, list):
+            raise ConfigError(f"{key}: expected a list, got {value!r}")
+        return [_convert(f"{key}[{i}]", item_tp, v, {}) for i, v in enumerate(value)]
+    if origin in (typing.Union, types.UnionType):
+        args = [a for a in get_args(tp) if a is not type(None)]
+        if value is None:
+            return None
+        return _convert(key, args[0], value, meta)
+    if origin is Literal:
+        if value not in get_args(tp):
+            raise ConfigError(f"{key}: expected one of {list(get_args(tp))}, got {value!r}")
+        return value
+    if dataclasses.is_dataclass(tp):
+        if not isinstance(value, dict):
+            raise ConfigError(f"{key}: expected a table, got {value!r}")
+        return build_section(tp, value, key)
+    if tp is bool:
+        if not isinstance(value, bool):
+            raise ConfigError(f"{key}: expected true or false, got {value!r}")
+        out: Any = value
+    elif tp is int:
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise ConfigError(f"{key}: expected an integer, got {value!r}")
+        out = value
+    elif tp is float:
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise ConfigError(f"{key}: expected a number, got {value!r}")
+        out = float(value)
+        if not math.isfinite(out):
+            raise ConfigError(f"{key}: expected a finite number, got {value!r}")
+    elif tp is str:
+        if not isinstance(value, str):
+            raise ConfigError(f"{key}: expected a string, got {value!r}")
+        out = value
+    else:  # pragma: no cover - programming error
+        raise TypeError(f"{key}: unsupported config type {tp}")
+    choices = meta.get("choices")
+    if choices is not None and out not in choices:
+        raise ConfigError(f"{key}: expected one of {list(choices)}, got {value!r}")
+    lo, hi = meta.get("lo"), meta.get("hi")
+    if lo is not None:
+        bad = out <= lo if meta.get("lo_open") else out < lo
+        if bad:
+            op = ">" if meta.get("lo_open") else ">="
+            raise ConfigError(f"{key}: expected {_type_name(tp)} {op} {lo:g}, got {value!r}")
+    if hi is not None and out > hi:
+        raise ConfigError(f"{key}: expected {_type_name(tp)} <= {hi:g}, got {value!r}")
+    return out
+
+
+def build_section(cls: type, table: dict[str, Any], prefix: str) -> Any:
+    """Build dataclass ``cls`` from a TOML table, validating every key.
+
+    ``prefix`` is the dotted path used in error messages (``"scene"``).
+    """
+    hints = typing.get_type_hints(cls)
+    fields = {f.name: f for f in dataclasses.fields(cls)}
+    kwargs: dict[str, Any] = {}
+    for k, v in table.items():
+        key = f"{prefix}.{k}" if prefix else k
+        if k not in fields or k == "extra":
+            known = ", ".join(sorted(n for n in fields if n != "extra"))
+            raise ConfigError(f"{key}: unknown key (known keys: {known})")
+        kwargs[k] = _convert(key, hints[k], v, dict(fields[k].metadata))
+    try:
+        return cls(**kwargs)
+    except ConfigError:
+        raise
+    except (TypeError, ValueError) as e:
+        raise ConfigError(f"{prefix}: {e}") from None
+
+
+def config_from_dict(data: dict[str, Any]) -> Config:
+    """Build a :class:`Config` from parsed TOML (``tomllib.loads`` output)."""
+    sections: dict[str, Any] = {}
+    extra: dict[str, Any] = {}
+    fields = {f.name: f for f in dataclasses.fields(Config) if f.name != "extra"}
+    hints = typing.get_type_hints(Config)
+    for name, table in data.items():
+        if name in fields:
+            if not isinstance(table, dict):
+                raise ConfigError(f"{name}: expected a table [{name}], got {table!r}")
+            sections[name] = build_section(hints[name], table, name)
+        elif name in _KNOWN_EXTRA_SECTIONS:
+            if not isinstance(table, dict):
+                raise ConfigError(f"{name}: expected a table [{name}], got {table!r}")
+            extra[name] = table
+        else:
+            known = ", ".join(sorted([*fields, *_KNOWN_EXTRA_SECTIONS]))
+            raise ConfigError(f"{name}: unknown section (known sections: {known})")
+    cfg = Config(**sections, extra=extra)
+    _cross_check(cfg)
+    return cfg
+
+
+def _cross_check(cfg: Config) -> None:
+    t, c = cfg.transmitter, cfg.camera
+    if t.pwm_hz < t.symbol_rate_hz:
+        raise ConfigError(
+            f"transmitter.pwm_hz: the PWM carrier ({t.pwm_hz:g} Hz) must be at least the "
+            f"symbol rate ({t.symbol_rate_hz:g} Hz)")
+    if c.fps < 2 * t.symbol_rate_hz * 0.999:
+        raise ConfigError(
+            f"camera.fps: {c.fps:g} frames/s is below 2 frames per symbol "
+            f"(transmitter.symbol_rate_hz = {t.symbol_rate_hz:g}); symbols could not be decoded")
+
+
+def loads(text: str, source: str = "<string>") -> Config:
+    """Parse TOML text into a :class:`Config`."""
+    try:
+        data = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as e:
+        raise ConfigError(f"{source}: not valid TOML: {e}") from None
+    except RecursionError:  # arrays/tables nested thousands deep
+        raise ConfigError(f"{source}: not valid TOML: nested too deeply") from None
+    return config_from_dict(data)
+
+
+def load(path: str | Path | None = None) -> Config:
+    """Load a config file; ``None`` gives the embedded default (the mock rig)."""
+    if path is None:
+        return default_config()
+    p = Path(path)
+    try:
+        text = p.read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise ConfigError(f"{p}: config file not found") from None
+    except (OSError, UnicodeDecodeError) as e:
+        raise ConfigError(f"{p}: cannot read config file: {e}") from None
+    try:
+        return loads(text, str(p))
+    except ConfigError as e:
+        msg = str(e)
+        raise ConfigError(msg if msg.startswith(str(p)) else f"{p}: {msg}") from None
+
+
+def default_config() -> Config:
+    """The embedded default: the mock rig with an 8x8 PWM-8 transmitter at 30 m."""
+    from importlib.resources import files
+
+    text = files("iscd").joinpath("data/default.toml").read_text(encoding="utf-8")
+    return loads(text, "<embedded default config>")
+
+
+def to_dict(obj: Any) -> Any:
+    """A config (or section) as plain dicts/lists, e.g. for recording metadata."""
+    if dataclasses.is_dataclass(obj):
+        return {f.name: to_dict(getattr(obj, f.name)) for f in dataclasses.fields(obj)}
+    if isinstance(obj, list):
+        return [to_dict(v) for v in obj]
+    if isinstance(obj, dict):
+        return {k: to_dict(v) for k, v in obj.items()}
+    return obj
+
+
+def describe() -> str:
+    """Every section and key with default and documentation (for ``--help`` and docs)."""
+    lines: list[str] = []
+    hints = typing.get_type_hints(Config)
+    classes = [(f.name, hints[f.name]) for f in dataclasses.fields(Config) if f.name != "extra"]
+    classes += [(n, c) for n in EXTRA_SECTION_CLASSES if (c := _extra_class(n)) is not None]
+    for name, cls in classes:
+        lines.append(f"[{name}]  {(cls.__doc__ or '').strip().splitlines()[0]}")
+        for sf in dataclasses.fields(cls):
+            if not sf.init:
+                continue
+            default = sf.default if sf.default is not dataclasses.MISSING else sf.default_factory()  # type: ignore[misc]
+            lines.append(f"  {sf.name} = {default!r}  # {sf.metadata.get('doc', '')}")
+    return "\n".join(lines)

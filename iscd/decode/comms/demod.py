@@ -1,0 +1,708 @@
+"""One packet, from a luminance buffer and a header candidate to decided levels and CRC.
+
+:func:`demodulate_packet` is pure (no state between packets except what the caller passes
+in: the expected symbol period and its uncertainty). Steps, for packet symbols
+``0 .. 13 + K + F - 1`` (header, training, data):
+
+1. Fine header phase (:func:`iscd.decode.comms.timing.fine_header`).
+2. Clean frames of header and training -> channel model (:mod:`iscd.decode.comms.channel`);
+   reject the candidate unless the training sequence is there (rank correlation of the
+   training frames with the known training levels) and the header has contrast -- a false
+   header (data that happens to look like Barker-13, noise) never becomes a packet.
+3. Clock refinement on the known symbols (:func:`iscd.decode.comms.timing.refine_clock`).
+4. Tracking pass: data decided in chunks; after each chunk the clock (phase and period,
+   i.e. drift) is re-fitted on all symbols so far, decision-directed.
+5. Final pass: channel re-estimated from all decided symbols (decision-directed, iscd
+   rule), clock re-fitted on the whole packet, then ``ic_iterations`` decision passes with
+   straddling frames cancelled against the neighbours' decisions.
+6. Levels -> Gray demapping -> CRC-32 (:meth:`iscd.core.airinterface.AirInterface.decode_data`).
+
+The dissertation's rule (``rule = "dissertation" | "left" | "right"``) uses the same timing
+(the dissertation does not say how it finds it) but its own channel factors from the
+training only (3.11 / 4.2) and the clean-frame Euclidean decision (3.12 / 4.3).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+from typing import Callable
+
+import numpy as np
+
+from iscd.core.airinterface import HEADER_SYMBOLS, AirInterface
+from iscd.core.jit import njit
+from iscd.decode.comms.channel import (ChannelModel, ChannelTrack, IscdChannelSettings,
+                                   estimate_dissertation, estimate_iscd)
+from iscd.decode.comms.decide import CleanCosts, SpanDecision, clean_costs, decide_span
+from iscd.decode.comms.settings import ReceiverConfig
+from iscd.decode.comms.timing import SymbolClock, clean_frame, fine_header, frame_map, refine_clock
+
+
+@dataclass
+class PacketResult:
+    """A demodulated packet (frame positions relative to the buffer passed in).
+
+    u0: header start, frames; p: symbol period, frames; first_frame: the clean frame of
+    the first header symbol; levels: (F, N) decided data levels 1..M; raw: the decoded
+    payload bytes -- untrusted unless crc_ok; margins: (F, N) decision margins.
+    """
+
+    u0: float
+    p: float
+    first_frame: int
+    levels: np.ndarray
+    raw: bytes
+    crc_ok: bool
+    drift_ppm: float
+    header_r2: float
+    training_rho: float
+    contrast: float
+    margins: np.ndarray = field(repr=False)
+    erasures: int = 0
+    channel: str = "static"
+    """``tracked`` (re-estimated along the packet) or ``static`` (one channel per packet)"""
+    reason: str = ""
+    """why a packet that failed its CRC could not be decoded (:func:`failure_reason`);
+    empty when the CRC passed"""
+
+    def quality(self) -> dict[str, float]:
+        """Summary metrics (the receiver has no truth): margins and sync quality."""
+        m = self.margins
+        return {"margin_min": float(m.min()) if m.size else 0.0,
+                "margin_p01": float(np.percentile(m, 1)) if m.size else 0.0,
+                "margin_median": float(np.median(m)) if m.size else 0.0,
+                "weak_symbols": int((m < 4.0).sum()),
+                "erasures": int(self.erasures), "drift_ppm": float(self.drift_ppm),
+                "channel_tracked": self.channel == "tracked",
+                "header_r2": float(self.header_r2), "training_rho": float(self.training_rho),
+                "contrast": float(self.contrast),
+                **({"reason": self.reason} if not self.crc_ok and self.reason else {})}
+
+
+@dataclass
+class Rejection:
+    """Why a header candidate did not become a packet."""
+
+    u0: float
+    reason: str
+
+    @property
+    def incomplete(self) -> bool:
+        """The packet's frames are not all in the buffer yet (not a verdict)."""
+        return self.reason == "incomplete"
+
+
+SEPARATION_MIN = 6.0
+"""Adjacent levels whose centroids lie fewer noise RMS apart than this are called
+indistinguishable by :func:`failure_reason`: with Gaussian noise a symbol between them is
+wrong with probability 2 Q(6 / 2) = 0.27 %, one or more errors in a few hundred symbols."""
+
+WEAK_MARGIN = 4.0
+"""A decision margin below this is a weak symbol (as :meth:`PacketResult.quality` counts)."""
+
+
+def level_separation(model: ChannelModel) -> np.ndarray:
+    """(C, N, M - 1) distance of adjacent level centroids in noise RMS units.
+
+    ``(mu_s+1 - mu_s) / sqrt((var_s + var_s+1) / 2)`` per camera and LED.
+
+    Parameters
+    ----------
+    model : ChannelModel
+        Centroids (C, N, M), DN, and variances, DN^2.
+
+    Returns
+    -------
+    ndarray of float64
+        (C, N, M - 1) separations, noise RMS.
+    """
+    sd = np.sqrt(0.5 * (model.var[..., 1:] + model.var[..., :-1]))
+    return (model.mu[..., 1:] - model.mu[..., :-1]) / np.maximum(sd, 1e-9)
+
+
+def failure_reason(models: list[ChannelModel], margins: np.ndarray) -> str:
+    """Why a packet failed its CRC, from the receiver's own channel estimates: one line.
+
+    * ``"saturated"`` -- in every camera some LED's upper levels (above M / 2) lie closer
+      than :data:`SEPARATION_MIN` noise RMS: its spot clips (too close, or too bright for
+      both apertures) and its levels live only in the wings;
+    * ``"low light"`` -- the same among the lower levels (too far, too dim);
+    * ``"weak decisions"`` -- the levels are apart but many decisions are weak (noise,
+      motion, timing);
+    * otherwise ``"few symbol errors"`` -- a handful of wrong symbols (v1 has no FEC).
+
+    The worst stretch of the packet counts.
+
+    Parameters
+    ----------
+    models : list of ChannelModel
+        The channel of each stretch of the packet.
+    margins : ndarray
+        The packet's decision margins (cost gap to the runner-up), any shape; below
+        :data:`WEAK_MARGIN` is weak.
+
+    Returns
+    -------
+    str
+        The reason, starting with one of the four labels above, with the count of weak
+        decisions.
+    """
+    n_weak = int((margins < WEAK_MARGIN).sum()) if margins.size else 0
+    detail = f"{n_weak} of {margins.size} decisions weak"
+    noisy = [m for m in models if m.kind != "euclid"]  # (the dissertation's rule has no variances)
+    if not noisy:
+        return f"weak decisions: {detail}" if n_weak > 0.02 * max(margins.size, 1) else f"few symbol errors: {detail}"
+    sep = np.min([level_separation(m) for m in noisy], axis=0)  # (C, N, M - 1)
+    M1 = sep.shape[-1]
+    half = M1 // 2
+    bad = sep < SEPARATION_MIN
+    if bad[..., half:].any(axis=-1).any(axis=-1).all():
+        lo = int(np.argmax(bad[..., half:].any(axis=(0, 1)))) + half + 1
+        return f"saturated: levels {lo}-{M1 + 1} overlap in every camera (too close or too bright); {detail}"
+    if bad[..., :half].any(axis=-1).any(axis=-1).all():
+        return f"low light: the lower levels overlap in every camera (too far or too dim); {detail}"
+    if margins.size and n_weak > 0.02 * margins.size:
+        return f"weak decisions: {detail}"
+    return f"few symbol errors: {detail}"
+
+
+def known_levels(air: AirInterface) -> np.ndarray:
+    """0-based levels (13 + K, N) of header and training.
+
+    Parameters
+    ----------
+    air : AirInterface
+        The air interface (M, N, K).
+
+    Returns
+    -------
+    ndarray of int64
+        (13 + K, N) levels 0 .. M-1, symbol time major.
+    """
+    return np.concatenate([air.header(), air.training()]).astype(np.int64) - 1
+
+
+def clean_samples(L: np.ndarray, clock: SymbolClock, e: float, lev: np.ndarray, k_first: int
+                  ) -> tuple[np.ndarray, np.ndarray]:
+    """Clean-frame luminance (C, n_s, N) of packet symbols ``k_first ..`` and their levels.
+
+    Parameters
+    ----------
+    L : ndarray
+        (C, n, N) luminance of the buffer's frames, DN.
+    clock : SymbolClock
+        The packet's symbol clock, frames.
+    e : float
+        Exposure window length, frames (exposure_s * fps).
+    lev : ndarray
+        (S, N) 0-based levels of packet symbols ``k_first .. k_first + S - 1``.
+    k_first : int
+        Packet symbol of ``lev[0]``, symbols.
+
+    Returns
+    -------
+    y : ndarray
+        (C, n_s, N) luminance of the clean frames of those symbols, DN.
+    lev : ndarray
+        (n_s, N) the level of each of those frames.
+    """
+    S = lev.shape[0]
+    lo = int(max(0, np.floor(clock.boundary(k_first))))
+    hi = int(min(L.shape[1], np.ceil(clock.boundary(k_first + S)) + 1))
+    frames = np.arange(lo, hi)
+    k, alpha = frame_map(frames, clock, e)
+    sel = (alpha >= 1.0) & (k >= k_first) & (k < k_first + S)
+    return L[:, frames[sel], :], lev[k[sel] - k_first]
+
+
+def rankdata(a: np.ndarray) -> np.ndarray:
+    """Ranks (1..n, ties averaged) along axis 0 of a 2-D array, like scipy's rankdata.
+
+    Parameters
+    ----------
+    a : ndarray
+        (n, m) values.
+
+    Returns
+    -------
+    ndarray of float64
+        (n, m) ranks of each column.
+    """
+    n, m = a.shape
+    order = np.argsort(a, axis=0, kind="stable")
+    srt = np.take_along_axis(a, order, axis=0)
+    new = np.ones((n, m), bool)
+    new[1:] = srt[1:] != srt[:-1]
+    grp = np.cumsum(new, axis=0) - 1 + (np.arange(m) * n)[None, :]  # global group ids
+    pos = np.broadcast_to(np.arange(1, n + 1, dtype=np.float64)[:, None], (n, m))
+    mean = np.bincount(grp.ravel(), pos.ravel(), minlength=n * m) / np.maximum(
+        np.bincount(grp.ravel(), minlength=n * m), 1)
+    ranks = np.empty((n, m))
+    np.put_along_axis(ranks, order, mean[grp], axis=0)
+    return ranks
+
+
+def training_rank_correlation(y: np.ndarray, lev: np.ndarray) -> float:
+    """Mean over LEDs and cameras of the Spearman correlation of clean training samples.
+
+    Parameters
+    ----------
+    y : ndarray
+        (C, n, N) clean-frame luminance of training symbols, DN (NaN = missing; columns with
+        fewer than 4 values are skipped).
+    lev : ndarray
+        (n, N) their levels.
+
+    Returns
+    -------
+    float
+        Mean rank correlation, -1 .. 1; NaN when not computable (n < 4 or no usable column).
+    """
+    C, n, N = y.shape
+    if n < 4:
+        return float("nan")
+    vals = []
+    lr = rankdata(lev.astype(np.float64))
+    lr = lr - lr.mean(0)
+    for c in range(C):
+        yc = y[c]
+        ok = np.isfinite(yc).sum(0) >= 4
+        if not ok.any():
+            continue
+        med = np.nanmedian(np.where(np.isfinite(yc[:, ok]), yc[:, ok], np.nan), axis=0)
+        yf = np.where(np.isfinite(yc[:, ok]), yc[:, ok], med)
+        yr = rankdata(yf)
+        yr = yr - yr.mean(0)
+        lo = lr[:, ok]
+        den = np.sqrt((yr * yr).sum(0) * (lo * lo).sum(0))
+        r = np.where(den > 0, (yr * lo).sum(0) / np.where(den > 0, den, 1.0), 0.0)
+        vals.append(r)
+    if not vals:
+        return float("nan")
+    return float(np.mean(np.concatenate(vals)))
+
+
+def header_contrast(model: ChannelModel) -> float:
+    """Median over LEDs of the best camera's (level M - level 1) / noise RMS.
+
+    Parameters
+    ----------
+    model : ChannelModel
+        Centroids (C, N, M), DN, and variances, DN^2.
+
+    Returns
+    -------
+    float
+        The contrast, noise RMS.
+    """
+    sd = np.sqrt(0.5 * (model.var[:, :, -1] + model.var[:, :, 0]))
+    c = (model.mu[:, :, -1] - model.mu[:, :, 0]) / sd
+    return float(np.median(c.max(0)))
+
+
+
+def _segment_symbols(window: int) -> int:
+    """Length of the stretches that share one channel model: a third of the window."""
+    return max(8, window // 3)
+
+
+def _segments(k0: int, P: int, size: int) -> list[tuple[int, int]]:
+    """Consecutive stretches [a, b) of at most ``size`` symbols covering k0 .. P - 1."""
+    return [(a, min(P, a + size)) for a in range(k0, P, size)]
+
+
+def _centred(a: int, b: int, W: int, P: int) -> tuple[int, int]:
+    """Symbols [lo, hi) of a window of W symbols centred on [a, b), kept inside [0, P)."""
+    if W <= 0 or W >= P:
+        return 0, P
+    lo = int(np.clip(round((a + b - W) / 2), 0, P - W))
+    return lo, lo + W
+
+
+def _fit(L: np.ndarray, clock: SymbolClock, e: float, lev: np.ndarray, lo: int, hi: int, M: int,
+         st: IscdChannelSettings, cfg: ReceiverConfig) -> ChannelModel:
+    """The iscd channel model from the labelled clean frames of packet symbols [lo, hi)."""
+    y, lv = clean_samples(L, clock, e, lev[lo:hi], lo)
+    return estimate_iscd(y, lv, M, st, cfg.noise_model, cfg.t_nu)
+
+
+
+GAINS = np.exp(np.linspace(np.log(0.8), np.log(1.25), 11))
+"""Relative gains tried by :func:`_match_gain` (4.5 % steps, refined by a parabola)."""
+
+GAIN_SAMPLES = 1024
+"""Most clean samples per camera :func:`_match_gain` fits (one number: plenty)."""
+
+
+def _warm_gain() -> tuple:
+    one = np.ones((2, 3), np.float32)
+    return (np.ones((4, 3)), one[0], one, GAINS.astype(np.float32), np.float32(5.0), one, one)
+
+
+@njit(warm=_warm_gain, error_model="numpy")
+def _gain_costs(yc: np.ndarray, base: np.ndarray, span: np.ndarray, gains: np.ndarray,
+                top: np.float32, var: np.ndarray, logvar: np.ndarray) -> np.ndarray:
+    """Summed best-level Gaussian costs (G,) float64 of the samples yc (n, N) DN (NaN =
+    missing: no cost) for each relative gain: centroids ``min(base + g span, top)`` with
+    base (N,), span, var, logvar (M, N) float32 (:func:`_match_gain_reference`, element by
+    element in float32; the sums in sample order, numpy's are pairwise: ~1e-15).
+
+    Per gain, the centroids (M, N) once; per sample row, the best level of all N LEDs in
+    branch-free loops over the LED axis (they vectorize), then the sum in sample order."""
+    n, N = yc.shape
+    M = span.shape[0]
+    out = np.zeros(gains.size)
+    mg = np.empty((M, N), np.float32)
+    best = np.empty(N, np.float32)
+    x32 = np.empty(N, np.float32)
+    for g in range(gains.size):
+        gg = gains[g]
+        for s in range(M):
+            srow = span[s]
+            mrow = mg[s]
+            for i in range(N):
+                a = base[i] + gg * srow[i]
+                mrow[i] = top if top < a else a
+        tot = 0.0
+        for t in range(n):
+            yrow = yc[t]
+            for i in range(N):
+                x32[i] = np.float32(yrow[i])
+            for s in range(M):
+                mrow = mg[s]
+                vrow = var[s]
+                lrow = logvar[s]
+                if s == 0:
+                    for i in range(N):
+                        d = x32[i] - mrow[i]
+                        best[i] = d * d / vrow[i] + lrow[i]
+                else:
+                    for i in range(N):
+                        d = x32[i] - mrow[i]
+                        v = d * d / vrow[i] + lrow[i]
+                        b = best[i]
+                        best[i] = v if v < b else b
+            for i in range(N):
+                if np.isfinite(yrow[i]):
+                    tot += np.float64(best[i])
+        out[g] = tot
+    return out
+
+
+def _match_gain(model: ChannelModel, L: np.ndarray, clock: SymbolClock, e: float, lev: np.ndarray,
+                k_a: int, k_b: int, tops: list[float] | None = None) -> ChannelModel:
+    """``model`` with each camera's light scaled to fit the clean frames of the undecided
+    stretch [k_a, k_b): per camera the gain g (centroids ``mu_1 + g (mu_s - mu_1)``, capped at
+    the brightest value seen) whose best-level costs, summed over the stretch's symbols and
+    LEDs, are least. Decision-free in the sense that every level competes for every
+    sample: thousands of samples fix one number, so a stretch with some wrong decisions
+    still gives the right gain. Follows an LED that brightens as the car closes in.
+
+    tops: each camera's brightest value in L (DN; computed when not given). The costs come
+    from the compiled :func:`_gain_costs`; :func:`_match_gain_reference` is the specification.
+    """
+    y, _ = clean_samples(L, clock, e, lev[k_a:k_b], k_a)
+    if y.shape[1] == 0:
+        return model
+    if y.shape[1] * y.shape[2] > GAIN_SAMPLES:  # every k-th frame is enough
+        y = y[:, ::int(np.ceil(y.shape[1] * y.shape[2] / GAIN_SAMPLES))]
+    mu = model.mu.copy()
+    G32 = GAINS.astype(np.float32)
+    for c in range(model.n_cams):
+        yc = np.ascontiguousarray(y[c], dtype=np.float64)  # (n, N)
+        if not np.isfinite(yc).any():
+            continue
+        top = float(np.nanmax(L[c])) if tops is None else tops[c]
+        base = model.mu[c, :, 0].astype(np.float32)  # (N,)
+        span = np.ascontiguousarray((model.mu[c] - model.mu[c, :, :1]).T, dtype=np.float32)  # (M, N)
+        var = np.ascontiguousarray(model.var[c].T, dtype=np.float32)  # (M, N)
+        costs = _gain_costs(yc, base, span, G32, np.float32(top), var, np.log(var))
+        b = int(np.argmin(costs))
+        g = float(GAINS[b])
+        if 0 < b < GAINS.size - 1:  # parabola through the best and its neighbours (log gain)
+            den = costs[b - 1] - 2 * costs[b] + costs[b + 1]
+            if den > 0:
+                step = float(np.log(GAINS[1] / GAINS[0]))
+                g *= float(np.exp(np.clip(0.5 * (costs[b - 1] - costs[b + 1]) / den, -0.5, 0.5) * step))
+        mu[c] = np.minimum(model.mu[c, :, :1] + g * (model.mu[c] - model.mu[c, :, :1]),
+                           max(top, float(model.mu[c].max())))
+    return ChannelModel(mu=mu, var=model.var, kind=model.kind, nu=model.nu)
+
+
+def _match_gain_reference(model: ChannelModel, L: np.ndarray, clock: SymbolClock, e: float, lev: np.ndarray,
+                k_a: int, k_b: int, tops: list[float] | None = None) -> ChannelModel:
+    """Pure-numpy reference of :func:`_match_gain`: ``model`` with each camera's light scaled to fit the clean frames of the undecided
+    stretch [k_a, k_b): per camera the gain g (centroids ``mu_1 + g (mu_s - mu_1)``, capped at
+    the brightest value seen) whose best-level costs, summed over the stretch's symbols and
+    LEDs, are least. Decision-free in the sense that every level competes for every
+    sample: thousands of samples fix one number, so a stretch with some wrong decisions
+    still gives the right gain. Follows an LED that brightens as the car closes in."""
+    y, _ = clean_samples(L, clock, e, lev[k_a:k_b], k_a)
+    if y.shape[1] == 0:
+        return model
+    if y.shape[1] * y.shape[2] > GAIN_SAMPLES:  # every k-th frame is enough
+        y = y[:, ::int(np.ceil(y.shape[1] * y.shape[2] / GAIN_SAMPLES))]
+    mu = model.mu.copy()
+    G = GAINS.astype(np.float32)[None, :, None, None]  # (1, G, 1, 1)
+    for c in range(model.n_cams):
+        yc = y[c]  # (n, N)
+        ok = np.isfinite(yc)
+        if not ok.any():
+            continue
+        top = float(np.nanmax(L[c])) if tops is None else tops[c]
+        base = model.mu[c, :, 0].astype(np.float32)  # (N,)
+        span = (model.mu[c] - model.mu[c, :, :1]).T.astype(np.float32)  # (M, N)
+        # levels first, so that the best level is an elementwise minimum of M arrays
+        mu_g = np.minimum(base + G * span[:, None, None, :], np.float32(top))  # (M, G, 1, N)
+        r2 = np.square(np.where(ok, yc, 0.0).astype(np.float32)[None, None] - mu_g)  # (M, G, n, N)
+        # Gaussian costs (cheap; the gain is one number fitted to thousands of samples)
+        var = model.var[c].T.astype(np.float32)[:, None, None, :]  # (M, 1, 1, N)
+        r2 /= var
+        r2 += np.log(var)
+        best = r2[0].copy()  # (G, n, N); a loop of contiguous minima (faster than a reduce)
+        for r in r2[1:]:
+            np.minimum(best, r, out=best)
+        best[:, ~ok] = 0.0
+        costs = best.sum(axis=(1, 2), dtype=np.float64)
+        b = int(np.argmin(costs))
+        g = float(GAINS[b])
+        if 0 < b < GAINS.size - 1:  # parabola through the best and its neighbours (log gain)
+            den = costs[b - 1] - 2 * costs[b] + costs[b + 1]
+            if den > 0:
+                step = float(np.log(GAINS[1] / GAINS[0]))
+                g *= float(np.exp(np.clip(0.5 * (costs[b - 1] - costs[b + 1]) / den, -0.5, 0.5) * step))
+        mu[c] = np.minimum(model.mu[c, :, :1] + g * (model.mu[c] - model.mu[c, :, :1]),
+                           max(top, float(model.mu[c].max())))
+    return ChannelModel(mu=mu, var=model.var, kind=model.kind, nu=model.nu)
+
+
+def _fit_segment(L: np.ndarray, clock: SymbolClock, e: float, lev: np.ndarray, a: int, b: int,
+                 W: int, M: int, st: IscdChannelSettings, cfg: ReceiverConfig,
+                 tops: list[float] | None = None) -> ChannelModel:
+    """The channel of stretch [a, b): the model of the W symbols centred on it, its light
+    matched to the stretch's own frames (:func:`_match_gain`: a window at the packet's
+    ends is off-centre and lags)."""
+    P = lev.shape[0]
+    return _match_gain(_fit(L, clock, e, lev, *_centred(a, b, W, P), M, st, cfg), L, clock, e, lev, a, b,
+                       tops)
+
+
+def _track(segs: list[tuple[int, int]], models: list[ChannelModel]) -> ChannelTrack:
+    """The models of consecutive stretches as a track (the first also holds for the
+    header and training)."""
+    return ChannelTrack((0,) + tuple(a for a, _ in segs[1:]), tuple(models))
+
+REUSE_UNCHANGED = True
+"""The final pass's later iterations reuse a stretch's decision when its inputs (channel
+model, clean costs, the levels one symbol either side) are unchanged -- exactly what
+deciding again would give (``tests/test_demod_reuse.py``); False decides every time."""
+
+ChannelOf = Callable[[SymbolClock, int, int], ChannelModel]
+"""``channel(clock, a, b)``: a channel model for packet symbols [a, b) (an oracle's)."""
+
+
+def demodulate_packet(L: np.ndarray, u_guess: float, air: AirInterface, e: float,
+                      p_nominal: float, p_prior: float, p_sigma: float, cfg: ReceiverConfig,
+                      *, clock: SymbolClock | None = None, channel: ChannelOf | None = None,
+                      ) -> PacketResult | Rejection:
+    """Demodulate the packet whose header starts near frame-unit time ``u_guess``.
+
+    With ``channel_window_symbols`` the channel is first tracked along the packet; if that
+    packet fails its CRC it is demodulated again with one channel for the whole packet
+    (better at low SNR when nothing changes: every symbol estimates it) and the CRC
+    decides which is delivered -- a valid CRC-32 from either is still only a 2^-31 chance
+    for a wrong packet. When both fail, the one with the larger mean decision margin is
+    reported.
+
+    Parameters
+    ----------
+    L : ndarray
+        (C, n, N) luminance of the selected cameras, DN (NaN = missing), covering the whole
+        packet.
+    u_guess : float
+        Approximate header start (:func:`iscd.decode.comms.timing.coarse_header_search`), frames.
+    air : AirInterface
+        The air interface (M, N, K, F, G).
+    e : float
+        Exposure window length, frames (exposure_s * fps).
+    p_nominal : float
+        Nominal symbol period fps / symbol rate, frames.
+    p_prior : float
+        Expected symbol period, frames.
+    p_sigma : float
+        Its RMS uncertainty, frames.
+    cfg : ReceiverConfig
+        Receiver settings.
+    clock : SymbolClock, optional
+        Diagnosis hook (:mod:`iscd.eval.oracle`; the receiver never passes it): fixes the
+        symbol clock (no fine phase, no clock fits; ``header_r2`` is NaN).
+    channel : callable, optional
+        Diagnosis hook: ``channel(clock, a, b)`` replaces every channel estimate of the iscd
+        rule (verification, tracking and final pass) for the stretch [a, b) of packet
+        symbols.
+
+    Returns
+    -------
+    PacketResult or Rejection
+        The decided levels and payload (``crc_ok``), or why the header candidate did not
+        become a packet (``"incomplete"``: its frames are not all in ``L`` yet).
+
+    References
+    ----------
+    Dissertation, eqs. (3.11), (4.2) and (3.12), (4.3) (the ``dissertation`` rule).
+    """
+    res = _demodulate(L, u_guess, air, e, p_nominal, p_prior, p_sigma, cfg, clock, channel)
+    if isinstance(res, PacketResult) and not res.crc_ok and res.channel == "tracked":
+        alt = _demodulate(L, u_guess, air, e, p_nominal, p_prior, p_sigma,
+                          replace(cfg, channel_window_symbols=0), clock, channel)
+        if isinstance(alt, PacketResult) and (alt.crc_ok or _mean_margin(alt) > _mean_margin(res)):
+            return alt
+    return res
+
+
+def _mean_margin(res: PacketResult) -> float:
+    """Mean decision margin of a packet (which of two failed attempts fits better)."""
+    return float(np.mean(res.margins)) if res.margins.size else 0.0
+
+
+def _demodulate(L: np.ndarray, u_guess: float, air: AirInterface, e: float,
+                p_nominal: float, p_prior: float, p_sigma: float, cfg: ReceiverConfig,
+                fixed_clock: SymbolClock | None = None, channel: ChannelOf | None = None,
+                ) -> PacketResult | Rejection:
+    """One demodulation attempt (:func:`demodulate_packet`), channel as ``cfg`` says."""
+    C, n, N = L.shape
+    M = air.levels
+    known = known_levels(air)
+    n_known = known.shape[0]
+    P = air.packet_symbols
+    st = IscdChannelSettings(var_floor_dn=cfg.var_floor_dn)
+    kind = cfg.noise_model
+    ts = cfg.timing_sigma_frames
+
+    if fixed_clock is None:
+        u0, r2 = fine_header(L, u_guess, p_prior, e)
+        clock = SymbolClock(u0, p_prior)
+    else:
+        clock, u0, r2 = fixed_clock, fixed_clock.u0, float("nan")
+    if clean_frame(np.array([P - 1]), clock, e)[0] + 1 > n:  # the last symbol's clean frame
+        return Rejection(u0, "incomplete")
+    y, lv = clean_samples(L, clock, e, known, 0)
+    model = estimate_iscd(y, lv, M, st, kind, cfg.t_nu) if channel is None else channel(clock, 0, n_known)
+    rho_t = float("nan")
+    if air.training_symbols >= 4:
+        yt, lt = clean_samples(L, clock, e, known[HEADER_SYMBOLS:], HEADER_SYMBOLS)
+        rho_t = training_rank_correlation(yt, lt)
+        # random data's mean rank correlation has RMS ~ 1/sqrt((n - 1) N): demand 4 of
+        # them (at most 0.9: a short training cannot reject much, the CRC still does)
+        n_eff = max(yt.shape[1] - 1, 1) * N
+        need = max(cfg.training_rho, min(0.9, 4.0 / np.sqrt(n_eff)))
+        if not rho_t >= need:
+            return Rejection(u0, f"training sequence absent (rank correlation {rho_t:.2f})")
+    contrast = header_contrast(model)
+    if not contrast >= cfg.min_contrast:
+        return Rejection(u0, f"header contrast {contrast:.1f} below {cfg.min_contrast}")
+
+    # clock on the known symbols, then the channel again with the refined clock
+    if fixed_clock is None:
+        clock, _ = refine_clock(L, clock, e, known, 0, model, p_prior, p_sigma, timing_sigma=ts)
+    y, lv = clean_samples(L, clock, e, known, 0)
+    model = estimate_iscd(y, lv, M, st, kind, cfg.t_nu) if channel is None else channel(clock, 0, n_known)
+
+    # tracking pass: data decided in stretches; with a tracked channel each stretch first
+    # with the channel of the latest window, then again with the window that includes its
+    # own tentative decisions; the clock re-fitted on everything decided so far every
+    # ``chunk_symbols`` (a clock tracked over earlier packets needs no updates within this one)
+    W = cfg.channel_window_symbols
+    tracked = cfg.decision_directed and not cfg.dissertation and 0 < W < P
+    chunk = cfg.chunk_symbols if p_sigma > 30e-6 * p_nominal else P
+    step = min(chunk, 2 * _segment_symbols(W)) if tracked else chunk
+    lev = np.full((P, N), -1, dtype=np.int64)
+    lev[:n_known] = known
+    # each camera's brightest value in the buffer (the cap of _match_gain), once per packet
+    tops = [float(np.nanmax(L[c])) if np.isfinite(L[c]).any() else float("nan")  # (an absent
+            for c in range(C)] if tracked else None  # camera: never used, no warning)
+    starts, models = [0], [model]
+    next_clock = n_known + chunk
+    for k_a in range(n_known, P, step):
+        k_b = min(P, k_a + step)
+        if tracked and channel is not None:
+            model = channel(clock, k_a, k_b)
+        elif tracked:
+            model = _fit(L, clock, e, lev, max(0, k_a - W // 2), k_a, M, st, cfg)
+            model = _match_gain(model, L, clock, e, lev, k_a, k_b, tops)
+        d = decide_span(L, clock, e, k_a, k_b, model, lev, 0, False, ts)
+        lev[k_a:k_b] = d.levels
+        if tracked:
+            starts.append(k_a)
+            models.append(model)
+        if (k_b >= next_clock or k_b == P) and fixed_clock is None:
+            next_clock += chunk
+            clock, _ = refine_clock(L, clock, e, lev[:k_b], 0, ChannelTrack(tuple(starts), tuple(models)),
+                                    p_prior, p_sigma, iters=2, timing_sigma=ts)
+
+    # final pass
+    if cfg.dissertation:
+        # channel factors from the training (3.11); without one, from the header's 1 and M
+        k0 = HEADER_SYMBOLS if air.training_symbols else 0
+        yt, lt = clean_samples(L, clock, e, known[k0:], k0)
+        dmodel = estimate_dissertation(yt, lt, M)
+        d = decide_span(L, clock, e, n_known, P, dmodel, None, 0, False, ts)
+        lev[n_known:] = d.levels
+        margins, erasures = d.margin, int((d.n_obs == 0).sum())
+    else:
+        segs = _segments(n_known, P, _segment_symbols(W) if tracked else P)
+        models = [model]
+        if channel is not None:
+            models = [channel(clock, a, b) for a, b in segs]
+        elif tracked:
+            models = [_fit_segment(L, clock, e, lev, a, b, W, M, st, cfg, tops) for a, b in segs]
+        elif cfg.decision_directed:
+            models = [_fit(L, clock, e, lev, 0, P, M, st, cfg)]
+        if cfg.decision_directed and fixed_clock is None:
+            clock, _ = refine_clock(L, clock, e, lev, 0, _track(segs, models), p_prior, p_sigma,
+                                    timing_sigma=ts)
+        # after the packet: idle (level 1) if the packets have gaps, else the next header
+        # (level M) or, when the transmission stops, darkness (level 1)
+        edge = (0,) if air.idle_symbols else (0, M - 1)
+        pre: list[CleanCosts | None] = [None] * len(segs)
+        # per stretch the decision and the levels it was decided with (its own and one
+        # symbol either side: the straddling frames' neighbours); a later pass whose
+        # inputs are all unchanged would decide the same, so it reuses it (exact)
+        seen: list[tuple[np.ndarray, SpanDecision] | None] = [None] * len(segs)
+        before = lev.copy()
+        for it in range(cfg.ic_iterations if cfg.straddle else 1):
+            if it and tracked and channel is None:  # the channel again where the decisions changed
+                changed = np.flatnonzero((lev != before).any(axis=1))
+                before = lev.copy()
+                for j, (a, b) in enumerate(segs):
+                    lo, hi = _centred(a, b, W, P)
+                    if changed.size and ((changed >= lo) & (changed < hi)).any():
+                        models[j] = _fit_segment(L, clock, e, lev, a, b, W, M, st, cfg, tops)
+                        pre[j] = None
+            parts = []
+            for j, (a, b) in enumerate(segs):
+                ctx_lv = lev[max(0, a - 1):min(P, b + 1)]
+                hit = seen[j]
+                if REUSE_UNCHANGED and pre[j] is not None and hit is not None and np.array_equal(hit[0], ctx_lv):
+                    d = hit[1]
+                else:
+                    ctx_before = ctx_lv.copy()
+                    if pre[j] is None:
+                        pre[j] = clean_costs(L, clock, e, a, b, models[j])
+                    d = decide_span(L, clock, e, a, b, models[j], lev, 0, cfg.straddle, ts,
+                                    cfg.straddle_candidates, pre[j], edge)
+                    seen[j] = (ctx_before, d)
+                lev[a:b] = d.levels
+                parts.append(d)
+        margins = np.concatenate([d.margin for d in parts])
+        erasures = int(sum((d.n_obs == 0).sum() for d in parts))
+    levels = (lev[n_known:] + 1).astype(np.uint8)
+    raw, ok = air.decode_data(levels)
+    first = int(clean_frame(np.array([0]), clock, e)[0])
+    reason = "" if ok else failure_reason([dmodel] if cfg.dissertation else models, margins)
+    return PacketResult(u0=clock.u0, p=clock.p, first_frame=first, levels=levels, raw=raw,
+                        crc_ok=bool(ok), drift_ppm=clock.drift_ppm(p_nominal),
+                        header_r2=r2, training_rho=rho_t, contrast=contrast,
+                        margins=margins, erasures=erasures,
+                        channel="tracked" if tracked else "static", reason=reason)
+

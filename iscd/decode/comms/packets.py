@@ -1,0 +1,395 @@
+"""Streaming packet assembly: blocks of per-LED luminance in, decoded packets out.
+
+:class:`PacketAssembler` keeps a bounded buffer of the latest frames (about two packets),
+searches it for headers (:mod:`iscd.decode.comms.timing`), and as soon as all frames of a
+packet are in, demodulates it (:func:`iscd.decode.comms.demod.demodulate_packet`) and returns
+a :class:`Packet`. After a packet it expects the next header one packet period later
+(tracked symbol period, i.e. drift) and falls back to a search when it is not there. A
+recording that starts mid-packet yields nothing until the next header; missing frames
+(gaps in the frame ids) become NaN rows whose symbols are decided from the other frame or
+camera, or counted as erasures.
+
+A packet whose CRC-32 fails is reported with ``crc_ok = False`` and no payload: its bytes
+are kept only as :attr:`Packet.raw` (untrusted, for diagnostics) and never handed out as
+valid.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from iscd.core.airinterface import HEADER_SYMBOLS, AirInterface
+from iscd.core.config import TransmitterConfig
+from iscd.decode.comms.demod import PacketResult, Rejection, demodulate_packet
+from iscd.decode.comms.settings import ReceiverConfig
+from iscd.decode.comms.timing import coarse_header_search, luminance_range, normalized_mean
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class Packet:
+    """A decoded packet.
+
+    frame: frame id of the first header symbol's clean frame; t_s: camera time of the
+    header start, s; u0_frames: header start in frame ids (fractional); crc_ok: the CRC-32
+    verdict; payload: the payload bytes, ONLY when crc_ok (else None); levels: (F, N)
+    decided data levels 1..M; raw: decoded bytes whatever the CRC (untrusted);
+    quality: margins and sync metrics (:meth:`PacketResult.quality`).
+    """
+
+    frame: int
+    t_s: float
+    u0_frames: float
+    crc_ok: bool
+    payload: bytes | None
+    levels: np.ndarray
+    raw: bytes = field(repr=False)
+    quality: dict[str, float] = field(default_factory=dict)
+    margins: np.ndarray | None = field(default=None, repr=False)
+
+    def record(self, tx: int = 0) -> dict[str, Any]:
+        """The SPEC section 7 JSON record (``payload_hex`` is empty when the CRC failed).
+
+        Parameters
+        ----------
+        tx : int
+            Transmitter index.
+
+        Returns
+        -------
+        dict
+            ``type``, ``tx``, ``frame``, ``t_s`` (s), ``crc_ok``, ``payload_hex``, ``levels``
+            (the F·N decided data levels 1..M, symbol time major) and the :attr:`quality`
+            metrics.
+
+        References
+        ----------
+        SPEC section 7 (output).
+        """
+        return {"type": "packet", "tx": tx, "frame": int(self.frame), "t_s": float(self.t_s),
+                "crc_ok": bool(self.crc_ok),
+                "payload_hex": self.payload.hex() if self.crc_ok and self.payload is not None else "",
+                "levels": self.levels.reshape(-1).astype(int).tolist(),
+                **{k: v for k, v in self.quality.items()}}
+
+
+class PacketAssembler:
+    """Streaming demodulator of one transmitter (N LEDs) seen by one or two cameras.
+
+    tx: the transmitter (levels, LED count, packet geometry, symbol rate); fps and
+    exposure_s: the cameras'. ``push`` blocks of frames as they arrive; it returns the
+    packets completed by them.
+    """
+
+    RANGE_EVERY = 128
+    """Frames between updates of the per-LED luminance range used by the header search."""
+    TRIM_MIN = 512
+    """Rows dropped at once from the front of the buffer (fewer, larger copies)."""
+
+    def __init__(self, tx: TransmitterConfig, fps: float, exposure_s: float,
+                 cfg: ReceiverConfig | None = None, max_gap_frames: int | None = None) -> None:
+        self.tx = tx
+        self.cfg = cfg or ReceiverConfig()
+        self.air = AirInterface.from_config(tx)
+        self.fps = float(fps)
+        self.e = float(exposure_s * fps)
+        if not 0 < self.e <= 1.0 + 1e-9:
+            raise ValueError(f"exposure {exposure_s} s must be within the frame period 1/{fps} s")
+        self.p_nom = self.fps / tx.symbol_rate_hz
+        if self.p_nom < 2 * 0.999:
+            raise ValueError(f"{fps} fps is below 2 frames per symbol at {tx.symbol_rate_hz} Hz")
+        self.cams = self.cfg.camera_indices
+        self.N = self.air.n_leds
+        self.packet_frames = self.air.packet_symbols * self.p_nom
+        self.period_frames = self.air.period_symbols * self.p_nom
+        self.max_gap = max_gap_frames if max_gap_frames is not None else int(self.packet_frames)
+        self.keep = int(np.ceil(2 * self.packet_frames)) + 16
+        self._L = np.zeros((len(self.cams), 0, self.N))
+        self._t = np.zeros(0)
+        self._n = 0  # filled rows
+        self._base: int | None = None  # frame id of row 0
+        self._search = 0.0  # buffer position (frames) from which headers are still searched
+        self._p = self.p_nom
+        self._p_sigma = self.cfg.drift_max_ppm * 1e-6 * self.p_nom
+        self._expect: float | None = None  # expected next header start (buffer frames)
+        self._wait_until = 0.0  # no new search before the buffer has this many rows
+        self._last_u: float | None = None  # absolute start (frames) of the last emitted packet
+        self._range: tuple[np.ndarray, np.ndarray] | None = None  # luminance 2..98 % per LED
+        self._range_at = -1  # buffer rows when _range was computed
+        self._flushing = False
+        self.stats = {"frames_in": 0, "frames_missing": 0, "frames_rejected": 0,
+                      "packets_ok": 0, "packets_bad": 0, "false_headers": 0, "resyncs": 0}
+
+    # ---- buffer ----------------------------------------------------------------------
+    def _reserve(self, extra: int) -> None:
+        need = self._n + extra
+        if need > self._L.shape[1]:
+            cap = max(need, 2 * self._L.shape[1], 1024)
+            L = np.full((len(self.cams), cap, self.N), np.nan)
+            t = np.zeros(cap)
+            L[:, :self._n] = self._L[:, :self._n]
+            t[:self._n] = self._t[:self._n]
+            self._L, self._t = L, t
+
+    def _trim(self) -> None:
+        """Drop rows before max(search position, end) - keep, shifting positions."""
+        cut = int(min(np.floor(self._search), self._n - self.keep)) - 8
+        if self._expect is not None:
+            cut = min(cut, int(np.floor(self._expect)) - 8)
+        if cut < self.TRIM_MIN:
+            return
+        self._L[:, :self._n - cut] = self._L[:, cut:self._n]
+        self._t[:self._n - cut] = self._t[cut:self._n]
+        self._n -= cut
+        self._base = (self._base or 0) + cut
+        self._search -= cut
+        self._wait_until -= cut
+        self._range_at -= cut
+        if self._expect is not None:
+            self._expect -= cut
+
+    def reset(self) -> None:
+        """Forget buffered frames and the lock (e.g. after a long gap)."""
+        self._last_u = None
+        self._n = 0
+        self._base = None
+        self._search = 0.0
+        self._expect = None
+        self._wait_until = 0.0
+        self._range = None
+
+    def push(self, frame_ids: np.ndarray, t_s: np.ndarray, L_left: np.ndarray | None,
+             L_right: np.ndarray | None = None) -> list[Packet]:
+        """Append frames (ids increasing; gaps become NaN rows) and return finished packets.
+
+        Frames whose id does not increase are dropped (counted in ``stats["frames_rejected"]``).
+        A gap longer than ``max_gap_frames`` resets the receiver.
+
+        Parameters
+        ----------
+        frame_ids : ndarray
+            (n,) trigger counters, frames.
+        t_s : ndarray
+            (n,) exposure start times, s (NaN: derived from the ids and the fps).
+        L_left : ndarray or None
+            (n, N) luminance of each LED in the left camera, DN (None: that camera is absent).
+        L_right : ndarray or None
+            (n, N) luminance of each LED in the right camera, DN (None: that camera is absent).
+
+        Returns
+        -------
+        list of Packet
+            The packets completed by these frames, oldest first.
+
+        Raises
+        ------
+        ValueError
+            If ``t_s`` and ``frame_ids`` differ in length or a block has the wrong LED count.
+        """
+        ids = np.asarray(frame_ids, dtype=np.int64).reshape(-1)
+        ts = np.asarray(t_s, dtype=np.float64).reshape(-1)
+        n = ids.size
+        if ts.size != n:
+            raise ValueError(f"{n} frame ids but {ts.size} timestamps")
+        if n and not np.isfinite(ts).all():  # missing timestamps: from the ids and the fps
+            ok = np.isfinite(ts)
+            if ok.any():
+                j = int(np.flatnonzero(ok)[0])
+                ref_id, ref_t = ids[j], ts[j]
+            elif self._base is not None and self._n:
+                ref_id, ref_t = self._base + self._n - 1, self._t[self._n - 1]
+            else:
+                ref_id, ref_t = ids[0], 0.0
+            ts = np.where(ok, ts, ref_t + (ids - ref_id) / self.fps)
+        blocks = []
+        for c in self.cams:
+            src = (L_left, L_right)[c]
+            if src is None:
+                blocks.append(np.full((n, self.N), np.nan))
+                continue
+            a = np.asarray(src, dtype=np.float64).reshape(n, -1) if n else np.zeros((0, self.N))
+            if a.shape[1] != self.N:
+                raise ValueError(f"expected luminance of {self.N} LEDs, got {a.shape[1]}")
+            blocks.append(a)
+        if n == 0:
+            return []
+        Lb = np.stack(blocks)  # (C, n, N)
+        # keep strictly increasing ids only
+        last = None if self._base is None else self._base + self._n - 1
+        prev_max = np.maximum.accumulate(np.concatenate([[ids[0] - 1 if last is None else last], ids]))
+        keep = ids > prev_max[:-1]
+        if not keep.all():
+            self.stats["frames_rejected"] += int((~keep).sum())
+            ids, ts, Lb = ids[keep], ts[keep], Lb[:, keep]
+        if ids.size == 0:
+            return []
+        self.stats["frames_in"] += int(ids.size)
+        if self._base is None:
+            self._base = int(ids[0])
+        elif ids[0] - last - 1 > self.max_gap:
+            log.warning("gap of %d frames: receiver resynchronizes", ids[0] - last - 1)
+            self.stats["resyncs"] += 1
+            self.reset()
+            self._base = int(ids[0])
+        rows = ids - self._base
+        span = int(rows[-1]) + 1 - self._n
+        self._reserve(span)
+        gap_rows = np.ones(span, bool)
+        gap_rows[rows - self._n] = False
+        self.stats["frames_missing"] += int(gap_rows.sum())
+        self._L[:, self._n:self._n + span] = np.nan
+        self._L[:, rows] = Lb
+        # timestamps: measured where present, interpolated (frame period) in gaps
+        all_rows = np.arange(self._n, self._n + span)
+        if gap_rows.any():
+            known_r = np.concatenate([np.arange(max(0, self._n - 1), self._n), rows])
+            known_t = np.concatenate([self._t[max(0, self._n - 1):self._n], ts])
+            if known_r.size >= 2:
+                self._t[all_rows] = np.interp(all_rows, known_r, known_t,
+                                              left=np.nan, right=np.nan)
+                bad = ~np.isfinite(self._t[all_rows])
+                if bad.any():
+                    ref_r, ref_t = known_r[-1], known_t[-1]
+                    self._t[all_rows[bad]] = ref_t + (all_rows[bad] - ref_r) / self.fps
+            else:
+                self._t[all_rows] = ts[0] + (all_rows - rows[0]) / self.fps
+        else:
+            self._t[rows] = ts
+        self._n += span
+        out = self._process()
+        self._trim()
+        return out
+
+    # ---- packet search ---------------------------------------------------------------
+    def _frame_time(self, u: float) -> float:
+        idx = np.arange(self._n)
+        return float(np.interp(u, idx, self._t[:self._n]))
+
+    def _emit_once(self, res: PacketResult, out: list[Packet]) -> None:
+        """Emit ``res`` unless a packet starting at (nearly) the same frame was emitted
+        already: a header found twice is one packet, never two records."""
+        u_abs = (self._base or 0) + res.u0
+        if self._last_u is not None and abs(u_abs - self._last_u) < HEADER_SYMBOLS * self.p_nom:
+            self.stats["duplicates_suppressed"] = self.stats.get("duplicates_suppressed", 0) + 1
+            return
+        self._last_u = u_abs
+        out.append(self._emit(res))
+
+    def _emit(self, res: PacketResult) -> Packet:
+        base = self._base or 0
+        q = res.quality()
+        pkt = Packet(frame=base + res.first_frame, t_s=self._frame_time(res.u0),
+                     u0_frames=base + res.u0, crc_ok=res.crc_ok,
+                     payload=res.raw if res.crc_ok else None, levels=res.levels, raw=res.raw,
+                     quality=q, margins=res.margins)
+        self.stats["packets_ok" if res.crc_ok else "packets_bad"] += 1
+        return pkt
+
+    def _accept(self, res: PacketResult) -> None:
+        """Lock on a demodulated packet: the next header is one period later."""
+        real = res.crc_ok or res.training_rho >= 0.9
+        # a clock fit on bad data must not stall the search: the period stays within
+        # +-2000 ppm of nominal and the next header is always ahead of this one
+        p = float(np.clip(res.p, self.p_nom * (1 - 2e-3), self.p_nom * (1 + 2e-3))) if np.isfinite(res.p) else self.p_nom
+        if real:
+            self._p = p
+            self._p_sigma = max(20e-6 * self.p_nom, 0.0)
+            self._expect = res.u0 + self.air.period_symbols * p
+            self._search = res.u0 + self.air.packet_symbols * p - 2 * p
+        else:  # possibly a false header: search again right after it (a real header
+            # may start within its span)
+            self._expect = None
+            self._search = res.u0 + 2.0
+
+    def _need(self, u: float) -> float:
+        """Buffer rows needed to demodulate a packet starting at u."""
+        if self._flushing:  # up to the clean frame of the last symbol (timing.clean_frame)
+            return u + (self.air.packet_symbols - 0.5) * self._p - self.e / 2 + 0.5
+        return u + self.air.packet_symbols * self._p + 3
+
+    def flush(self) -> list[Packet]:
+        """End of stream: decode a packet whose last frames arrived just now (normally
+        held back by a safety margin of 3 frames); incomplete packets are dropped."""
+        self._flushing = True
+        self._wait_until = 0.0
+        try:
+            return self._process()
+        finally:
+            self._flushing = False
+
+    def _demod(self, u: float) -> PacketResult | Rejection:
+        return demodulate_packet(self._L[:, :self._n], u, self.air, self.e, self.p_nom,
+                                 self._p, self._p_sigma, self.cfg)
+
+    MAX_STEPS = 8
+    """Most search/demodulation steps in one push: a safety net so that one push can never
+    spin (the state still advances, so the next push continues)."""
+
+    def _process(self) -> list[Packet]:
+        out: list[Packet] = []
+        for _ in range(self.MAX_STEPS):
+            if self._expect is not None:
+                if self._need(self._expect) > self._n:
+                    return out
+                res = self._demod(self._expect)
+                if isinstance(res, Rejection) and res.incomplete:
+                    return out
+                if isinstance(res, PacketResult):
+                    self._emit_once(res, out)
+                    self._accept(res)
+                    continue
+                log.info("expected header at frame %.1f not found (%s): searching",
+                         (self._base or 0) + self._expect, res.reason)
+                self._search = max(self._search, self._expect - 2 * self._p)
+                self._expect = None
+                self._p_sigma = max(self._p_sigma, 50e-6 * self.p_nom)
+            # search [self._search, end) for headers whose packet is complete
+            lo = int(max(0, np.floor(self._search) - 2))
+            hdr = HEADER_SYMBOLS * self._p + 2
+            if self._n - lo < hdr + 4 or self._n < self._wait_until:
+                return out
+            if self._range is None or self._n - self._range_at >= self.RANGE_EVERY:
+                # per-LED luminance range from the latest ~2 packets (every 4th frame)
+                a = max(0, self._n - self.keep)
+                self._range = luminance_range(self._L[:, a:self._n], step=4)
+                self._range_at = self._n
+            # widened by the searched frames' own range (an LED that just lit up)
+            rlo, rhi = luminance_range(self._L[:, lo:self._n])
+            y = normalized_mean(self._L[:, lo:self._n], np.fmin(self._range[0], rlo),
+                                np.fmax(self._range[1], rhi))
+            cands = coarse_header_search(y, self._p, self.e, self.cfg.header_phases,
+                                         self.cfg.header_rho)
+            cands = sorted((c for c in cands if c.u0 + lo >= self._search - 1), key=lambda c: c.u0)
+            progressed = False
+            for c in cands:
+                u = c.u0 + lo
+                if self._need(u) > self._n:
+                    # wait for more frames; nothing before u is a header
+                    self._search = max(self._search, u - 2)
+                    self._wait_until = self._need(u)
+                    return out
+                res = self._demod(u)
+                if isinstance(res, Rejection) and res.incomplete:
+                    self._search = max(self._search, u - 2)
+                    self._wait_until = self._n + 2
+                    return out
+                if isinstance(res, PacketResult):
+                    self._emit_once(res, out)
+                    self._accept(res)
+                    progressed = True
+                    break
+                self.stats["false_headers"] += 1
+                self._search = max(self._search, u + 1)
+            if not progressed:
+                # the whole searched range holds no complete packet's header
+                self._search = max(self._search, self._n - hdr - 2)
+                self._wait_until = self._n + max(16.0, hdr / 2)
+                return out
+        self.stats["step_limit"] = self.stats.get("step_limit", 0) + 1
+        log.warning("packet search hit its step limit in one push; continuing with the next")
+        return out

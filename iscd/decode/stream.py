@@ -1,0 +1,861 @@
+"""The streaming decode pipeline shared by ``iscd run`` (live) and ``iscd replay`` (offline).
+
+Stereo frames arrive in blocks (ids, timestamps, left and right images); the pipeline
+
+1. acquires the transmitter (:func:`iscd.decode.tracking.detect.detect_array` on both cameras,
+   matched on the same rectified rows) and then tracks it block by block;
+2. extracts each LED's luminance in both cameras (ROI mean, eq. 3.10) and feeds the
+   packet assembler (timing, channel estimation, decision, CRC: :mod:`iscd.decode.comms`);
+3. measures the range every frame (:class:`iscd.decode.ranging.stereo.StereoRanger`);
+
+and returns JSON-ready records (SPEC section 7). It holds no threads and does no I/O, so
+``replay`` and the daemon produce the same records from the same frames.
+
+A candidate that blinks but never sends a header within ``verify_packets`` packet
+durations (a flickering lamp) is excluded and acquisition starts again; a steady light
+never shows in the temporal gradient at all.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from collections import deque
+from concurrent.futures import Future, ThreadPoolExecutor
+from concurrent.futures.process import BrokenProcessPool
+from dataclasses import dataclass, field, replace
+from typing import Any
+
+import numpy as np
+
+from iscd.calibration.io import StereoCalibration
+from iscd.core.airinterface import AirInterface
+from iscd.core.config import Config, build_section
+from iscd.decode.pipe import PipeDemodWorker as DemodWorker
+from iscd.decode.tracking.follow_kernel import follow_and_measure_compiled
+from iscd.decode.tracking.luminance import PixelBackground, area_sigma, follow_and_measure, grid_sample
+from iscd.decode.tracking.detect import GridFit, detect_array, light_map, match_stereo, track_box, track_on_light
+from iscd.decode.tracking.track_kernel import LightAccumulator, track_on_light_compiled
+from iscd.decode.comms.packets import Packet, PacketAssembler
+from iscd.decode.comms.settings import receiver_config
+from iscd.decode.ranging.kalman import RangeKalman
+from iscd.decode.ranging.range import LedRanger
+from iscd.decode.ranging.stereo import RangingSettings, StereoRanger
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class PipelineSettings:
+    """``[tracking]`` section: acquisition, tracking and luminance ROI of the pipeline."""
+
+    acquire_frames: int = field(default=64, metadata={"lo": 8, "hi": 1024, "doc": "frames per detection attempt"})
+    track_every_frames: int = field(default=32, metadata={"lo": 4, "hi": 4096, "doc": "re-fit the LED grid this often"})
+    verify_packets: float = field(default=2.5, metadata={"lo": 1.2, "doc": "packets to wait for a header before rejecting a candidate"})
+    exclude_packets: float = field(default=8.0, metadata={"lo": 0, "doc": "a rejected candidate is ignored this many packets"})
+    reset_gap_frames: int = field(default=32, metadata={"lo": 1, "doc": "a gap of more frames restarts the packet search"})
+    lost_packets: float = field(default=1.2, metadata={"lo": 0.1, "doc": "dark this many packet durations = lost"})
+    lost_score_ratio: float = field(default=0.2, metadata={"lo": 0, "hi": 1, "doc": "grid score below this share of the first fit = lost"})
+    roi_radius_px: int = field(default=-1, metadata={"lo": -1, "hi": 8, "doc": "half-size of the box that follows each spot frame by frame, px ((2r+1)^2 pixels); -1 = from the spot size and LED pitch"})
+    roi_sigma_px: float = field(default=-1.0, metadata={"lo": -1.0, "hi": 8.0, "doc": "luminance window: Gaussian weights of this RMS radius, px; -1 = matched to the spot (its FWHM / 2.355, at most (pitch - 0.8) / 4 in an array)"})
+    ranging: bool = field(default=True, metadata={"doc": "measure the range every frame"})
+    background: bool = field(default=False, metadata={"doc": "luminance and centroids of the light above a per-pixel background (each pixel's least value in the frames its LEDs were dark): a textured background under a window that moves with the LED then cancels"})
+    lit_background: bool = field(default=False, metadata={"doc": "judge which LEDs are lit (they steer the following) on the light above the per-pixel background held across blocks, not on each block's own minimum: blocks shorter than 16 pairs ([daemon] block_max = 8 for lower latency) then judge as well as long ones; costs ~20 % of the frame loop, so off for the daemon's blocks of 16"})
+    window_scale: float = field(default=1.0, metadata={"lo": 0.5, "hi": 4.0, "doc": "luminance window relative to the spot-matched Gaussian (roi_sigma_px = -1): wider reaches the unsaturated wings of a spot whose core clips"})
+    window_follows_spot: bool = field(default=False, metadata={"doc": "the luminance window follows the spot's measured size (its half-maximum area, smoothed over ~10 blocks) times window_scale, instead of the size at acquisition grown with the array"})
+    background_rise_dn: float = field(default=0.25, metadata={"lo": 0, "doc": "how fast the per-pixel background follows a background that brightens, DN per block"})
+
+
+def _jsonable(rec: dict[str, Any]) -> dict[str, Any]:
+    """numpy scalars -> Python numbers, so that json.dumps takes the record."""
+    out: dict[str, Any] = {}
+    for k, v in rec.items():
+        if isinstance(v, np.generic):
+            v = v.item()
+        if isinstance(v, float) and not math.isfinite(v):
+            v = None
+        out[k] = v
+    return out
+
+
+def _spread(centres: np.ndarray) -> float:
+    """RMS distance of points (N, 2) from their mean, px (0 for one point)."""
+    c = np.asarray(centres, dtype=np.float64)
+    return float(np.sqrt(((c - c.mean(0)) ** 2).sum(1).mean())) if c.shape[0] > 1 else 0.0
+
+
+def _clip(b: tuple[int, int, int, int], W: int, H: int) -> tuple[int, int, int, int]:
+    return max(0, b[0]), max(0, b[1]), min(W, b[2]), min(H, b[3])
+
+
+def _union(a: tuple[int, int, int, int], b: tuple[int, int, int, int]) -> tuple[int, int, int, int]:
+    return min(a[0], b[0]), min(a[1], b[1]), max(a[2], b[2]), max(a[3], b[3])
+
+
+def _track_window(fit: GridFit, W: int, H: int) -> tuple[int, int, int, int]:
+    """The pixels that tracking and luminance read around a fit (as track_array's margin)."""
+    return _clip(fit.bbox(2 * fit.pitch_px + 4), W, H)
+
+
+def _track_in(light: np.ndarray, window: tuple[int, int, int, int], fit: GridFit,
+              compiled: bool = True) -> GridFit:
+    """:func:`iscd.decode.tracking.detect.track_array` of ``fit`` on the light map of the
+    tracking window (x0, y0, x1, y1) px."""
+    ax0, ay0 = window[0], window[1]
+    p = fit.shifted(-ax0, -ay0)
+    x0, y0, x1, y1 = track_box(p, light.shape)
+    track = track_on_light_compiled if compiled else track_on_light
+    return track(light[y0:y1, x0:x1], p, x0, y0).shifted(ax0, ay0)
+
+
+@dataclass
+class _Track:
+    left: GridFit
+    right: GridFit
+    first_score: float
+    since_frame: int
+    last_header_frame: int | None = None
+    frames_since_header: int = 0
+    """decoded frames since acquisition, the last packet or a search restart"""
+    roi_radius: tuple[int, int] = (1, 1)
+    """half-size of the box that follows each spot, per camera"""
+    spread0: tuple[float, float] = (0.0, 0.0)
+    """RMS distance of the LEDs from the array's centre at acquisition, px, per camera"""
+    roi_sigma: tuple[float, float] = (1.0, 1.0)
+    """Gaussian luminance window per camera, px, fixed while the track lasts (a changing
+    window would change the channel within a packet)"""
+    low_frames: int = 0
+    """decoded frames since the grid last fitted well (dark stretches hold the fit)"""
+    fit_frame: float = math.nan
+    """mean frame id of the frames the current fits came from"""
+    prev: tuple[GridFit, GridFit] | None = None
+    """the fits before the current ones (for the grid's motion), fitted at ``prev_frame``"""
+    prev_frame: float = math.nan
+    disparity0: float = 0.0
+    """right x - left x of the array's centre at acquisition, px (one LED's growth)"""
+
+
+class StreamDecoder:
+    """Decodes one transmitter from a stream of stereo frame blocks (see module docstring)."""
+
+    def __init__(self, cfg: Config, calibration: StereoCalibration | None = None, *, tx_index: int = 0,
+                 settings: PipelineSettings | None = None, ranging: RangingSettings | None = None,
+                 async_demod: bool | str = False, compiled: bool = True) -> None:
+        """``async_demod``: run the packet assembler elsewhere, so that demodulating a
+        whole packet (0.1-0.2 s for an 8x8 array) does not delay the per-frame work;
+        packets then come out of a later :meth:`push` (in order) or of :meth:`finish`.
+        ``"process"`` (the daemon): a worker process (:mod:`iscd.decode.worker`'s
+        operations over :mod:`iscd.decode.pipe`; no GIL and no helper thread shared with
+        the frame loop); ``True`` or ``"thread"``: a worker thread. Replay and
+        tests run synchronously. ``compiled``: the per-frame kernels compiled
+        (:mod:`iscd.decode.tracking.follow_kernel`); ``False`` runs their numpy references (the
+        same records to float tolerance; for tests)."""
+        self.compiled = compiled
+        if async_demod not in (False, True, "thread", "process"):
+            raise ValueError(f"async_demod: expected False, True, 'thread' or 'process', got {async_demod!r}")
+        self.cfg = cfg
+        self._pool: ThreadPoolExecutor | None = (
+            ThreadPoolExecutor(max_workers=1, thread_name_prefix="iscd-demod")
+            if async_demod in (True, "thread") else None)
+        self._worker: DemodWorker | None = DemodWorker() if async_demod == "process" else None
+        self._pending: deque[tuple[Future, int]] = deque()
+        """asynchronous demodulation steps in order, each with the frames it pushes (a
+        track's header wait counts frames once they are demodulated: a worker that is
+        still starting must not condemn the transmitter)"""
+        if self._worker is not None:  # the worker starts and loads its kernels right away
+            self._pending.append((self._worker.submit("warm"), 0))
+        self.tx_index = tx_index
+        self.settings = settings or build_section(PipelineSettings, dict(cfg.extra.get("tracking", {})), "tracking")
+        rs = ranging or build_section(RangingSettings, dict(cfg.extra.get("ranging", {})), "ranging")
+        self.cal = calibration or StereoCalibration.ideal(cfg.camera)
+        self.ranger = StereoRanger(self.cal, rs, compiled=compiled) if self.settings.ranging else None
+        self.led_ranger = (LedRanger(self.cal, method="iscd", patch_px=rs.patch_px)
+                           if self.ranger is not None and rs.per_led else None)
+        self.per_led_every = rs.per_led_every_frames
+        self.last_centres: tuple[np.ndarray, np.ndarray] | None = None
+        """(left, right) (F, N, 2) LED centres px followed in the last block decoded."""
+        self.kalman = (RangeKalman(accel_psd=rs.accel_psd, gate=rs.kalman_gate)
+                       if self.ranger is not None and rs.kalman else None)
+        self.air = AirInterface.from_config(cfg.transmitter)
+        self.rx_cfg = receiver_config(cfg)
+        self.rows, self.cols = cfg.transmitter.rows, cfg.transmitter.cols
+        self._use = grid_sample(self.rows, self.cols)
+        """the LEDs whose centroids steer the following (fixed by the array's shape)"""
+        self.fps = cfg.camera.fps
+        self.packet_frames = self.air.period_symbols * self.fps / cfg.transmitter.symbol_rate_hz
+        self.track: _Track | None = None
+        self.excluded: list[tuple[tuple[int, int, int, int], int]] = []
+        """(bbox, until frame id) of rejected candidates."""
+        # room for a detection attempt's frames plus one more block of any size up to
+        # acquire_frames: a block that does not divide acquire_frames loses none of the
+        # frames collected since the last attempt (a first header among them)
+        keep = 2 * self.settings.acquire_frames
+        self._acq_l: deque[np.ndarray] = deque(maxlen=keep)
+        self._acq_r: deque[np.ndarray] = deque(maxlen=keep)
+        self._acq_ids: deque[tuple[int, float]] = deque(maxlen=keep)
+        self._since_fit = 0
+        self._last_id: int | None = None
+        self.last_luminance: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = None
+        self._deferred: tuple[np.ndarray, ...] | None = None
+        """the rest of a block pushed with ``defer=True`` (see :meth:`finish_block`)"""
+        """(ids, t_s, lum_left, lum_right) of the last block decoded (for live views)."""
+        self._blk_l: list[np.ndarray] = []
+        self._blk_r: list[np.ndarray] = []
+        self._acc: tuple[LightAccumulator, LightAccumulator] | None = None
+        """the tracking interval's light maps, per camera (the compiled path)"""
+        self._ids_sum = 0.0
+        self._followed: list[np.ndarray | None] = [None, None]
+        """per camera, the LED centres (N, 2) px refined in the last decoded frame"""
+        self._lit_light: np.ndarray | None = None
+        self._backgrounds: list[PixelBackground] | None = None
+        self._spot_area: np.ndarray | None = None
+        """per camera, the box light of a lit LED (following ignores LEDs far below it)"""
+        self._win: tuple[tuple[int, int, int, int], tuple[int, int, int, int]] = ((0, 0, 0, 0), (0, 0, 0, 0))
+        self._new_assembler()
+        self.counters: dict[str, int] = {"acquisitions": 0, "losses": 0, "rejected_candidates": 0,
+                                         "packets_ok": 0, "packets_bad": 0, "ranges": 0,
+                                         "frames_decoded": 0, "assembler_resets": 0,
+                                         "ranging_skipped": 0, "led_ranges_shed": 0,
+                                         "demod_worker_restarts": 0, "following_resets": 0}
+
+    # ------------------------------------------------------------------ demodulation hook
+    def _make_assembler(self) -> PacketAssembler:
+        return PacketAssembler(self.cfg.transmitter, fps=self.fps, exposure_s=self.cfg.camera.exposure_s,
+                               cfg=self.rx_cfg)
+
+    def _records(self, packets: list[Packet]) -> list[dict]:
+        out: list[dict] = []
+        for pkt in packets:
+            self.counters["packets_ok" if pkt.crc_ok else "packets_bad"] += 1
+            if self.track is not None:
+                self.track.last_header_frame = int(pkt.frame)
+                self.track.frames_since_header = 0
+            out.append(_jsonable(pkt.record(self.tx_index)))
+        return out
+
+    def wait_ready(self, timeout_s: float = 300.0) -> bool:
+        """Wait until the demodulation worker has started and loaded (or compiled) its
+        kernels, at most ``timeout_s`` s; True when it is ready (or there is none). The
+        daemon calls it before the cameras start."""
+        if self._worker is None or not self._pending:
+            return True
+        try:
+            self._pending[0][0].result(timeout=timeout_s)
+            return True
+        except Exception:  # noqa: BLE001 - a timeout or a dead worker: _collect handles it
+            return False
+
+    @property
+    def worker_pids(self) -> list[int]:
+        """Process ids of the demodulation worker (``async_demod="process"``), else []."""
+        return self._worker.pids if self._worker is not None else []
+
+    def _new_assembler(self) -> None:
+        """A fresh assembler (a new track); steps already queued finish on the old one."""
+        if self._worker is None:
+            self.assembler = self._make_assembler()
+        else:
+            self._pending.append((self._worker.submit("new", self.cfg.transmitter, self.fps,
+                                                      self.cfg.camera.exposure_s, self.rx_cfg), 0))
+
+    def _demod(self, frame_ids: np.ndarray, t_s: np.ndarray, lum_l: np.ndarray, lum_r: np.ndarray) -> list[dict]:
+        n = len(frame_ids)
+        if self._worker is not None:
+            self._pending.append((self._worker.submit("push", frame_ids, t_s, lum_l, lum_r), n))
+            return []
+        if self._pool is None:
+            if self.track is not None:
+                self.track.frames_since_header += n
+            return self._records(self.assembler.push(frame_ids, t_s, lum_l, lum_r))
+        self._pending.append((self._pool.submit(self.assembler.push, frame_ids, t_s, lum_l, lum_r), n))
+        return []
+
+    def _reset_assembler(self) -> None:
+        if self._worker is not None:
+            self._pending.append((self._worker.submit("reset"), 0))
+        elif self._pool is None:
+            self.assembler.reset()
+        else:  # in order with the pushes already queued
+            self._pending.append((self._pool.submit(lambda a=self.assembler: a.reset() or []), 0))
+
+    def _collect(self, wait: bool = False) -> list[dict]:
+        """Records of the finished asynchronous demodulation steps, in order."""
+        out: list[dict] = []
+        while self._pending and (wait or self._pending[0][0].done()):
+            fut, nf = self._pending.popleft()
+            try:
+                packets = fut.result()
+                if self.track is not None:
+                    self.track.frames_since_header += nf
+                out += self._records(packets)
+            except BrokenProcessPool:
+                # the worker died (killed, out of memory): the packet in progress is lost;
+                # a new worker starts with a fresh assembler
+                log.error("demodulation worker died; starting a new one (packet in progress lost)")
+                self.counters["demod_worker_restarts"] += 1
+                self._pending.clear()
+                assert self._worker is not None
+                self._worker.shutdown(wait=False)
+                self._worker = DemodWorker()
+                self._pending.append((self._worker.submit("warm"), 0))
+                self._new_assembler()
+                break
+        return out
+
+    # ------------------------------------------------------------------ main entry
+    def push(self, frame_ids: np.ndarray, t_s: np.ndarray, left: np.ndarray, right: np.ndarray,
+             *, ranging: bool = True, ranging_every: int = 1, per_led: bool = True,
+             defer: bool = False) -> list[dict]:
+        """Process a block of stereo frames; returns the records it produced.
+
+        frame_ids: (n,) int (left-camera frame ids of the pairs); t_s: (n,) exposure start,
+        s; left/right: (n, H, W) images of the same pairs. What the daemon sheds when it
+        falls behind (:mod:`iscd.service.overload`; packets are never shed): ``ranging=False``
+        skips the range measurement for this block, ``ranging_every=k`` ranges only the
+        frames whose id is a multiple of k (counted in ``counters["ranging_skipped"]``),
+        ``per_led=False`` skips the per-LED ranges (``counters["led_ranges_shed"]``).
+
+        ``defer=True`` (the daemon): return the block's range records as soon as they are
+        measured and leave the rest of the block -- following the LEDs and measuring their
+        luminance, handing it to the demodulation, the tracking update, the packets that
+        came back -- to
+        :meth:`finish_block`, which must be called (with ``left``/``right`` untouched)
+        before the next push; the same steps in the same order among themselves, so the
+        same records (packets then come out of :meth:`finish_block`). The ranges do not
+        depend on those steps; their latency then does not include them.
+        """
+        if self._deferred is not None:  # a caller that did not finish the last block
+            pending = self.finish_block()
+        else:
+            pending = []
+        n = len(frame_ids)
+        if n == 0:
+            return pending
+        records: list[dict] = pending
+        if self.track is None:
+            got = self._acquire(frame_ids, t_s, left, right)
+            if got is None:
+                return records
+            # decode the whole acquisition window: a header in it is not lost
+            frame_ids, t_s, left, right = got
+            n = len(frame_ids)
+        tr = self.track
+        assert tr is not None
+        frame_ids = np.asarray(frame_ids, dtype=np.int64)
+        t_s = np.asarray(t_s, dtype=np.float64)
+        self.counters["frames_decoded"] += n
+        # deferred, the following and luminance wait for finish_block too (the ranges do
+        # not use them; per-LED ranges do: then they run here)
+        lum_l = lum_r = None
+        if not (defer and (self.led_ranger is None or not per_led)):
+            lum_l, lum_r = self._luminance(frame_ids, left, right)
+            self.last_luminance = (frame_ids, t_s, lum_l, lum_r)
+        if not defer:
+            assert lum_l is not None and lum_r is not None
+            records += self._demod_block(frame_ids, t_s, lum_l, lum_r)
+        ranged = np.arange(n) if ranging_every <= 1 else np.flatnonzero(frame_ids % int(ranging_every) == 0)
+        if self.ranger is not None and (not ranging or ranged.size == 0):
+            self.counters["ranging_skipped"] += n
+        elif self.ranger is not None:
+            self.counters["ranging_skipped"] += n - ranged.size
+            rl, rr = (left, right) if ranged.size == n else (left[ranged], right[ranged])
+            res = self.ranger.measure(rl, rr, tr.left, tr.right)
+            z, dsp, sg = res.z_m.tolist(), res.disparity_px.tolist(), res.sigma_m.tolist()
+            fid, ts = frame_ids.tolist(), t_s.tolist()
+            for k, i in enumerate(ranged.tolist()):
+                if math.isfinite(z[k]):
+                    records.append({"type": "range", "tx": self.tx_index, "frame": fid[i], "t_s": ts[i],
+                                    "z_m": z[k], "disparity_px": dsp[k], "sigma_m": sg[k]})
+            self.counters["ranges"] += int(np.isfinite(res.z_m).sum())
+            if self.kalman is not None:
+                records += self._filtered(frame_ids[ranged], t_s[ranged], res.z_m, res.sigma_m)
+            if self.led_ranger is not None and per_led:
+                records += self._per_led(frame_ids, t_s, left, right)
+            elif self.led_ranger is not None:
+                self.counters["led_ranges_shed"] += int(np.sum(frame_ids % self.per_led_every == 0))
+        if defer:
+            self._deferred = (frame_ids, t_s, lum_l, lum_r, left, right)
+            return records
+        self._retrack(frame_ids, left, right)
+        return self._collect() + records
+
+    def finish_block(self) -> list[dict]:
+        """The rest of a block pushed with ``defer=True``: the LEDs followed and their
+        luminance measured (unless per-LED ranges needed them in :meth:`push`), handed to
+        the demodulation, the tracking update; returns the packet records that are ready
+        (none if nothing was deferred)."""
+        if self._deferred is None:
+            return []
+        frame_ids, t_s, lum_l, lum_r, left, right = self._deferred
+        self._deferred = None
+        if self.track is None:  # restarted in between
+            return self._collect()
+        if lum_l is None:
+            lum_l, lum_r = self._luminance(frame_ids, left, right)
+            self.last_luminance = (frame_ids, t_s, lum_l, lum_r)
+        records = self._demod_block(frame_ids, t_s, lum_l, lum_r)
+        self._retrack(frame_ids, left, right)
+        return self._collect() + records
+
+    def _demod_block(self, frame_ids: np.ndarray, t_s: np.ndarray, lum_l: np.ndarray,
+                     lum_r: np.ndarray) -> list[dict]:
+        """A block's luminance to the packet assembler; a long gap (a stalled camera, a
+        burst of drops) restarts the packet search first. Returns the packet records
+        decoded synchronously (none with a worker)."""
+        tr = self.track
+        assert tr is not None
+        n = len(frame_ids)
+        records: list[dict] = []
+        prev = np.concatenate([[self._last_id if self._last_id is not None else frame_ids[0] - 1], frame_ids[:-1]])
+        cuts = np.flatnonzero(frame_ids - prev > self.settings.reset_gap_frames)
+        bounds = [0, *cuts.tolist(), n]
+        for a, b in zip(bounds[:-1], bounds[1:]):
+            if a in cuts:
+                self._reset_assembler()
+                self.counters["assembler_resets"] += 1
+                tr.since_frame = int(frame_ids[a])  # the header wait starts again
+                tr.frames_since_header = 0
+            if b > a:
+                records += self._demod(frame_ids[a:b], t_s[a:b], lum_l[a:b], lum_r[a:b])
+        self._last_id = int(frame_ids[-1])
+        return records
+
+    def _per_led(self, frame_ids: np.ndarray, t_s: np.ndarray, left: np.ndarray, right: np.ndarray) -> list[dict]:
+        """``range_leds`` records ([ranging] per_led): one range per LED of the array on the
+        frames whose id is a multiple of ``per_led_every_frames``, each LED ranged in its
+        own patch (:class:`iscd.decode.ranging.range.LedRanger`) at the position it was followed
+        to in that frame; JSON null where an LED gave no valid range (dark in that frame,
+        or a poor match). Separate from the whole-array ``range`` records."""
+        assert self.led_ranger is not None and self.last_centres is not None
+        c_l, c_r = self.last_centres
+        if c_l.shape[0] != len(frame_ids):
+            return []
+        out: list[dict] = []
+        for i in np.flatnonzero(np.asarray(frame_ids) % self.per_led_every == 0):
+            est = self.led_ranger.measure(left[i], right[i], c_l[i], c_r[i])
+            ok = est.valid
+            out.append({"type": "range_leds", "tx": self.tx_index, "frame": int(frame_ids[i]),
+                        "t_s": float(t_s[i]), "n_valid": int(ok.sum()),
+                        "z_m": [round(float(z), 4) if v else None for z, v in zip(est.z_m, ok)],
+                        "sigma_m": [round(float(q), 4) if v else None for q, v in zip(est.sigma_m, ok)]})
+        return out
+
+    def _filtered(self, frame_ids: np.ndarray, t_s: np.ndarray, z: np.ndarray, sig: np.ndarray) -> list[dict]:
+        """Kalman-filtered range and closing speed ([ranging] kalman): a separate record
+        type, ``range_filtered``, never mixed with the per-frame ``range`` records."""
+        kf = self.kalman
+        assert kf is not None
+        out: list[dict] = []
+        for i in range(len(frame_ids)):
+            if not math.isfinite(z[i]):
+                continue
+            st = kf.update(float(t_s[i]), float(z[i]), float(sig[i]))
+            if math.isfinite(st.z_m):
+                out.append({"type": "range_filtered", "tx": self.tx_index, "frame": int(frame_ids[i]),
+                            "t_s": float(t_s[i]), "z_m": st.z_m, "sigma_m": st.sigma_z_m,
+                            "closing_speed_mps": st.closing_speed_mps, "accepted": st.accepted})
+        return out
+
+    def finish(self) -> list[dict]:
+        """End of stream: decode what the assembler still holds."""
+        if self._deferred is not None:
+            pending = self.finish_block()
+            return pending + self.finish()
+        if self._worker is not None:
+            self._pending.append((self._worker.submit("flush"), 0))
+            out = self._collect(wait=True)
+            self._worker.shutdown()
+            return out
+        out = self._collect(wait=True)
+        if self._pool is not None:
+            self._pool.shutdown(wait=True)
+        flush = getattr(self.assembler, "flush", None)
+        return out + (self._records(flush()) if flush is not None else [])
+
+    def close(self) -> None:
+        """Stop the demodulation worker (process or thread) without waiting for what it
+        still holds: for a daemon leaving on an error (:meth:`finish` is the orderly end).
+        Idempotent."""
+        if self._worker is not None:
+            self._worker.shutdown(wait=False)
+            self._worker = None
+        if self._pool is not None:
+            self._pool.shutdown(wait=False, cancel_futures=True)
+            self._pool = None
+        self._pending.clear()
+
+    def restart(self) -> None:
+        """Drop the track and every per-track buffer: acquisition starts again (the daemon
+        calls it after a decoding error so that one bad block cannot wedge the decoder)."""
+        self.track = None
+        self._deferred = None
+        self._blk_l.clear()
+        self._blk_r.clear()
+        self._acc = None
+        self._ids_sum = 0.0
+        self._followed = [None, None]
+        self._lit_light = None
+        self._backgrounds = None
+        self._spot_area = None
+        self._since_fit = 0
+        self._acq_l.clear()
+        self._acq_r.clear()
+        self._acq_ids.clear()
+
+    FOLLOW_MAX_PX = 2.0
+    """The LEDs are followed from the last frame's refined centres unless the array's
+    centre there is further than this (or :attr:`FOLLOW_LOST_PITCH` of a pitch, if more)
+    from the grid fit's prediction (then the fit restarts them). The centre, not each LED:
+    from close by the fit's pitch lags and its edge LEDs are pixels off while the followed
+    ones are right. Most of a pitch, as the tracking's own test of following that walked
+    off: the prediction is the last fit moved by the fits' motion up to
+    :attr:`MOTION_HORIZON` intervals ahead, and a sub-pixel lock of one fit, so
+    extrapolated, reached half a pitch (a randomized 8x8 approach at 41 m: 2.65 px at a
+    5.1 px pitch; restarted from it, following settled on the next LED row for a block)."""
+
+    MOTION_HORIZON = 4.0
+    """The grid's motion is extrapolated at most this many tracking intervals ahead."""
+
+    def led_centres(self, side: int, frame_ids: np.ndarray) -> np.ndarray:
+        """(F, N, 2) LED centres px in each frame from the grid fits alone: the last fit
+        moved on at the rate (origin and pitch) between the last two fits. The fits are
+        averages over tens of frames made after the fact; an approaching array grows
+        (4.2 -> 6 px pitch within a packet at 40 km/h), so the last fit lags by a
+        fraction of a pixel at the edges, which is what this removes."""
+        tr = self.track
+        assert tr is not None
+        fit = tr.left if side == 0 else tr.right
+        base = fit.centers
+        ids = np.asarray(frame_ids, dtype=np.float64)
+        if tr.prev is None or not tr.fit_frame > tr.prev_frame:
+            return np.broadcast_to(base, (ids.size,) + base.shape)
+        prev = tr.prev[side]
+        dt = tr.fit_frame - tr.prev_frame
+        horizon = self.MOTION_HORIZON * self.settings.track_every_frames
+        ahead = np.clip(ids - tr.fit_frame, -horizon, horizon)[:, None]  # (F, 1)
+        v_o = (np.asarray(fit.origin) - np.asarray(prev.origin)) / dt  # px / frame
+        v_p = (fit.pitch_px - prev.pitch_px) / dt
+        grid = (base - np.asarray(fit.origin)) / fit.pitch_px if fit.pitch_px > 0 else np.zeros_like(base)
+        origin = np.asarray(fit.origin)[None, :] + ahead * v_o[None, :]  # (F, 2)
+        pitch = fit.pitch_px + ahead * v_p  # (F, 1)
+        return origin[:, None, :] + grid[None] * pitch[:, :, None]
+
+    def _luminance(self, frame_ids: np.ndarray, left: np.ndarray, right: np.ndarray
+                   ) -> tuple[np.ndarray, np.ndarray]:
+        """(F, N) luminance DN of every LED in each camera: a Gaussian-weighted ROI mean
+        (:func:`iscd.decode.tracking.luminance.gauss_mean`, eq. 3.10 with smooth weights, the same
+        at every sub-pixel phase) at the LED's position in each frame -- followed from the
+        last frame (or the grid's motion, :meth:`led_centres`) and refined by the frame's
+        own shift and scale (:func:`iscd.decode.tracking.luminance.refine_centres`: rig
+        vibration moves every spot together, faster than the grid fits follow). Both
+        cameras go through one vectorized pass (frames stacked)."""
+        tr = self.track
+        assert tr is not None
+        starts = []
+        for side in (0, 1):
+            # the grid's prediction for the block's first frame decides; the whole block's
+            # is made only when it is used (the same values row by row)
+            first = self.led_centres(side, frame_ids[:1])
+            prev = self._followed[side]
+            fit = tr.left if side == 0 else tr.right
+            limit = max(self.FOLLOW_MAX_PX, self.FOLLOW_LOST_PITCH * fit.pitch_px)
+            if prev is not None and prev.shape == first.shape[1:] and \
+                    float(np.abs(prev.mean(0) - first[0].mean(0)).max()) <= limit:
+                start = prev  # where the LEDs were in the last frame
+            else:
+                start = self.led_centres(side, frame_ids)
+            starts.append(start)
+        growth = self._growth(starts)
+        box = 2 * max(1, int(round(max(tr.roi_radius) * max(growth)))) + 1
+        info: dict[str, np.ndarray] = {}
+        follow = follow_and_measure_compiled if self.compiled else follow_and_measure
+        if (self.settings.background or self.settings.lit_background) and self._backgrounds is None:
+            rise = self.settings.background_rise_dn
+            self._backgrounds = [PixelBackground(left.shape[1:], rise), PixelBackground(right.shape[1:], rise)]
+        sigmas = [float(np.clip(sig * g, 0.6, max(sig, self.MAX_SIGMA_PX))) for sig, g in zip(tr.roi_sigma, growth)]
+        spot_r = None
+        if self.settings.window_follows_spot:
+            sigmas = self._spot_window(tr, growth, sigmas)
+            # measure within half a pitch of each LED (an array's neighbours stay out)
+            spot_r = 0.5 * tr.left.pitch_px * max(growth) if self.rows * self.cols > 1 else 8.0
+        (c_l, c_r), (lum_l, lum_r) = follow(
+            [left, right], starts, box, sigmas,
+            use=self._use, lit_light=self._lit_light, info=info,
+            backgrounds=self._backgrounds, spot_radius_px=spot_r, subtract=self.settings.background)
+        if spot_r is not None:
+            self._fold_spot_area(info["spot_area"])
+        # the light of a lit LED, held over dark stretches (halves in ~5 s of darkness)
+        light = info["light"]
+        self._lit_light = light if self._lit_light is None else np.maximum(light, self.LIT_DECAY * self._lit_light)
+        self._followed = [c_l[-1].copy(), c_r[-1].copy()]
+        self.last_centres = (c_l, c_r)
+        return lum_l, lum_r
+
+    MAX_SIGMA_PX = 4.0
+    """Largest Gaussian luminance window, px (an array seen from close by)."""
+
+    SPOT_SMOOTHING = 0.1
+    """Share of a block's measured spot area in the running one (``window_follows_spot``):
+    the window changes over ~10 blocks, smoothly, never in one jump mid-packet."""
+
+    def _fold_spot_area(self, area: np.ndarray) -> None:
+        """Fold one block's half-maximum areas (2,) px^2 into the running ones."""
+        a = np.asarray(area, dtype=np.float64)
+        old = np.full(2, np.nan) if self._spot_area is None else self._spot_area
+        k = self.SPOT_SMOOTHING
+        self._spot_area = np.where(np.isfinite(a), np.where(np.isfinite(old), (1 - k) * old + k * a, a), old)
+
+    def _spot_window(self, tr: _Track, growth: list[float], sigmas: list[float]) -> list[float]:
+        """Per camera the Gaussian window that follows the measured spot: ``window_scale``
+        times the sigma of its running half-maximum area (:func:`iscd.decode.tracking.luminance.
+        area_sigma`), in an array at most (pitch - 0.8) / 4 (the pitch grown as the array);
+        ``sigmas`` (the acquisition's, grown) until a lit spot has been measured."""
+        if self._spot_area is None:
+            return sigmas
+        out = []
+        for side, (s0, g) in enumerate(zip(sigmas, growth)):
+            a = self._spot_area[side]
+            if not np.isfinite(a):
+                out.append(s0)
+                continue
+            s = self.settings.window_scale * float(area_sigma(a))
+            fit = tr.left if side == 0 else tr.right
+            if self.rows * self.cols > 1 and fit.pitch_px > 0:
+                s = min(s, (fit.pitch_px * g - 0.8) / 4.0)
+            out.append(float(np.clip(s, 0.6, self.MAX_SIGMA_PX)))
+        return out
+
+    def _growth(self, starts: list[np.ndarray]) -> list[float]:
+        """Per camera how much the array's image has grown since acquisition (its spread
+        now over its spread then; 1 for one LED). The following box and the Gaussian
+        window grow with it: an array that comes from 50 to 10 m grows 5x, its spots
+        become discs, and a window fixed at 50 m would see only their saturated cores and
+        a box inside a flat core no centroid. The growth within a block is small and
+        smooth, which the tracked channel follows."""
+        tr = self.track
+        assert tr is not None
+        if self.rows * self.cols == 1:
+            # one LED: its image grows as 1/Z, as the stereo disparity does (raw x
+            # difference; ``disparity0`` at acquisition). Both cameras alike.
+            c = [np.asarray(st, dtype=np.float64).reshape(-1, 2)[0] for st in starts]
+            d = float(c[1][0] - c[0][0])
+            g = abs(d) / abs(tr.disparity0) if abs(tr.disparity0) >= self.MIN_DISPARITY_PX else 1.0
+            g = float(np.clip(g, 1.0, self.MAX_GROWTH))
+            return [g, g]
+        out = []
+        for side, st in enumerate(starts):
+            ref = tr.spread0[side]
+            c = np.asarray(st, dtype=np.float64).reshape(-1, st.shape[-2], 2)[0]
+            out.append(max(1.0, _spread(c) / ref) if ref > 0 else 1.0)
+        return out
+
+    MIN_DISPARITY_PX = 4.0
+    """One LED's growth from the disparity only when it is at least this at acquisition, px
+    (a nearly zero disparity -- very far, or uncalibrated cameras -- says nothing)."""
+
+    MAX_GROWTH = 8.0
+    """Largest growth of one LED's image taken from the disparity."""
+
+    def _roi_sigma(self, fit: GridFit) -> float:
+        """Gaussian luminance window, px: the configured one, or (auto) matched to the
+        spot (FWHM / 2.355), at most (pitch - 0.8) / 4 in an array (a neighbour's
+        light then weighs ~1 %)."""
+        s = self.settings.roi_sigma_px
+        if s > 0:
+            return float(s)
+        s = self.settings.window_scale * fit.spot_px / 2.355
+        if fit.rows * fit.cols > 1 and fit.pitch_px > 0:
+            s = min(s, (fit.pitch_px - 0.8) / 4.0)
+        return float(np.clip(s, 0.6, 2.0 * max(1.0, self.settings.window_scale)))
+
+    def _roi_radius(self, fit: GridFit) -> int:
+        """ROI half-size: the configured one, or (auto) half the spot so that a saturated
+        spot's unsaturated rim is included, but never reaching a neighbouring LED."""
+        r = self.settings.roi_radius_px
+        if r >= 0:
+            return r
+        r = int(np.floor(fit.spot_px / 2 + 0.25))
+        if fit.rows * fit.cols > 1:
+            r = min(r, int((fit.pitch_px - 1) // 2))
+        return int(np.clip(r, 1, 4))
+
+    def needed_windows(self) -> tuple[tuple[int, int, int, int], tuple[int, int, int, int]] | None:
+        """(left, right) pixel windows (x0, y0, x1, y1) that :meth:`push` will read, or
+        ``None`` while acquiring (then it needs whole frames). Lets the daemon copy only
+        these pixels out of the ring."""
+        tr = self.track
+        if tr is None:
+            return None
+        W, H = self.cfg.camera.width, self.cfg.camera.height
+        wl, wr = _track_window(tr.left, W, H), _track_window(tr.right, W, H)
+        if self._acc is not None:
+            wl, wr = _union(wl, self._win[0]), _union(wr, self._win[1])
+        if self.ranger is not None:
+            x0l, y0, x0r, w, h = self.ranger.patch_geometry(tr.left, tr.right)
+            if self.ranger.identity:
+                wl = _union(wl, _clip((x0l, y0, x0l + w, y0 + h), W, H))
+                wr = _union(wr, _clip((x0r, y0, x0r + w, y0 + h), W, H))
+            else:  # rectification reads around the patch: be generous
+                return None
+        return wl, wr
+
+    # ------------------------------------------------------------------ acquisition/tracking
+    def _acquire(self, frame_ids: np.ndarray, t_s: np.ndarray, left: np.ndarray, right: np.ndarray
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None:
+        """Collect frames; every ``acquire_frames`` try to detect. On success returns the
+        collected (ids, t_s, left, right) so that they are decoded too."""
+        for i in range(len(frame_ids)):  # copies: the caller may reuse its buffers
+            self._acq_l.append(np.array(left[i]))
+            self._acq_r.append(np.array(right[i]))
+            self._acq_ids.append((int(frame_ids[i]), float(t_s[i])))
+        if len(self._acq_l) < self.settings.acquire_frames:
+            return None
+        L = np.stack(self._acq_l)
+        R = np.stack(self._acq_r)
+        meta = np.array(self._acq_ids)
+        self._acq_l.clear()
+        self._acq_r.clear()
+        self._acq_ids.clear()
+        now = int(meta[-1, 0])
+        self.excluded = [(b, until) for b, until in self.excluded if until > now]
+        fl = detect_array(L, self.rows, self.cols, exclude=[b for b, _ in self.excluded])
+        if fl is None:
+            return None
+        fr = detect_array(R, self.rows, self.cols)
+        cands = [fr] if fr is not None else []
+        fr = match_stereo(fl, cands, max_dy=3.0 + 0.5 * fl.spot_px) if cands else None
+        if fr is None:
+            log.debug("transmitter seen in the left camera at %s but not matched in the right", fl.center)
+            return None
+        self._followed = [None, None]
+        self._lit_light = None
+        self._backgrounds = None
+        self._spot_area = None
+        self.track = _Track(left=fl, right=fr, first_score=min(fl.score, fr.score),
+                            roi_radius=(self._roi_radius(fl), self._roi_radius(fr)),
+                            roi_sigma=(self._roi_sigma(fl), self._roi_sigma(fr)),
+                            spread0=(_spread(fl.centers), _spread(fr.centers)),
+                            disparity0=float(fr.center[0] - fl.center[0]),
+                            since_frame=int(frame_ids[-1]), fit_frame=float(meta[:, 0].mean()))
+        self.counters["acquisitions"] += 1
+        self._new_assembler()
+        if self.kalman is not None:
+            self.kalman.reset()
+        log.info("transmitter acquired: left %.1f,%.1f right %.1f,%.1f pitch %.2f px",
+                 *fl.center, *fr.center, fl.pitch_px)
+        return meta[:, 0].astype(np.int64), meta[:, 1], L, R
+
+    def _retrack(self, frame_ids: np.ndarray, left: np.ndarray, right: np.ndarray) -> None:
+        tr = self.track
+        assert tr is not None
+        H, W = left.shape[1:]
+        if self._acc is None:
+            self._win = (_track_window(tr.left, W, H), _track_window(tr.right, W, H))
+            self._acc = (LightAccumulator(self._win[0]), LightAccumulator(self._win[1]))
+        # fold the tracking windows into the interval's light maps (no frames kept: the
+        # caller may reuse its frame buffers)
+        if self.compiled:
+            self._acc[0].add(left)
+            self._acc[1].add(right)
+        else:
+            (ax0, ay0, ax1, ay1), (bx0, by0, bx1, by1) = self._win
+            self._blk_l.append(np.array(left[:, ay0:ay1, ax0:ax1]))
+            self._blk_r.append(np.array(right[:, by0:by1, bx0:bx1]))
+        self._ids_sum += float(np.sum(frame_ids, dtype=np.float64))
+        self._since_fit += len(frame_ids)
+        if self._since_fit < self.settings.track_every_frames:
+            return
+        fit_frame = self._ids_sum / self._since_fit
+        n_fit = self._since_fit
+        acc = self._acc
+        if self.compiled:
+            lights = (acc[0].light_map(), acc[1].light_map())
+        else:  # the numpy reference
+            lights = (light_map(np.concatenate(self._blk_l)), light_map(np.concatenate(self._blk_r)))
+        self._blk_l.clear()
+        self._blk_r.clear()
+        self._acc = None
+        self._ids_sum = 0.0
+        self._since_fit = 0
+        try:
+            nl = _track_in(lights[0], acc[0].window, tr.left, self.compiled)
+            nr = _track_in(lights[1], acc[1].window, tr.right, self.compiled)
+        except ValueError:
+            nl = nr = None  # type: ignore[assignment]
+        if nl is not None and nr is not None:
+            nl, nr = self._agree_with_followed(0, nl), self._agree_with_followed(1, nr)
+        score = min(nl.score, nr.score) if nl is not None and nr is not None else 0.0
+        if score < self.settings.lost_score_ratio * tr.first_score:
+            # too little modulated light to fit (a dark stretch: zero padding, idle
+            # symbols, an occlusion): hold the last fit
+            tr.low_frames += n_fit
+        else:
+            # the grid's motion only between fits of consecutive good intervals
+            good_before = tr.low_frames == 0 and math.isfinite(tr.fit_frame)
+            tr.prev, tr.prev_frame = ((tr.left, tr.right), tr.fit_frame) if good_before else (None, math.nan)
+            tr.low_frames = 0
+            tr.left, tr.right = nl, nr  # type: ignore[assignment]
+            tr.fit_frame = fit_frame
+        now = int(frame_ids[-1])
+        if tr.low_frames > self.settings.lost_packets * self.packet_frames:
+            # every packet lights every LED in its header: a whole packet's time dark is gone
+            self.counters["losses"] += 1
+            if tr.last_header_frame is None:
+                # it blinked for a while but never sent a header: not ours
+                self._exclude(tr, now, "lost before it sent any header")
+            else:
+                log.warning("transmitter lost at frame %d; re-acquiring", now)
+            self.track = None
+        elif tr.frames_since_header > self.settings.verify_packets * self.packet_frames:
+            # counted in decoded frames, so dropped frames never condemn a transmitter
+            self._exclude(tr, now, f"sent no header for {self.settings.verify_packets:g} packets")
+            self.track = None
+
+    LIT_DECAY = 0.998
+    """Per block, how much of the remembered light of a lit LED is kept."""
+
+    FOLLOW_LOST_PITCH = 0.75
+    """Followed positions further than this many pitches (RMS) from a grid fit are lost:
+    the fit wins and following restarts from it."""
+
+    FOLLOW_TRUST_PX = 1.0
+    """A grid fit further than this (RMS over the LEDs) from the LEDs as followed frame by
+    frame is replaced by the grid through the followed positions."""
+
+    def _agree_with_followed(self, side: int, fit: GridFit) -> GridFit:
+        """The grid fit, or the grid through the LEDs' followed positions (least squares
+        origin and pitch) when they disagree: the fit is made on an activity map of tens of
+        frames and, from close by, with discs for spots, can lock a fraction of a pitch off
+        while the followed positions stay within hundredths of a pixel."""
+        fol = self._followed[side]
+        if fol is None or fit.rows * fit.cols < 2 or fol.shape != (fit.rows * fit.cols, 2):
+            return fit
+        off = float(np.sqrt(((fit.centers - fol) ** 2).sum(1).mean()))
+        if off <= self.FOLLOW_TRUST_PX:
+            return fit
+        if off > self.FOLLOW_LOST_PITCH * fit.pitch_px:
+            # more than most of a pitch: not the fit's sub-pixel lock but following that
+            # walked off (along a blooming column, onto a neighbour's light) and would hold
+            # itself there; the fit of tens of frames' light is right, following restarts
+            log.info("LEDs followed %.1f px from the grid fit (camera %d): following restarts from the fit",
+                     off, side)
+            self._followed[side] = None
+            self.counters["following_resets"] += 1
+            return fit
+        r, c = np.divmod(np.arange(fit.rows * fit.cols), fit.cols)
+        g = np.stack([c, r], 1).astype(np.float64)
+        gc, fc = g - g.mean(0), fol - fol.mean(0)
+        pitch = float((gc * fc).sum() / (gc * gc).sum())
+        if not pitch > 0:
+            return fit
+        origin = fol.mean(0) - pitch * g.mean(0)
+        return replace(fit, origin=(float(origin[0]), float(origin[1])), pitch_px=pitch)
+
+    def _exclude(self, tr: _Track, now: int, why: str) -> None:
+        """Reject a candidate: acquisition ignores its place for ``exclude_packets`` packets."""
+        log.warning("candidate at %.0f,%.0f %s: not a transmitter; ignored for %g packets",
+                    *tr.left.center, why, self.settings.exclude_packets)
+        self.counters["rejected_candidates"] += 1
+        until = now + int(self.settings.exclude_packets * self.packet_frames)
+        self.excluded.append((tr.left.bbox(4), until))
