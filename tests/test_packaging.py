@@ -54,3 +54,14 @@ def test_the_wheel_holds_only_iscd(tmp_path: Path) -> None:
         assert want <= set(names), sorted(want - set(names))[:5]
     assert "iscd/data/default.toml" in names
     assert not any("bench_" in n for n in names)
+
+
+def test_bench_from_an_installed_wheel_is_one_clear_line(monkeypatch, capsys) -> None:
+    from iscd.cli import main as cli
+    from iscd.cli.commands import bench
+
+    assert bench.benchmarks_root() == ROOT  # this checkout: found beside the package
+    monkeypatch.setattr(bench, "benchmarks_root", lambda: None)  # as from a wheel
+    assert cli.main(["bench", "--quick", "ringbuffer"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "not installed" in err[0] and "pip install -e" in err[0], err

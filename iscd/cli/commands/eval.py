@@ -176,13 +176,13 @@ def run(args: argparse.Namespace) -> int:
 
     plan = build_plan(args)
     if getattr(args, "recording", None):
-        for name in ("iscd.decode.stream", "iscd.decode.comms"):
+        for name in ("iscd.decode.stream", "iscd.decode.comms", "iscd.decode.tracking"):
             if not getattr(args, "verbose", 0):
                 logging.getLogger(name).setLevel(logging.WARNING)
         return _run_recordings(args)
     base = load(args.config)
     if not getattr(args, "verbose", 0):  # per-decoder acquisition/search logs are noise here (-v shows them)
-        for name in ("iscd.decode.stream", "iscd.decode.comms", "matplotlib"):
+        for name in ("iscd.decode.stream", "iscd.decode.comms", "iscd.decode.tracking", "matplotlib"):
             logging.getLogger(name).setLevel(logging.WARNING)
     out = Path(args.out)
     if out.exists() and not out.is_dir():
