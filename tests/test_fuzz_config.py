@@ -25,6 +25,7 @@ from hypothesis import example, given
 from hypothesis import strategies as st
 
 from iscd.calibration.io import CalibrationError, StereoCalibration, dumps_calibration, loads_calibration
+from iscd.cli.sections import OWNERS
 from iscd.core import config as C
 from iscd.sim.tomlout import _scalar as _toml_value  # the project's own TOML scalar writer
 
@@ -42,9 +43,8 @@ def _schema() -> dict[str, list[str]]:
     for f in dataclasses.fields(C.Config):
         if f.name != "extra" and dataclasses.is_dataclass(hints[f.name]):
             out[f.name] = [g.name for g in dataclasses.fields(hints[f.name])]
-    for name in C.EXTRA_SECTION_CLASSES:
-        cls = C._extra_class(name)
-        out[name] = [g.name for g in dataclasses.fields(cls)] if cls is not None else []
+    for name, cls in OWNERS.items():
+        out[name] = [g.name for g in dataclasses.fields(cls)]
     return out
 
 

@@ -216,10 +216,10 @@ def test_example_config_is_valid() -> None:
         from iscd.service.daemon import DaemonSettings
     except ImportError:
         return
-    from iscd.core.config import build_section
+    from iscd.core.config import section
     from iscd.outputs.socket import is_local_endpoint
 
-    ds = build_section(DaemonSettings, dict(cfg.extra.get("daemon", {})), "daemon")
+    ds = section(cfg, DaemonSettings)
     assert is_local_endpoint(ds.socket)
 
 

@@ -25,6 +25,7 @@ import os
 from dataclasses import dataclass, field
 from typing import Any
 
+from iscd.core.config import config_section, section
 from iscd.drivers.board.client import DEFAULT_BAUDRATE, DEFAULT_RETRIES, DEFAULT_TIMEOUT_S
 from iscd.drivers.board.discovery import DEFAULT_PID, DEFAULT_VID
 
@@ -33,6 +34,7 @@ def _meta(lo: float | None = None, hi: float | None = None, lo_open: bool = Fals
     return {"lo": lo, "hi": hi, "lo_open": lo_open, "choices": None, "doc": doc}
 
 
+@config_section("board")
 @dataclass(frozen=True)
 class BoardSettings:
     """The LED transmitter board's serial link (see docs/board-protocol.md)."""
@@ -53,9 +55,7 @@ class BoardSettings:
 
 def board_settings(cfg: Any) -> BoardSettings:
     """The validated ``[board]`` section of a :class:`iscd.core.config.Config` (defaults if absent)."""
-    from iscd.core.config import build_section
-
-    return build_section(BoardSettings, dict(cfg.extra.get("board", {})), "board")
+    return section(cfg, BoardSettings)
 
 
 def emulated_board_link(cfg: Any) -> str | None:

@@ -19,7 +19,7 @@ import types
 import typing
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Literal, get_args, get_origin
+from typing import Any, Callable, Literal, TypeVar, get_args, get_origin
 
 
 class ConfigError(ValueError):
@@ -330,43 +330,98 @@ class Config:
     def replace(self, **sections: Any) -> "Config":
         return dataclasses.replace(self, **sections)
 
+    def table(self, name: str) -> dict[str, Any]:
+        """A copy of the raw table ``[name]`` (one of :data:`SECTION_NAMES`; empty if the
+        file leaves it out). Read validated settings with :func:`section` instead."""
+        if name not in SECTION_NAMES:
+            raise KeyError(f"[{name}] is not an owned config section")
+        return dict(self.extra.get(name, {}))
 
-_KNOWN_EXTRA_SECTIONS = {"daemon", "receiver", "tracking", "acquisition", "ranging", "output", "rerun", "board", "eval"}
-
-
-EXTRA_SECTION_CLASSES: dict[str, str] = {
-    "daemon": "iscd.service.daemon:DaemonSettings",
-    "tracking": "iscd.decode.stream:PipelineSettings",
-    "receiver": "iscd.decode.comms.settings:ReceiverConfig",
-    "ranging": "iscd.decode.ranging.config:RangingSettings",
-    "output": "iscd.outputs:OutputConfig",
-    "rerun": "iscd.outputs:RerunConfig",
-    "board": "iscd.drivers.board.settings:BoardSettings",
-    "acquisition": "iscd.rig.acquisition:AcquisitionOptions",
-}
-"""Sections owned by other modules: ``name -> "module:Class"`` (validated by
-:func:`check_extra_sections`, listed by :func:`describe`)."""
+    def with_keys(self, name: str, **keys: Any) -> "Config":
+        """A copy with ``keys`` set in table ``[name]`` over what it holds (validated when
+        its owner reads it with :func:`section`)."""
+        return dataclasses.replace(self, extra={**self.extra, name: {**self.table(name), **keys}})
 
 
-def _extra_class(name: str) -> type | None:
-    import importlib
+SECTION_NAMES: tuple[str, ...] = ("daemon", "acquisition", "tracking", "receiver", "ranging", "output",
+                                   "rerun", "board")
+"""The tables a config file may hold beside the ones defined here. Each is owned (its keys,
+defaults, documentation and validation) by the module that uses it, which declares its
+dataclass with :func:`config_section`; this module knows their names only, never their
+modules (it sits below all of them). Until its owner is imported a table is kept raw in
+:attr:`Config.extra`."""
 
-    spec = EXTRA_SECTION_CLASSES.get(name)
-    if spec is None:
-        return None
-    mod, _, cls = spec.partition(":")
-    try:
-        return getattr(importlib.import_module(mod), cls)
-    except (ImportError, AttributeError):  # pragma: no cover - a section's module is optional
-        return None
+_OWNERS: dict[str, type] = {}
+_S = TypeVar("_S")
+
+
+def config_section(name: str) -> Callable[[type], type]:
+    """Class decorator: the dataclass owns table ``[name]`` of the config file.
+
+    The owner module declares it where the settings are used, e.g.::
+
+        @config_section("daemon")
+        @dataclass(frozen=True)
+        class DaemonSettings: ...
+
+    and reads it with :func:`section` (``section(cfg, DaemonSettings)``).
+
+    Raises
+    ------
+    ValueError
+        When ``name`` is not in :data:`SECTION_NAMES`, or another class owns it already
+        (a programming error, not a user's).
+    """
+    if name not in SECTION_NAMES:
+        raise ValueError(f"[{name}] is not a config section (SECTION_NAMES: {', '.join(SECTION_NAMES)})")
+
+    def register(cls: type) -> type:
+        if not dataclasses.is_dataclass(cls):
+            raise ValueError(f"{cls.__qualname__}: a config section must be a dataclass")
+        old = _OWNERS.get(name)
+        if old is not None and (old.__module__, old.__qualname__) != (cls.__module__, cls.__qualname__):
+            raise ValueError(f"[{name}] is owned by {old.__module__}.{old.__qualname__} already")
+        _OWNERS[name] = cls
+        cls.__config_section__ = name  # type: ignore[attr-defined]
+        return cls
+
+    return register
+
+
+def section_owners() -> dict[str, type]:
+    """The sections whose owner modules are imported: ``name -> dataclass``, in
+    :data:`SECTION_NAMES` order (``iscd.cli.sections`` imports every owner)."""
+    return {n: _OWNERS[n] for n in SECTION_NAMES if n in _OWNERS}
+
+
+def section(cfg: "Config", cls: type[_S]) -> _S:
+    """The validated table that ``cls`` owns (see :func:`config_section`), every default
+    filled in where the file leaves a key (or the whole table) out.
+
+    Raises
+    ------
+    ConfigError
+        A key unknown or of the wrong type; the message names it (``daemon.ring_ms: ...``).
+    """
+    name = getattr(cls, "__config_section__", None)
+    if name is None or _OWNERS.get(name) is not cls:
+        raise TypeError(f"{cls.__qualname__} is not declared with @config_section")
+    table = cfg.extra.get(name, {})
+    if not isinstance(table, dict):
+        raise ConfigError(f"{name}: expected a table [{name}], got {table!r}")
+    return build_section(cls, dict(table), name)
 
 
 def check_extra_sections(cfg: "Config") -> None:
-    """Validate every extra section that has a known owner (ConfigError naming the key)."""
+    """Validate every extra table of ``cfg`` with its owner (ConfigError naming the key).
+
+    The owners must be imported (``import iscd.cli.sections`` does it); a table whose owner
+    is not is a programming error here (RuntimeError), never silently passed."""
     for name, table in cfg.extra.items():
-        cls = _extra_class(name)
-        if cls is not None:
-            build_section(cls, dict(table), name)
+        cls = _OWNERS.get(name)
+        if cls is None:
+            raise RuntimeError(f"[{name}]: its owner module is not imported (import iscd.cli.sections)")
+        build_section(cls, dict(table), name)
 
 
 def _type_name(tp: Any) -> str:
@@ -461,12 +516,12 @@ def config_from_dict(data: dict[str, Any]) -> Config:
             if not isinstance(table, dict):
                 raise ConfigError(f"{name}: expected a table [{name}], got {table!r}")
             sections[name] = build_section(hints[name], table, name)
-        elif name in _KNOWN_EXTRA_SECTIONS:
+        elif name in SECTION_NAMES:
             if not isinstance(table, dict):
                 raise ConfigError(f"{name}: expected a table [{name}], got {table!r}")
             extra[name] = table
         else:
-            known = ", ".join(sorted([*fields, *_KNOWN_EXTRA_SECTIONS]))
+            known = ", ".join(sorted([*fields, *SECTION_NAMES]))
             raise ConfigError(f"{name}: unknown section (known sections: {known})")
     cfg = Config(**sections, extra=extra)
     _cross_check(cfg)
@@ -538,7 +593,7 @@ def describe() -> str:
     lines: list[str] = []
     hints = typing.get_type_hints(Config)
     classes = [(f.name, hints[f.name]) for f in dataclasses.fields(Config) if f.name != "extra"]
-    classes += [(n, c) for n in EXTRA_SECTION_CLASSES if (c := _extra_class(n)) is not None]
+    classes += list(section_owners().items())
     for name, cls in classes:
         lines.append(f"[{name}]  {(cls.__doc__ or '').strip().splitlines()[0]}")
         for sf in dataclasses.fields(cls):

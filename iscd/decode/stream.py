@@ -31,7 +31,7 @@ import numpy as np
 
 from iscd.calibration.io import StereoCalibration
 from iscd.core.airinterface import AirInterface
-from iscd.core.config import Config, build_section
+from iscd.core.config import Config, config_section, section
 from iscd.decode.pipe import PipeDemodWorker as DemodWorker
 from iscd.decode.tracking.follow_kernel import follow_and_measure_compiled
 from iscd.decode.tracking.luminance import PixelBackground, area_sigma, follow_and_measure, grid_sample
@@ -46,6 +46,7 @@ from iscd.decode.ranging.stereo import RangingSettings, StereoRanger
 log = logging.getLogger(__name__)
 
 
+@config_section("tracking")
 @dataclass(frozen=True)
 class PipelineSettings:
     """``[tracking]`` section: acquisition, tracking and luminance ROI of the pipeline."""
@@ -166,8 +167,8 @@ class StreamDecoder:
         if self._worker is not None:  # the worker starts and loads its kernels right away
             self._pending.append((self._worker.submit("warm"), 0))
         self.tx_index = tx_index
-        self.settings = settings or build_section(PipelineSettings, dict(cfg.extra.get("tracking", {})), "tracking")
-        rs = ranging or build_section(RangingSettings, dict(cfg.extra.get("ranging", {})), "ranging")
+        self.settings = settings or section(cfg, PipelineSettings)
+        rs = ranging or section(cfg, RangingSettings)
         self.cal = calibration or StereoCalibration.ideal(cfg.camera)
         self.ranger = StereoRanger(self.cal, rs, compiled=compiled) if self.settings.ranging else None
         self.led_ranger = (LedRanger(self.cal, method="iscd", patch_px=rs.patch_px)
@@ -472,6 +473,28 @@ class StreamDecoder:
             self._pool.shutdown(wait=True)
         flush = getattr(self.assembler, "flush", None)
         return out + (self._records(flush()) if flush is not None else [])
+
+    def finish_within(self, timeout_s: float) -> tuple[list[dict], int]:
+        """:meth:`finish`, but waiting at most ``timeout_s`` s for the demodulation steps
+        still in flight (a daemon that must end on time); returns the records and how many
+        steps were abandoned (0: the orderly :meth:`finish` ran). Abandoned steps lose the
+        packet in progress; the worker is stopped either way."""
+        if self._pending:
+            t_end = time.monotonic() + timeout_s
+            not_done = 0
+            for f, _ in list(self._pending):
+                try:
+                    f.exception(timeout=max(0.0, t_end - time.monotonic()))
+                except TimeoutError:
+                    pass
+                except Exception:  # noqa: BLE001 - cancelled or broken: _collect reports it
+                    pass
+                not_done += not f.done()
+            if not_done:
+                out = self._collect()
+                self.close()
+                return out, not_done
+        return self.finish(), 0
 
     def close(self) -> None:
         """Stop the demodulation worker (process or thread) without waiting for what it

@@ -28,7 +28,7 @@ import numpy as np
 
 from iscd.calibration.io import StereoCalibration
 from iscd.core.airinterface import AirInterface
-from iscd.core.config import Config, build_section
+from iscd.core.config import Config, section
 from iscd.eval.metrics import (ErrorStats, bit_errors, error_stats, goodput_kbps, match_packets,
                                symbol_errors, throughput_kbps)
 from iscd.decode.stream import StreamDecoder
@@ -145,11 +145,10 @@ def _num(x: float) -> float | None:
 
 
 def _decoder_cfg(cfg: Config, mode: ReceiverMode | None, ranging: bool = False) -> Config:
-    tracking = {**dict(cfg.extra.get("tracking", {})), "ranging": ranging}
-    extra = {**cfg.extra, "tracking": tracking}
+    out = cfg.with_keys("tracking", ranging=ranging)
     if mode is not None:
-        extra["receiver"] = mode.receiver_table(dict(cfg.extra.get("receiver", {})))
-    return cfg.replace(extra=extra)
+        out = out.with_keys("receiver", **mode.receiver_table(cfg.table("receiver")))
+    return out
 
 
 def frames_for_packets(scene: Scene, air: AirInterface, packets: int, tail_frames: int = 8) -> int:
@@ -328,7 +327,7 @@ def run_ranging(cfg: Config, frames: int, methods: Sequence[str] | None = None, 
         raise ValueError(f"unknown ranging method(s) {', '.join(unknown)} (known: {', '.join(METHODS)})")
     scene = Scene(cfg)
     dec = StreamDecoder(_decoder_cfg(cfg, None))
-    base = build_section(RangingSettings, dict(cfg.extra.get("ranging", {})), "ranging")
+    base = section(cfg, RangingSettings)
     cal = StereoCalibration.ideal(cfg.camera)
     rangers = {m: StereoRanger(cal, dataclasses.replace(base, method=m)) for m in methods}
     H, W = scene.height, scene.width

@@ -80,8 +80,7 @@ def run_scene(cfg, variants: Sequence[str], packets: int = 2, block: int = 16) -
         c = _decoder_cfg(cfg, ReceiverMode("both", "both"))
         keys = dict(VARIANTS[v])
         rx = keys.pop("receiver", {})
-        c = c.replace(extra={**c.extra, "tracking": {**c.extra["tracking"], **keys},
-                             "receiver": {**dict(c.extra.get("receiver", {})), **rx}})
+        c = c.with_keys("tracking", **keys).with_keys("receiver", **rx)
         decs[v] = (StreamDecoder(c), [])
     L = np.empty((block, sc.height, sc.width), np.uint8)
     R = np.empty_like(L)

@@ -7,6 +7,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
+from iscd.core.config import config_section, section
 from iscd.core.errors import UserError
 
 if TYPE_CHECKING:
@@ -24,6 +25,7 @@ def _f(default: Any, *, lo: float | None = None, hi: float | None = None,
                  metadata={"lo": lo, "hi": hi, "lo_open": False, "choices": choices, "doc": doc})
 
 
+@config_section("output")
 @dataclass(frozen=True)
 class OutputConfig:
     """``[output]``: how the JSON Lines files and the ZeroMQ socket behave (docs/outputs.md).
@@ -40,6 +42,7 @@ class OutputConfig:
     zmq_allow_remote: bool = _f(False, doc="allow binding the socket to a non-loopback address")
 
 
+@config_section("rerun")
 @dataclass(frozen=True)
 class RerunConfig:
     """``[rerun]``: the Rerun live view (the command-line flags override these)."""
@@ -58,13 +61,9 @@ class RerunConfig:
 
 def output_config(cfg: "Config") -> OutputConfig:
     """The validated ``[output]`` section of ``cfg`` (defaults when absent)."""
-    from iscd.core.config import build_section
-
-    return build_section(OutputConfig, cfg.extra.get("output", {}), "output")
+    return section(cfg, OutputConfig)
 
 
 def rerun_config(cfg: "Config") -> RerunConfig:
     """The validated ``[rerun]`` section of ``cfg`` (defaults when absent)."""
-    from iscd.core.config import build_section
-
-    return build_section(RerunConfig, cfg.extra.get("rerun", {}), "rerun")
+    return section(cfg, RerunConfig)

@@ -49,6 +49,7 @@ from typing import Any
 
 import numpy as np
 
+from iscd.core.config import config_section
 from iscd.drivers.base import Camera, CameraError, CameraLost, CameraSettings, CameraTimeout, Frame, StereoPairSource
 from iscd.rig.pairing import StereoPairer
 from iscd.rig.ringbuffer import RingError, StereoRing
@@ -69,10 +70,11 @@ def _opt(default: Any, doc: str, lo: float | None = None, lo_open: bool = False)
     return field(default=default, metadata={"lo": lo, "lo_open": lo_open, "doc": doc})
 
 
+@config_section("acquisition")
 @dataclass(frozen=True)
 class AcquisitionOptions:
-    """Tuning of the worker; buildable from a TOML table with
-    ``iscd.core.config.build_section(AcquisitionOptions, table, "daemon.acquisition")``."""
+    """``[acquisition]`` section: tuning of the acquisition worker (camera reads, pairing,
+    reopening); the daemon hands it to :class:`AcquisitionProcess`."""
 
     read_timeout_s: float = _opt(0.1, "longest wait in one camera read, s (also the stop latency)",
                                  lo=0, lo_open=True)

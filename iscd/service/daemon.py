@@ -34,11 +34,12 @@ from typing import Any
 
 import numpy as np
 
-from iscd.core.config import Config, ConfigError, build_section
+from iscd.core.config import Config, ConfigError, config_section, section
 
 log = logging.getLogger(__name__)
 
 
+@config_section("daemon")
 @dataclass(frozen=True)
 class DaemonSettings:
     """``[daemon]`` section."""
@@ -93,8 +94,12 @@ class Daemon:
                  rerun: dict[str, Any] | None = None, socket: str | None = None,
                  calibration: str | None = None, install_signals: bool = True) -> None:
         self.cfg = cfg
-        self.settings: DaemonSettings = build_section(DaemonSettings, dict(cfg.extra.get("daemon", {})), "daemon")
+        self.settings: DaemonSettings = section(cfg, DaemonSettings)
+        from iscd.rig.acquisition import AcquisitionOptions
         from iscd.service.overload import OverloadSettings
+
+        self.acquisition_options: AcquisitionOptions = section(cfg, AcquisitionOptions)
+        """The ``[acquisition]`` table, handed to every acquisition process this run starts."""
 
         st = self.settings
         try:
@@ -176,7 +181,7 @@ class Daemon:
                                  max_held=st.block_max)  # a block's pairs are taken at once
         factory = functools.partial(make_stereo, cfg)
         cam_settings = (settings_from_config(cfg, "left"), settings_from_config(cfg, "right"))
-        acq = AcquisitionProcess(factory, ring, settings=cam_settings)
+        acq = AcquisitionProcess(factory, ring, settings=cam_settings, options=self.acquisition_options)
         outputs = self._outputs()
         view = self._rerun()
         notifier = Notifier.from_env()
@@ -351,28 +356,12 @@ class Daemon:
         def finish_decoder() -> list[dict]:
             """decoder.finish(), but without waiting on a demodulation backlog for more than
             stop_demod_s: steps still in flight then are abandoned (counted)."""
-            pending = getattr(decoder, "_pending", None)
-            if pending:
-                # each future's own wait (the pipe worker's futures complete by polling)
-                t_end = time.monotonic() + st.stop_demod_s
-                not_done = []
-                for f, _ in list(pending):
-                    try:
-                        f.exception(timeout=max(0.0, t_end - time.monotonic()))
-                    except TimeoutError:
-                        pass
-                    except Exception:  # noqa: BLE001 - cancelled or broken: finish() reports it
-                        pass
-                    if not f.done():
-                        not_done.append(f)
-                if not_done:
-                    counters["stop_demod_abandoned"] += len(not_done)
-                    log.warning("the run ends on time: %d demodulation steps still in flight are "
-                                "abandoned (a packet in progress may be lost)", len(not_done))
-                    out = decoder._collect() if hasattr(decoder, "_collect") else []
-                    decoder.close()
-                    return out
-            return decoder.finish()
+            out, abandoned = decoder.finish_within(st.stop_demod_s)
+            if abandoned:
+                counters["stop_demod_abandoned"] += abandoned
+                log.warning("the run ends on time: %d demodulation steps still in flight are "
+                            "abandoned (a packet in progress may be lost)", abandoned)
+            return out
 
         _prof = None
         if os.environ.get("ISCD_PROFILE"):  # cProfile of the frame loop, written at the end
@@ -419,12 +408,12 @@ class Daemon:
                     log.error("acquisition process died (exit code %s); restarting", acq.exitcode)
                     counters["acquisition_restarts"] += 1
                     time.sleep(st.restart_backoff_s)
-                    acq = AcquisitionProcess(factory, ring, settings=cam_settings)
+                    acq = AcquisitionProcess(factory, ring, settings=cam_settings, options=self.acquisition_options)
                     acq.start()
                     continue
                 # ---- take up to B pairs, waiting at most block_wait_ms for the block to fill
                 n = 0
-                windows = decoder.needed_windows() if hasattr(decoder, "needed_windows") else None
+                windows = decoder.needed_windows()
                 t_fill = time.monotonic() + st.block_wait_ms / 1000
                 if not draining:
                     # sleep until the block is about due instead of waking for every pair

@@ -21,6 +21,8 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    import iscd.cli.sections  # noqa: F401  (every section's owner, for --describe and --check)
+
     if args.describe:
         print(C.describe())
         return 0

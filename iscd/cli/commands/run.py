@@ -128,11 +128,13 @@ def run(args: argparse.Namespace) -> int:
 
     from iscd.drivers.registry import check_stereo_config
 
+    import iscd.cli.sections  # noqa: F401  (every section's owner, to validate them all)
+
     cfg = C.load(args.config)
     C.check_extra_sections(cfg)
     check_stereo_config(cfg)  # refuse a bad camera/board config before spawning anything
     # the inputs the daemon would only read after starting its processes are checked here
-    settings = C.build_section(DaemonSettings, dict(cfg.extra.get("daemon", {})), "daemon")
+    settings = C.section(cfg, DaemonSettings)
     out = args.out or settings.out or None
     if out:
         check_out_path(out, "--out" if args.out else "daemon.out")

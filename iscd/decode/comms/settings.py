@@ -1,6 +1,6 @@
 """The ``[receiver]`` config section: demodulator choices and thresholds.
 
-Every key has a default; ``receiver_config(cfg)`` validates ``cfg.extra["receiver"]`` with
+Every key has a default; ``receiver_config(cfg)`` validates the ``[receiver]`` table with
 :func:`iscd.core.config.build_section`, so a bad value is a one-line ConfigError naming the key.
 """
 
@@ -9,7 +9,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Any
 
-from iscd.core.config import Config, ConfigError, build_section
+from iscd.core.config import Config, ConfigError, build_section, config_section
 
 
 def _f(default: Any, lo: float | None = None, hi: float | None = None, lo_open: bool = False,
@@ -18,6 +18,7 @@ def _f(default: Any, lo: float | None = None, hi: float | None = None, lo_open: 
                                             "choices": choices, "doc": doc})
 
 
+@config_section("receiver")
 @dataclass(frozen=True)
 class ReceiverConfig:
     """How packets are found and decided (docs/receiver.md)."""
@@ -69,7 +70,7 @@ def receiver_config(cfg: Config | None = None, table: dict[str, Any] | None = No
     Parameters
     ----------
     cfg : Config or None
-        A loaded configuration; its ``[receiver]`` table is read from ``cfg.extra``.
+        A loaded configuration; its ``[receiver]`` table is read.
         ``None`` (with no ``table``) gives every default.
     table : dict or None
         A raw ``[receiver]`` table, used instead of ``cfg`` when given.
@@ -86,7 +87,7 @@ def receiver_config(cfg: Config | None = None, table: dict[str, Any] | None = No
         names the key).
     """
     if table is None:
-        table = (cfg.extra.get("receiver", {}) if cfg is not None else {})
+        table = cfg.table("receiver") if cfg is not None else {}
     if not isinstance(table, dict):
         raise ConfigError(f"receiver: expected a table [receiver], got {table!r}")
     return build_section(ReceiverConfig, table, "receiver")

@@ -10,7 +10,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Any
 
-from iscd.core.config import Config, build_section
+from iscd.core.config import Config, config_section, section
 from iscd.decode.ranging.estimators import METHODS
 
 PROJECT_METHODS = ("iscd-fast", "iscd")
@@ -23,6 +23,7 @@ def _f(default: Any, lo: float | None = None, hi: float | None = None, lo_open: 
     return field(default=default, metadata={"lo": lo, "hi": hi, "lo_open": lo_open, "choices": choices, "doc": doc})
 
 
+@config_section("ranging")
 @dataclass(frozen=True)
 class RangingSettings:
     """Stereo ranging (docs/ranging.md)."""
@@ -96,4 +97,4 @@ def ranging_config(cfg: Config) -> RangingSettings:
     -------
     RangingSettings
     """
-    return build_section(RangingSettings, dict(cfg.extra.get("ranging", {})), "ranging")
+    return section(cfg, RangingSettings)
