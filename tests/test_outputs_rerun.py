@@ -232,3 +232,21 @@ def test_command_line_flags_like_rerun_examples(tmp_path: Path) -> None:
     view.close()
     assert RrdReader(out).recordings()
     assert not rerun_view_from(p.parse_args([])).enabled       # nothing asked: disabled
+
+
+def test_write_is_the_fanout_entry_and_shows_a_packets_levels(tmp_path: Path) -> None:
+    """Through :class:`iscd.outputs.Outputs` the view gets records by ``write``: the record is
+    logged and a packet's levels appear per LED, symbol k at frame + k * frames_per_symbol."""
+    from iscd.outputs import Outputs
+
+    path = tmp_path / "fan.rrd"
+    levels = np.arange(1, 13).reshape(3, 4) % 8 + 1
+    view = RerunView(save=str(path), fps=1000.0, frames_per_symbol=2.0, n_leds=4)
+    outs = Outputs([view])
+    outs.write({"type": "packet", "tx": 0, "frame": 40, "t_s": 0.040, "ok": True,
+                "payload_hex": "00", "levels": levels.ravel().tolist()})
+    outs.close()
+    assert outs.counters()["output_errors"] == 0
+    lv = read_rrd(path)["/levels"]["Scalars:scalars"]
+    assert [f for f, _ in lv] == [40, 42, 44]
+    np.testing.assert_array_equal([v for _, v in lv], levels)

@@ -6,7 +6,8 @@
   (loopback by default) for other in-car software.
 - :class:`~iscd.outputs.rerun_view.RerunView` — images with LED boxes, luminance, levels,
   range, counters in the Rerun viewer (``--connect``, ``--serve``, ``--save FILE.rrd``).
-- :class:`Outputs` — one ``write(record)`` for all of them; never raises.
+- :class:`Outputs` — one ``write(record)`` for all of them (each an
+  :class:`~iscd.outputs.base.Output`); never raises.
 
 The config sections ``[output]`` and ``[rerun]`` are :class:`OutputConfig` and
 :class:`RerunConfig` (docs/outputs.md). Submodules are imported lazily so that importing
@@ -16,9 +17,10 @@ this package does not load pyzmq or rerun-sdk.
 from __future__ import annotations
 
 import logging
+from collections.abc import Iterable
 from typing import TYPE_CHECKING, Any
 
-from iscd.outputs.base import (OutputConfig, OutputError, RerunConfig, output_config,  # noqa: F401
+from iscd.outputs.base import (Output, OutputConfig, OutputError, RerunConfig, output_config,  # noqa: F401
                                rerun_config)
 
 if TYPE_CHECKING:
@@ -31,50 +33,47 @@ log = logging.getLogger(__name__)
 
 
 class Outputs:
-    """Fan-out of records to the enabled outputs; :meth:`write` never raises.
+    """Fan-out of records to the enabled outputs (picamera2's encoder -> outputs); never raises.
 
-    Any of ``jsonl``, ``zmq``, ``rerun`` may be None. An exception from one output is
-    logged (rate-limited) and counted in :attr:`errors`; the others still get the record.
+    Each output is an :class:`~iscd.outputs.base.Output` (``write(record)``, ``counters()``,
+    ``close()``; duck-typed objects with only ``write`` are fine). An exception from one output
+    is logged (rate-limited) and counted in :attr:`errors` (``output_errors`` in the stats);
+    the others still get the record: an output never stops the decoding.
     """
 
-    def __init__(self, jsonl: "JsonlWriter | None" = None, zmq: "ZmqPublisher | None" = None,
-                 rerun: "RerunView | None" = None) -> None:
-        self.jsonl, self.zmq, self.rerun = jsonl, zmq, rerun
+    def __init__(self, outputs: "Iterable[Output]" = ()) -> None:
+        self.outputs: list[Any] = list(outputs)
         self.errors = 0
 
-    def _each(self) -> list[tuple[str, Any]]:
-        return [(n, o) for n, o in (("jsonl", self.jsonl), ("zmq", self.zmq), ("rerun", self.rerun))
-                if o is not None]
-
     def write(self, record: dict[str, Any]) -> None:
-        for name, out in self._each():
+        """One record to every output."""
+        for out in self.outputs:
             try:
-                if name == "rerun":
-                    out.log_record(record)
-                else:
-                    out.write(record)
+                out.write(record)
             except Exception as e:  # noqa: BLE001 - an output must never stop the daemon
                 self.errors += 1
                 if self.errors <= 5 or self.errors % 100 == 0:
-                    log.error("output %s failed: %s (error %d)", name, e, self.errors)
+                    log.error("output %s failed: %s (error %d)", type(out).__name__, e, self.errors)
 
-    def maybe_flush(self) -> None:
-        if self.jsonl is not None:
-            self.jsonl.maybe_flush()
-
-    def counters(self) -> dict[str, int]:
-        """Drop and error counters of every output, for the stats record."""
-        out: dict[str, int] = {"output_errors": self.errors}
-        for _, o in self._each():
-            out.update(o.counters())
+    def counters(self) -> dict[str, int | float]:
+        """``output_errors`` and every output's own numeric counters, for the stats record."""
+        out: dict[str, int | float] = {"output_errors": self.errors}
+        for o in self.outputs:
+            c = getattr(o, "counters", None)
+            if callable(c):
+                out.update({k: v for k, v in c().items() if isinstance(v, (int, float))})
         return out
 
     def close(self) -> None:
-        for name, out in self._each():
+        """Close every output (each once; an error is logged, the rest still close)."""
+        for o in self.outputs:
+            close = getattr(o, "close", None)
+            if not callable(close):
+                continue
             try:
-                out.close()
+                close()
             except Exception as e:  # noqa: BLE001
-                log.error("closing output %s failed: %s", name, e)
+                log.error("closing output %s failed: %s", type(o).__name__, e)
 
 
 def __getattr__(name: str) -> Any:
@@ -93,5 +92,5 @@ def __getattr__(name: str) -> Any:
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
-__all__ = ["JsonlWriter", "OutputConfig", "OutputError", "Outputs", "RerunConfig", "RerunView",
+__all__ = ["JsonlWriter", "Output", "OutputConfig", "OutputError", "Outputs", "RerunConfig", "RerunView",
            "ZmqPublisher", "output_config", "rerun_config"]

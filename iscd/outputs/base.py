@@ -25,6 +25,25 @@ def _f(default: Any, *, lo: float | None = None, hi: float | None = None,
                  metadata={"lo": lo, "hi": hi, "lo_open": False, "choices": choices, "doc": doc})
 
 
+class Output:
+    """What every output of the daemon is (picamera2's ``Output``): it takes SPEC section 7
+    records one by one; :class:`~iscd.outputs.Outputs` fans each record out to all of them.
+
+    Subclasses implement :meth:`write`; :meth:`counters` (numbers for the stats record) and
+    :meth:`close` (idempotent) default to nothing."""
+
+    def write(self, record: dict[str, Any]) -> None:
+        """Take one record (it may raise: the fan-out counts and logs it)."""
+        raise NotImplementedError
+
+    def counters(self) -> dict[str, int]:
+        """Drop and error counters for the daemon's stats record."""
+        return {}
+
+    def close(self) -> None:
+        """Flush and release; called once at the end, must be safe to call again."""
+
+
 @config_section("output")
 @dataclass(frozen=True)
 class OutputConfig:

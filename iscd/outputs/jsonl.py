@@ -40,7 +40,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from iscd.outputs.base import OutputError
+from iscd.outputs.base import Output, OutputError
 
 log = logging.getLogger(__name__)
 
@@ -115,7 +115,7 @@ def read_records(path: str | Path, *, rotated: bool = True) -> list[dict[str, An
     return out
 
 
-class JsonlWriter:
+class JsonlWriter(Output):
     """Appends records to ``path`` as JSON Lines; see the module docstring for flushing and rotation.
 
     ``rotate_bytes``: size at which the file is rotated, bytes. ``flush_interval_s``: longest

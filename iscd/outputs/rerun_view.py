@@ -39,7 +39,7 @@ from typing import Any, TypeVar
 
 import numpy as np
 
-from iscd.outputs.base import OutputError
+from iscd.outputs.base import Output, OutputError
 
 log = logging.getLogger(__name__)
 
@@ -103,7 +103,7 @@ class _SeriesBuffer:
         self.values.append(values)
 
 
-class RerunView:
+class RerunView(Output):
     """Streams the daemon's state to Rerun (see the module docstring for the entities).
 
     Sinks, as Rerun's own examples name them (any combination):
@@ -116,6 +116,8 @@ class RerunView:
     ``jpeg_quality``: 1..100 compresses 8-bit images (0 = raw). ``fps`` and
     ``frames_per_symbol`` place the rows of a packet's level matrix on the frame timeline.
     ``flush_interval_s``: how long time series are buffered before they are sent, s.
+    ``n_leds``: LEDs of the transmitter, to show a packet record's ``levels`` per LED (0: not
+    shown) when records come through :meth:`write` (the daemon's fan-out).
 
     Raises :class:`~iscd.outputs.OutputError` when a sink cannot be set up (bad URL,
     unwritable file, port in use). Not thread-safe: call it from one thread (the decode loop).
@@ -126,7 +128,7 @@ class RerunView:
                  jpeg_quality: int = 0, fps: float = 1000.0, frames_per_symbol: float = 2.0,
                  flush_interval_s: float = 0.25, serve_bind: str = "127.0.0.1",
                  serve_port: int = 9876, server_memory_limit: str = "256MiB",
-                 recording_id: str | None = None) -> None:
+                 recording_id: str | None = None, n_leds: int = 0) -> None:
         if image_every < 1:
             raise OutputError(f"image_every must be >= 1, got {image_every}")
         if not 0 < image_scale <= 1:
@@ -137,6 +139,7 @@ class RerunView:
         self.fps = float(fps)
         self.frames_per_symbol = float(frames_per_symbol)
         self.flush_interval_s = float(flush_interval_s)
+        self.n_leds = int(n_leds)
         self.errors = 0
         self.images_logged = 0
         self.serve_uri: str | None = None
@@ -260,6 +263,14 @@ class RerunView:
         ts = float(t_s) + (fr - int(frame)) / self.fps
         self._add("levels", fr, ts, lv, names="led", points=True)
         self._maybe_flush()
+
+    def write(self, record: dict[str, Any]) -> None:
+        """A record from the daemon's fan-out (:class:`~iscd.outputs.Outputs`): logged with
+        :meth:`log_record`, and a packet's decided levels with :meth:`log_levels`."""
+        self.log_record(record)
+        if self.n_leds and record.get("type") == "packet" and record.get("levels"):
+            self.log_levels(record["frame"], record["t_s"],
+                            np.asarray(record["levels"]).reshape(-1, self.n_leds))
 
     @_guarded
     def log_record(self, record: dict[str, Any]) -> None:
@@ -456,7 +467,7 @@ def add_rerun_arguments(parser: Any) -> None:
 
 
 def rerun_view_from(args: Any, cfg: Any = None, *, fps: float = 1000.0,
-                    frames_per_symbol: float = 2.0) -> RerunView:
+                    frames_per_symbol: float = 2.0, n_leds: int = 0) -> RerunView:
     """A :class:`RerunView` from the command-line flags of :func:`add_rerun_arguments`, falling
     back to the ``[rerun]`` section ``cfg`` (a :class:`~iscd.outputs.RerunConfig`, or None
     for defaults). Disabled when neither asks for a sink."""
@@ -471,4 +482,4 @@ def rerun_view_from(args: Any, cfg: Any = None, *, fps: float = 1000.0,
                      image_every=rc.image_every, image_scale=rc.image_scale,
                      jpeg_quality=rc.jpeg_quality, fps=fps, frames_per_symbol=frames_per_symbol,
                      serve_bind=rc.serve_bind, serve_port=rc.serve_port,
-                     server_memory_limit=rc.server_memory_limit)
+                     server_memory_limit=rc.server_memory_limit, n_leds=n_leds)

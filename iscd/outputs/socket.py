@@ -26,7 +26,7 @@ from typing import Any
 
 import zmq
 
-from iscd.outputs.base import OutputError
+from iscd.outputs.base import Output, OutputError
 from iscd.outputs.jsonl import encode_record
 
 log = logging.getLogger(__name__)
@@ -61,7 +61,7 @@ def is_local_endpoint(endpoint: str) -> bool:
         return False
 
 
-class ZmqPublisher:
+class ZmqPublisher(Output):
     """Publishes records as ``[type, json]`` on ``endpoint`` (bound; subscribers connect).
 
     ``endpoint`` may use port ``*`` (``tcp://127.0.0.1:*``): :attr:`endpoint` then holds the
@@ -110,7 +110,7 @@ class ZmqPublisher:
             elif msg[:1] == b"\x00":
                 self.subscribers -= 1
 
-    def write(self, record: dict[str, Any]) -> bool:
+    def write(self, record: dict[str, Any]) -> bool:  # type: ignore[override]
         """Publish one record; False when it was dropped (full queue, bad record, closed).
 
         With no subscriber at all nothing is encoded or sent (True is returned: nothing was

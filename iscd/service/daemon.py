@@ -145,7 +145,7 @@ class Daemon:
             outs.append(ZmqPublisher(self.socket_endpoint, hwm=oc.zmq_hwm, allow_remote=oc.zmq_allow_remote))
         return outs
 
-    def _rerun(self) -> Any:
+    def _rerun(self, n_leds: int) -> Any:
         from types import SimpleNamespace
 
         from iscd.outputs import rerun_config
@@ -157,7 +157,7 @@ class Daemon:
             return None
         t = self.cfg.transmitter
         return rerun_view_from(SimpleNamespace(**opts), rc, fps=self.cfg.camera.fps,
-                               frames_per_symbol=self.cfg.camera.fps / t.symbol_rate_hz)
+                               frames_per_symbol=self.cfg.camera.fps / t.symbol_rate_hz, n_leds=n_leds)
 
     # ------------------------------------------------------------------ main loop
     def run(self) -> dict[str, Any]:
@@ -182,8 +182,10 @@ class Daemon:
         factory = functools.partial(make_stereo, cfg)
         cam_settings = (settings_from_config(cfg, "left"), settings_from_config(cfg, "right"))
         acq = AcquisitionProcess(factory, ring, settings=cam_settings, options=self.acquisition_options)
-        outputs = self._outputs()
-        view = self._rerun()
+        from iscd.outputs import Outputs
+
+        view = self._rerun(decoder.air.n_leds)  # also drawn on directly: images, luminance
+        outputs = Outputs([*self._outputs(), *([view] if view is not None else [])])
         notifier = Notifier.from_env()
         old_handlers = {}
         if self.install_signals:
@@ -202,7 +204,7 @@ class Daemon:
         arrival = np.zeros(B, np.int64)
         fps = cfg.camera.fps
         unpaired_watch = _UnpairedWatch()
-        counters = {"pairs_decoded": 0, "pair_gaps": 0, "decode_errors": 0, "acquisition_restarts": 0, "output_errors": 0,
+        counters = {"pairs_decoded": 0, "pair_gaps": 0, "decode_errors": 0, "acquisition_restarts": 0,
                     "stop_dropped": 0, "stop_demod_abandoned": 0}
         # the compiled kernels are loaded from the cache (or compiled) before the cameras
         # start and before READY=1: the first frames are not spent compiling
@@ -233,16 +235,7 @@ class Daemon:
 
         def emit(records: list[dict]) -> None:
             for r in records:
-                for o in outputs:
-                    try:
-                        o.write(r)
-                    except Exception as e:  # an output must never stop decoding
-                        counters["output_errors"] += 1
-                        log.error("output %s failed: %s", type(o).__name__, e)
-                if view is not None:
-                    view.log_record(r)
-                    if r.get("type") == "packet" and r.get("levels"):
-                        view.log_levels(r["frame"], r["t_s"], np.asarray(r["levels"]).reshape(-1, decoder.air.n_leds))
+                outputs.write(r)  # never raises: an output must never stop decoding
             self.records_written += len(records)
 
         def acq_running(now: float, a: Any = None) -> None:
@@ -328,16 +321,13 @@ class Daemon:
                    "cpu_cores": share, "cpu_cores_by_process": by_process, "rss_mb": round(rss / 2**20, 1),
                    "pair_gaps": counters["pair_gaps"],
                    "acquisition": a.as_dict(), "acquisition_restarts": counters["acquisition_restarts"],
-                   "output_errors": counters["output_errors"], "decode_errors": counters["decode_errors"],
+                   "decode_errors": counters["decode_errors"],
                    "stop_dropped": counters["stop_dropped"], "stop_demod_abandoned": counters["stop_demod_abandoned"],
                    # the frame rate the cameras report (after the device's own clamping)
                    "device_fps": [a.fps_mhz_left / 1000 or None, a.fps_mhz_right / 1000 or None],
                    "device_fps_mismatch": fps_state["mismatch"],
                    "demod_worker_restarts": decoder.counters.get("demod_worker_restarts", 0)}
-            for o in outputs:
-                c = getattr(o, "counters", None)
-                if callable(c):
-                    rec.update({k: v for k, v in c().items() if isinstance(v, (int, float))})
+            rec.update(outputs.counters())  # output_errors and each output's own counters
             return rec
 
         def discard_ring() -> int:
@@ -523,13 +513,7 @@ class Daemon:
                 acq.stop()
             except Exception as e:  # pragma: no cover - best effort on the way out
                 log.error("stopping acquisition: %s", e)
-            for o in outputs:
-                try:
-                    o.close()
-                except Exception as e:  # pragma: no cover
-                    log.error("closing output: %s", e)
-            if view is not None:
-                view.close()
+            outputs.close()  # the Rerun view among them
             ring.close()
             notifier.close()
             for sig, h in old_handlers.items():
