@@ -32,6 +32,7 @@ import numpy as np
 from iscd.calibration.io import StereoCalibration
 from iscd.core.airinterface import AirInterface
 from iscd.core.config import Config, config_section, section
+from iscd.core.records import RangeFilteredRecord, RangeLedsRecord, RangeRecord
 from iscd.decode.pipe import PipeDemodWorker as DemodWorker
 from iscd.decode.tracking.follow_kernel import follow_and_measure_compiled
 from iscd.decode.tracking.luminance import PixelBackground, area_sigma, follow_and_measure, grid_sample
@@ -366,8 +367,8 @@ class StreamDecoder:
             fid, ts = frame_ids.tolist(), t_s.tolist()
             for k, i in enumerate(ranged.tolist()):
                 if math.isfinite(z[k]):
-                    records.append({"type": "range", "tx": self.tx_index, "frame": fid[i], "t_s": ts[i],
-                                    "z_m": z[k], "disparity_px": dsp[k], "sigma_m": sg[k]})
+                    records.append(RangeRecord(tx=self.tx_index, frame=fid[i], t_s=ts[i], z_m=z[k],
+                                               disparity_px=dsp[k], sigma_m=sg[k]).to_json())
             self.counters["ranges"] += int(np.isfinite(res.z_m).sum())
             if self.kalman is not None:
                 records += self._filtered(frame_ids[ranged], t_s[ranged], res.z_m, res.sigma_m)
@@ -436,10 +437,10 @@ class StreamDecoder:
         for i in np.flatnonzero(np.asarray(frame_ids) % self.per_led_every == 0):
             est = self.led_ranger.measure(left[i], right[i], c_l[i], c_r[i])
             ok = est.valid
-            out.append({"type": "range_leds", "tx": self.tx_index, "frame": int(frame_ids[i]),
-                        "t_s": float(t_s[i]), "n_valid": int(ok.sum()),
-                        "z_m": [round(float(z), 4) if v else None for z, v in zip(est.z_m, ok)],
-                        "sigma_m": [round(float(q), 4) if v else None for q, v in zip(est.sigma_m, ok)]})
+            out.append(RangeLedsRecord(
+                tx=self.tx_index, frame=int(frame_ids[i]), t_s=float(t_s[i]), n_valid=int(ok.sum()),
+                z_m=[round(float(z), 4) if v else None for z, v in zip(est.z_m, ok)],
+                sigma_m=[round(float(q), 4) if v else None for q, v in zip(est.sigma_m, ok)]).to_json())
         return out
 
     def _filtered(self, frame_ids: np.ndarray, t_s: np.ndarray, z: np.ndarray, sig: np.ndarray) -> list[dict]:
@@ -453,9 +454,10 @@ class StreamDecoder:
                 continue
             st = kf.update(float(t_s[i]), float(z[i]), float(sig[i]))
             if math.isfinite(st.z_m):
-                out.append({"type": "range_filtered", "tx": self.tx_index, "frame": int(frame_ids[i]),
-                            "t_s": float(t_s[i]), "z_m": st.z_m, "sigma_m": st.sigma_z_m,
-                            "closing_speed_mps": st.closing_speed_mps, "accepted": st.accepted})
+                out.append(RangeFilteredRecord(
+                    tx=self.tx_index, frame=int(frame_ids[i]), t_s=float(t_s[i]), z_m=st.z_m,
+                    sigma_m=st.sigma_z_m, closing_speed_mps=st.closing_speed_mps,
+                    accepted=st.accepted).to_json())
         return out
 
     def finish(self) -> list[dict]:

@@ -35,6 +35,7 @@ from typing import Any
 import numpy as np
 
 from iscd.core.config import Config, ConfigError, config_section, section
+from iscd.core.records import StatsRecord
 
 log = logging.getLogger(__name__)
 
@@ -291,9 +292,7 @@ class Daemon:
                           "acquisition": cpu.shares.get(acq.pid) if acq.pid else None,
                           "demod_worker": (round(sum(cpu.shares.get(p, 0.0) for p in workers), 3)
                                            if any(p in cpu.shares for p in workers) else None)}
-            rec = {"type": "stats", "tx": 0, "frame": int(last_frame),
-                   "t_s": last_t_s,  # camera time of the last decoded frame, as in the other records
-                   "uptime_s": round(time.monotonic() - t_start, 3), "final": final,
+            rec = {"uptime_s": round(time.monotonic() - t_start, 3), "final": final,
                    # seconds since the acquisition started running (what --duration counts)
                    "acquiring_s": round(time.monotonic() - t_acq, 3) if t_acq is not None else 0.0,
                    "frames_in": int(a.frames_left + a.frames_right),
@@ -328,7 +327,9 @@ class Daemon:
                    "device_fps_mismatch": fps_state["mismatch"],
                    "demod_worker_restarts": decoder.counters.get("demod_worker_restarts", 0)}
             rec.update(outputs.counters())  # output_errors and each output's own counters
-            return rec
+            spec = {k: rec.pop(k) for k in StatsRecord.SPEC_FIELDS}
+            # t_s: camera time of the last decoded frame, as in the other records
+            return StatsRecord(tx=0, frame=int(last_frame), t_s=last_t_s, **spec, extra=rec).to_json()
 
         def discard_ring() -> int:
             """Take and drop what the ring still holds (the end of a run that is behind);

@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from iscd.core.errors import UserError
+from iscd.core.records import StatsRecord
 from iscd.cli.commands.run import add_calibration_options
 
 
@@ -154,13 +155,13 @@ def run(args: argparse.Namespace) -> int:
                 progress.update(len(lsel))
         emit(dec.finish())
         wall = time.perf_counter() - t0
-        stats = {"type": "stats", "tx": 0, "frame": int(left.frame_ids[li[-1]]),
-                 "t_s": float(left.frame_ids[li[-1]] / fps), "frames_in": int(left.n_frames + right.n_frames),
-                 "frames_dropped": int(unpaired), "pairs_decoded": int(li.size),
-                 "packets_ok": dec.counters["packets_ok"], "packets_bad": dec.counters["packets_bad"],
-                 "latency_ms_p50": None, "latency_ms_p99": None, "wall_s": round(wall, 3),
-                 "pairs_per_s": round(li.size / wall, 1) if wall > 0 else None,
-                 **{k: v for k, v in dec.counters.items() if k not in ("packets_ok", "packets_bad")}}
+        stats = StatsRecord(
+            tx=0, frame=int(left.frame_ids[li[-1]]), t_s=float(left.frame_ids[li[-1]] / fps),
+            frames_in=int(left.n_frames + right.n_frames), frames_dropped=int(unpaired),
+            pairs_decoded=int(li.size), packets_ok=dec.counters["packets_ok"],
+            packets_bad=dec.counters["packets_bad"], latency_ms_p50=None, latency_ms_p99=None,
+            extra={"wall_s": round(wall, 3), "pairs_per_s": round(li.size / wall, 1) if wall > 0 else None,
+                   **{k: v for k, v in dec.counters.items() if k not in ("packets_ok", "packets_bad")}}).to_json()
         out.write(stats)
     if progress is not None:
         progress.close()

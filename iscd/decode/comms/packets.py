@@ -24,6 +24,7 @@ import numpy as np
 
 from iscd.core.airinterface import HEADER_SYMBOLS, AirInterface
 from iscd.core.config import TransmitterConfig
+from iscd.core.records import PacketRecord
 from iscd.decode.comms.demod import PacketResult, Rejection, demodulate_packet
 from iscd.decode.comms.settings import ReceiverConfig
 from iscd.decode.comms.timing import coarse_header_search, luminance_range, normalized_mean
@@ -71,11 +72,10 @@ class Packet:
         ----------
         SPEC section 7 (output).
         """
-        return {"type": "packet", "tx": tx, "frame": int(self.frame), "t_s": float(self.t_s),
-                "crc_ok": bool(self.crc_ok),
-                "payload_hex": self.payload.hex() if self.crc_ok and self.payload is not None else "",
-                "levels": self.levels.reshape(-1).astype(int).tolist(),
-                **{k: v for k, v in self.quality.items()}}
+        return PacketRecord(
+            tx=tx, frame=int(self.frame), t_s=float(self.t_s), crc_ok=bool(self.crc_ok),
+            payload_hex=self.payload.hex() if self.crc_ok and self.payload is not None else "",
+            levels=self.levels.reshape(-1).astype(int).tolist(), extra=dict(self.quality)).to_json()
 
 
 class PacketAssembler:

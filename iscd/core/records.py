@@ -1,0 +1,146 @@
+"""The output records (SPEC section 7), typed: one dataclass per record ``type``.
+
+Every record has ``type``, ``tx`` (transmitter index), ``frame`` (left-camera frame index)
+and ``t_s`` (s, camera time). The producers (the decoder, the daemon, ``iscd replay``) build
+these and hand on ``to_json()``: a plain dict of JSON types, keys in the order below, which the
+outputs (JSON Lines, ZeroMQ, Rerun) write as they are. :func:`check_record` tells whether a
+dict read back (a file, the socket) has what SPEC section 7 promises for its type.
+
+Fields are stable (SPEC section 7: "keep these stable; extend them freely"): new ones are
+added, none renamed. A record's own extras (a packet's quality metrics, the stats' counters)
+go in ``extra`` and are written after the fixed fields.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+from typing import Any, ClassVar
+
+__all__ = ["PacketRecord", "RangeFilteredRecord", "RangeLedsRecord", "RangeRecord", "RECORD_TYPES",
+           "RecordError", "StatsRecord", "check_record"]
+
+
+class RecordError(ValueError):
+    """A dict that is not a record of its type (a key missing or of the wrong type)."""
+
+
+_FIELDS: dict[type, tuple[str, ...]] = {}
+
+
+@dataclass(frozen=True, slots=True)
+class _Record:
+    TYPE: ClassVar[str] = ""
+    tx: int
+    frame: int
+    t_s: float | None
+    extra: dict[str, Any] = field(default_factory=dict)
+
+    def to_json(self) -> dict[str, Any]:
+        """The record as written: ``type`` first, then the fields in order, then ``extra``."""
+        names = _FIELDS.get(type(self))
+        if names is None:
+            names = _FIELDS[type(self)] = tuple(f.name for f in dataclasses.fields(self) if f.name != "extra")
+        out: dict[str, Any] = {"type": self.TYPE}
+        for n in names:
+            out[n] = getattr(self, n)
+        if self.extra:
+            out.update(self.extra)
+        return out
+
+
+@dataclass(frozen=True, slots=True)
+class RangeRecord(_Record):
+    """``range``: the transmitter's distance on one frame (SPEC section 7)."""
+
+    TYPE: ClassVar[str] = "range"
+    z_m: float = float("nan")
+    """distance along the left camera's optical axis, m"""
+    disparity_px: float = float("nan")
+    """stereo disparity, px"""
+    sigma_m: float = float("nan")
+    """the estimator's standard deviation of z_m, m"""
+
+
+@dataclass(frozen=True, slots=True)
+class PacketRecord(_Record):
+    """``packet``: one packet found (SPEC section 7); ``extra`` holds the quality metrics."""
+
+    TYPE: ClassVar[str] = "packet"
+    crc_ok: bool = False
+    payload_hex: str = ""
+    """the payload, hex ('' unless the CRC holds: light is an untrusted channel)"""
+    levels: list[int] = field(default_factory=list)
+    """the F·N decided data levels 1..M, symbol time major"""
+
+
+@dataclass(frozen=True, slots=True)
+class RangeLedsRecord(_Record):
+    """``range_leds``: one range per LED of an array (``[ranging] per_led``); None where an
+    LED has no valid range."""
+
+    TYPE: ClassVar[str] = "range_leds"
+    n_valid: int = 0
+    z_m: list[float | None] = field(default_factory=list)
+    sigma_m: list[float | None] = field(default_factory=list)
+
+
+@dataclass(frozen=True, slots=True)
+class RangeFilteredRecord(_Record):
+    """``range_filtered``: Kalman-filtered range and closing speed (``[ranging] kalman``)."""
+
+    TYPE: ClassVar[str] = "range_filtered"
+    z_m: float = float("nan")
+    sigma_m: float = float("nan")
+    closing_speed_mps: float = float("nan")
+    """positive when the transmitter comes closer, m/s"""
+    accepted: bool = True
+    """False when the measurement was gated out as an outlier"""
+
+
+@dataclass(frozen=True, slots=True)
+class StatsRecord(_Record):
+    """``stats``: every ``stats_interval_s`` of a run and once at its end (SPEC section 7);
+    ``extra`` holds every finer counter."""
+
+    TYPE: ClassVar[str] = "stats"
+    SPEC_FIELDS: ClassVar[tuple[str, ...]] = ("frames_in", "frames_dropped", "pairs_decoded", "packets_ok",
+                                              "packets_bad", "latency_ms_p50", "latency_ms_p99")
+    frames_in: int = 0
+    frames_dropped: int = 0
+    pairs_decoded: int = 0
+    packets_ok: int = 0
+    packets_bad: int = 0
+    latency_ms_p50: float | None = None
+    latency_ms_p99: float | None = None
+
+
+RECORD_TYPES: dict[str, type[_Record]] = {c.TYPE: c for c in
+                                          (RangeRecord, PacketRecord, RangeLedsRecord, RangeFilteredRecord, StatsRecord)}
+
+_NUMBER = (int, float)
+_CHECKS: dict[str, dict[str, tuple[type, ...]]] = {
+    "range": {"z_m": _NUMBER, "disparity_px": _NUMBER, "sigma_m": _NUMBER},
+    "packet": {"crc_ok": (bool,), "payload_hex": (str,), "levels": (list,)},
+    "range_leds": {"n_valid": (int,), "z_m": (list,), "sigma_m": (list,)},
+    "range_filtered": {"z_m": _NUMBER, "sigma_m": _NUMBER, "closing_speed_mps": _NUMBER, "accepted": (bool,)},
+    "stats": {"frames_in": (int,), "frames_dropped": (int,), "pairs_decoded": (int,), "packets_ok": (int,),
+              "packets_bad": (int,), "latency_ms_p50": (*_NUMBER, type(None)),
+              "latency_ms_p99": (*_NUMBER, type(None))},
+}
+
+
+def check_record(record: dict[str, Any]) -> str:
+    """The record's type, after checking that it has every field SPEC section 7 promises
+    for it, of the right JSON type. Raises :class:`RecordError` naming the field."""
+    kind = record.get("type")
+    if kind not in _CHECKS:
+        raise RecordError(f"record type {kind!r} unknown (known: {', '.join(_CHECKS)})")
+    common: dict[str, tuple[type, ...]] = {"tx": (int,), "frame": (int,), "t_s": (*_NUMBER, type(None))}
+    for key, types in {**common, **_CHECKS[kind]}.items():
+        if key not in record:
+            raise RecordError(f"{kind} record: no {key!r}")
+        v = record[key]
+        if not isinstance(v, types) or (isinstance(v, bool) and bool not in types):
+            raise RecordError(f"{kind} record: {key} = {v!r} is not {' or '.join(t.__name__ for t in types)}")
+    return kind
