@@ -9,7 +9,7 @@ from pathlib import Path
 import pytest
 
 from iscd.core import config as C
-from iscd.core.records import (RECORD_TYPES, PacketRecord, RangeRecord, RecordError, StatsRecord,
+from iscd.core.records import (RECORD_TYPES, PacketRecord, RangeFilteredRecord, RangeRecord, RecordError, StatsRecord,
                                check_record)
 from iscd.outputs.jsonl import read_records
 from iscd.service.daemon import Daemon
@@ -25,6 +25,11 @@ def test_to_json_order_and_extras() -> None:
     s = StatsRecord(tx=0, frame=-1, t_s=None, extra={"uptime_s": 0.5}).to_json()
     assert s["latency_ms_p99"] is None and check_record(s) == "stats"
     assert set(RECORD_TYPES) == {"range", "packet", "range_leds", "range_filtered", "stats"}
+    # the JSON Lines writer writes a non-finite number as null: read back, it is still a record
+    f = RangeFilteredRecord(tx=0, frame=1, t_s=0.001, z_m=30.0, sigma_m=0.1,
+                            closing_speed_mps=float("nan")).to_json()
+    assert check_record({**f, "closing_speed_mps": None}) == "range_filtered"
+    assert StatsRecord.spec_fields()[:2] == ("frames_in", "frames_dropped")
 
 
 @pytest.mark.parametrize("bad, msg", [

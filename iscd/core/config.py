@@ -406,10 +406,7 @@ def section(cfg: "Config", cls: type[_S]) -> _S:
     name = getattr(cls, "__config_section__", None)
     if name is None or _OWNERS.get(name) is not cls:
         raise TypeError(f"{cls.__qualname__} is not declared with @config_section")
-    table = cfg.extra.get(name, {})
-    if not isinstance(table, dict):
-        raise ConfigError(f"{name}: expected a table [{name}], got {table!r}")
-    return build_section(cls, dict(table), name)
+    return build_section(cls, cfg.table(name), name)
 
 
 def check_extra_sections(cfg: "Config") -> None:

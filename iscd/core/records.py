@@ -14,6 +14,8 @@ go in ``extra`` and are written after the fixed fields.
 from __future__ import annotations
 
 import dataclasses
+import types
+import typing
 from dataclasses import dataclass, field
 from typing import Any, ClassVar
 
@@ -35,6 +37,11 @@ class _Record:
     frame: int
     t_s: float | None
     extra: dict[str, Any] = field(default_factory=dict)
+
+    @classmethod
+    def spec_fields(cls) -> tuple[str, ...]:
+        """The fields of this type after ``type``, ``tx``, ``frame``, ``t_s`` (``extra`` aside)."""
+        return tuple(f.name for f in dataclasses.fields(cls) if f.name not in ("tx", "frame", "t_s", "extra"))
 
     def to_json(self) -> dict[str, Any]:
         """The record as written: ``type`` first, then the fields in order, then ``extra``."""
@@ -104,8 +111,6 @@ class StatsRecord(_Record):
     ``extra`` holds every finer counter."""
 
     TYPE: ClassVar[str] = "stats"
-    SPEC_FIELDS: ClassVar[tuple[str, ...]] = ("frames_in", "frames_dropped", "pairs_decoded", "packets_ok",
-                                              "packets_bad", "latency_ms_p50", "latency_ms_p99")
     frames_in: int = 0
     frames_dropped: int = 0
     pairs_decoded: int = 0
@@ -118,16 +123,25 @@ class StatsRecord(_Record):
 RECORD_TYPES: dict[str, type[_Record]] = {c.TYPE: c for c in
                                           (RangeRecord, PacketRecord, RangeLedsRecord, RangeFilteredRecord, StatsRecord)}
 
-_NUMBER = (int, float)
-_CHECKS: dict[str, dict[str, tuple[type, ...]]] = {
-    "range": {"z_m": _NUMBER, "disparity_px": _NUMBER, "sigma_m": _NUMBER},
-    "packet": {"crc_ok": (bool,), "payload_hex": (str,), "levels": (list,)},
-    "range_leds": {"n_valid": (int,), "z_m": (list,), "sigma_m": (list,)},
-    "range_filtered": {"z_m": _NUMBER, "sigma_m": _NUMBER, "closing_speed_mps": _NUMBER, "accepted": (bool,)},
-    "stats": {"frames_in": (int,), "frames_dropped": (int,), "pairs_decoded": (int,), "packets_ok": (int,),
-              "packets_bad": (int,), "latency_ms_p50": (*_NUMBER, type(None)),
-              "latency_ms_p99": (*_NUMBER, type(None))},
-}
+def _json_types(tp: Any) -> tuple[type, ...]:
+    """The JSON value types a field of annotation ``tp`` is read back as: a float may come as
+    an int, or as null (the JSON Lines writer writes non-finite numbers as null)."""
+    if typing.get_origin(tp) in (typing.Union, types.UnionType):
+        return tuple(dict.fromkeys(t for a in typing.get_args(tp) for t in _json_types(a)))
+    if tp is float:
+        return (int, float, type(None))
+    if typing.get_origin(tp) is list:
+        return (list,)
+    return (type(None),) if tp is type(None) else (tp,)
+
+
+def _schema(cls: type[_Record]) -> dict[str, tuple[type, ...]]:
+    hints = typing.get_type_hints(cls)
+    return {f.name: _json_types(hints[f.name]) for f in dataclasses.fields(cls) if f.name != "extra"}
+
+
+_CHECKS: dict[str, dict[str, tuple[type, ...]]] = {k: _schema(c) for k, c in RECORD_TYPES.items()}
+"""Per record type, each SPEC field and the JSON types it may hold (from the dataclasses)."""
 
 
 def check_record(record: dict[str, Any]) -> str:
@@ -136,11 +150,10 @@ def check_record(record: dict[str, Any]) -> str:
     kind = record.get("type")
     if kind not in _CHECKS:
         raise RecordError(f"record type {kind!r} unknown (known: {', '.join(_CHECKS)})")
-    common: dict[str, tuple[type, ...]] = {"tx": (int,), "frame": (int,), "t_s": (*_NUMBER, type(None))}
-    for key, types in {**common, **_CHECKS[kind]}.items():
+    for key, ok in _CHECKS[kind].items():
         if key not in record:
             raise RecordError(f"{kind} record: no {key!r}")
         v = record[key]
-        if not isinstance(v, types) or (isinstance(v, bool) and bool not in types):
-            raise RecordError(f"{kind} record: {key} = {v!r} is not {' or '.join(t.__name__ for t in types)}")
+        if not isinstance(v, ok) or (isinstance(v, bool) and bool not in ok):
+            raise RecordError(f"{kind} record: {key} = {v!r} is not {' or '.join(t.__name__ for t in ok)}")
     return kind

@@ -327,7 +327,7 @@ class Daemon:
                    "device_fps_mismatch": fps_state["mismatch"],
                    "demod_worker_restarts": decoder.counters.get("demod_worker_restarts", 0)}
             rec.update(outputs.counters())  # output_errors and each output's own counters
-            spec = {k: rec.pop(k) for k in StatsRecord.SPEC_FIELDS}
+            spec = {k: rec.pop(k) for k in StatsRecord.spec_fields()}
             # t_s: camera time of the last decoded frame, as in the other records
             return StatsRecord(tx=0, frame=int(last_frame), t_s=last_t_s, **spec, extra=rec).to_json()
 
