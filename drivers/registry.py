@@ -70,11 +70,11 @@ def check_stereo_config(cfg: Any) -> str | None:
     link = emulated_board_link(cfg)  # ConfigError for a board that cannot be emulated
     if rig.stereo_url:
         return link
-    b = urls.backend(rig.backend)
+    b = urls.backend(rig.scheme)
     left, right = rig.camera_urls
     for side, url in (("left", left), ("right", right)):
         if not url:
-            raise ConfigError(f"rig.{side}: set the {side} camera's {b.what} for backend {rig.backend!r} "
+            raise ConfigError(f"rig.{side}: set the {side} camera's {b.what} for backend {rig.scheme!r} "
                               f"(or its URL, {b.form}; 'iscd devices' lists them)")
     if left == right:
         raise ConfigError(f"rig.right: the same camera as rig.left ({rig.left!r})")
@@ -102,7 +102,7 @@ def open_stereo(cfg: Any) -> tuple[Camera, Camera]:
     :class:`iscd.core.config.ConfigError` for a bad ``[rig]``) propagates.
     """
     left, right = make_stereo(cfg)
-    hardware = urls.backend(cfg.rig.backend).hardware
+    hardware = urls.backend(cfg.rig.scheme).hardware
     opened: list[Camera] = []
     try:
         for cam, side in ((left, "left"), (right, "right")):

@@ -26,19 +26,23 @@ a **camera** backend (the URL is one camera, :func:`camera_for_url`; a rig is tw
 left = trigger master, right = slave).
 
 Bad URLs raise :class:`CameraURLError` with one line naming the URL and the known forms.
-This module imports nothing of the project but :mod:`iscd.drivers.base`.
+The ``[rig]`` table's URLs are resolved here (:func:`resolve_rig`, installed into the config
+loader when this module is imported: the core knows no backend).
+This module imports nothing of the project but :mod:`iscd.drivers.base` and the config.
 """
 
 from __future__ import annotations
 
 import importlib
 import logging
+import sys
 import threading
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import Any
 from urllib.parse import parse_qsl, quote, unquote, urlencode, urlsplit
 
+from iscd.core.config import ConfigError, RigConfig, RigURLs, set_rig_resolver
 from iscd.drivers.base import Camera, CameraError
 
 log = logging.getLogger(__name__)
@@ -349,3 +353,93 @@ def discover(scheme: str | None = None, **hints: Any) -> list[dict[str, Any]]:
         if b.discover is not None:
             out.extend(b.discover(**hints))
     return out
+
+
+def resolve_rig(rig: RigConfig) -> RigURLs:
+    """``[rig]`` (:class:`iscd.core.config.RigConfig`) resolved against the registered
+    backends: the stereo URL, the (left, right) camera URLs (the old keys -- ``backend`` +
+    serial numbers / device paths, ``producer`` -- mapped to URLs) and the scheme. Installed
+    as the config's resolver when this module is imported
+    (:func:`iscd.core.config.set_rig_resolver`), so that ``[rig]`` is checked at load.
+
+    Raises
+    ------
+    ConfigError
+        One line naming the ``rig.`` key and the problem.
+    """
+    urls = sys.modules[__name__]
+
+    def parse(key: str, value: str) -> Any:
+        try:
+            return urls.parse_url(value)
+        except urls.CameraURLError as e:
+            raise ConfigError(f"rig.{key}: {e}") from None
+
+    known = urls.schemes()
+    if rig.backend and rig.backend not in known:
+        raise ConfigError(f"rig.backend: expected one of {list(known)} (the camera URL schemes), "
+                          f"got {rig.backend!r}")
+    if rig.url:
+        u = parse("url", rig.url)
+        if not u.backend.stereo:
+            raise ConfigError(f"rig.url: {rig.url!r} is one camera, not a stereo rig: set the two "
+                              f"cameras as rig.left and rig.right")
+        for side in ("left", "right"):
+            if getattr(rig, side):
+                raise ConfigError(f"rig.{side}: not used with rig.url = {rig.url!r} (that rig gives "
+                                  f"both cameras): remove it")
+        if rig.backend and rig.backend != u.scheme:
+            raise ConfigError(f"rig.backend: {rig.backend!r} contradicts rig.url = {rig.url!r} "
+                              f"(remove rig.backend: the URL names the backend)")
+        return RigURLs(u.url, ("", ""), u.scheme)
+    given = {side: getattr(rig, side) for side in ("left", "right")}
+    parsed = {side: parse(side, v) for side, v in given.items() if "://" in v}
+    for side, u in parsed.items():
+        if u.backend.stereo:
+            raise ConfigError(f"rig.{side}: {given[side]!r} is a whole stereo rig (both cameras): "
+                              f"set it as rig.url")
+    if len(parsed) == 1 and all(given.values()):
+        (side, u), = parsed.items()
+        other = "right" if side == "left" else "left"
+        raise ConfigError(f"rig.{other}: give a camera URL like rig.{side} ({u.scheme}://...), "
+                          f"not {given[other]!r}")
+    if len({u.scheme for u in parsed.values()}) > 1:
+        raise ConfigError(f"rig.right: {given['right']!r} is another backend than rig.left "
+                          f"{given['left']!r}: the two cameras of a rig use one backend")
+    if parsed:
+        scheme = next(iter(parsed.values())).scheme
+        if rig.backend and rig.backend != scheme:
+            side = next(iter(parsed))
+            raise ConfigError(f"rig.backend: {rig.backend!r} contradicts rig.{side} = {given[side]!r} "
+                              f"(remove rig.backend: the URLs name the backend)")
+    else:
+        scheme = rig.backend or "mock"
+    b = urls.backend(scheme)
+    if b.stereo:  # the old form: backend = "mock" (left/right unused, as before)
+        return RigURLs(urls.make_url(scheme, b.default_target or ""), ("", ""), scheme)
+    cams = []
+    for side, v in given.items():
+        if not v:
+            cams.append("")  # refused when the rig is built (make_stereo), as before
+            continue
+        if side in parsed:
+            u = parsed[side]
+        else:  # the old form: a serial number / user id or a device path
+            if b.target == "path":
+                import os.path
+
+                v = os.path.abspath(v)
+            u = parse(side, urls.make_url(scheme, v))
+        defaults = {opt: getattr(rig, key) for opt, key in b.rig_defaults.items()
+                    if getattr(rig, key, "") and u.option(opt) is None}
+        if defaults:
+            try:
+                u = u.with_options(**defaults)
+            except urls.CameraURLError as e:
+                raise ConfigError(f"rig.{b.rig_defaults[next(iter(defaults))]}: {e}") from None
+        cams.append(u.url)
+    return RigURLs("", (cams[0], cams[1]), scheme)
+
+
+
+set_rig_resolver(resolve_rig)

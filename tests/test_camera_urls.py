@@ -173,7 +173,7 @@ def test_mock_url_and_old_backend_key_give_the_same_rig():
     old = loads(SMALL_CAMERA + '[rig]\nbackend = "mock"\npace = false\nbuffer_frames = 5\n')
     new = loads(SMALL_CAMERA + '[rig]\nurl = "mock://default"\npace = false\nbuffer_frames = 5\n')
     assert old.rig.stereo_url == new.rig.stereo_url == "mock://default"
-    assert old.rig.backend == new.rig.backend == "mock"
+    assert old.rig.scheme == new.rig.scheme == "mock"
     a, b = registry.make_stereo(old), registry.make_stereo(new)
     assert a[0].rig.buffer_frames == b[0].rig.buffer_frames == 5
     (al, ar), (bl, br) = _first_pair(*a), _first_pair(*b)
@@ -237,7 +237,7 @@ def test_genicam_config_urls_and_old_keys_open_the_same_pair(no_env):
     old = loads(cam + f'[rig]\nbackend = "genicam"\nleft = "0"\nright = "2"\nproducer = "{VIKY}"\n')
     new = loads(cam + f'[rig]\nleft = "genicam://0?cti={VIKY}"\nright = "genicam://2?cti={VIKY}"\n')
     assert old.rig.camera_urls == new.rig.camera_urls == (f"genicam://0?cti={VIKY}", f"genicam://2?cti={VIKY}")
-    assert new.rig.backend == "genicam"
+    assert new.rig.scheme == "genicam"
     for cfg in (old, new):
         left, right = registry.open_stereo(cfg)
         try:
@@ -346,10 +346,10 @@ def test_old_keys_map_to_urls():
     # [rig] producer is the cti of a genicam URL that has none; a URL's own cti wins
     cfg = loads('[rig]\nleft = "genicam://0"\nright = "genicam://1?cti=/b.cti"\nproducer = "/a.cti"\n')
     assert cfg.rig.camera_urls == ("genicam://0?cti=/a.cti", "genicam://1?cti=/b.cti")
-    assert cfg.rig.backend == "genicam"
+    assert cfg.rig.scheme == "genicam"
     cfg = loads('[rig]\nbackend = "v4l2"\nleft = "/dev/video0"\nright = "/dev/video2"\n')
     assert cfg.rig.camera_urls == ("v4l2:///dev/video0", "v4l2:///dev/video2")
-    assert loads("").rig.stereo_url == "mock://default" and loads("").rig.backend == "mock"
+    assert loads("").rig.stereo_url == "mock://default" and loads("").rig.scheme == "mock"
     assert default_config().rig.stereo_url == "mock://default"
 
 
@@ -422,3 +422,26 @@ def test_devices_backend_comes_from_the_registry(capsys):
     assert err.count("\n") == 1 and "unknown camera backend 'firewire' (known: genicam, mock, v4l2, all)" in err
     assert cli.main(["-q", "devices", "--backend", "mock", "--no-boards", "--json"]) == 0
     assert json.loads(capsys.readouterr().out)["mock"] == {"urls": ["mock://default"]}
+
+
+def test_rig_urls_are_resolved_by_the_drivers_layer(monkeypatch):
+    """The core knows no camera backend: [rig]'s URLs are resolved by the resolver that
+    iscd.drivers.urls installs (checked at load once it is imported; else at first use)."""
+    from iscd.core import config as C
+
+    monkeypatch.setattr(C, "_RIG_RESOLVER", [])
+    rig = C.RigConfig(left="genicam://0", right="genicam://1")  # nothing resolved yet
+    with pytest.raises(RuntimeError, match="import iscd.drivers.urls"):
+        rig.camera_urls
+    monkeypatch.setattr(C, "_RIG_RESOLVER", [urls.resolve_rig])
+    assert rig.camera_urls == ("genicam://0", "genicam://1") and rig.scheme == "genicam"
+    assert rig == C.RigConfig(left="genicam://0", right="genicam://1")  # the cache is no field
+
+
+def test_the_core_loads_a_config_without_the_drivers():
+    code = ("import sys, iscd.core.config as C; cfg = C.default_config(); "
+            "assert not [m for m in sys.modules if m.startswith('iscd.drivers')], 'drivers imported'; "
+            "import iscd.drivers.urls; print(cfg.rig.stereo_url)")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.strip() == "mock://default"

@@ -18,7 +18,7 @@ def test_empty_config_is_chapter_4_defaults() -> None:
 
 def test_embedded_default_is_the_mock_rig() -> None:
     cfg = C.default_config()
-    assert cfg.rig.backend == "mock"
+    assert cfg.rig.scheme == "mock" and cfg.rig.stereo_url == "mock://default"
     assert cfg.scene.distance_m == 30
     assert cfg.transmitter.n_leds == 64
 
@@ -47,9 +47,9 @@ def test_missing_file(tmp_path) -> None:
         C.load(tmp_path / "nope.toml")
 
 
-def test_extra_sections_are_kept_raw() -> None:
+def test_owned_sections_are_kept_raw() -> None:
     cfg = C.loads("[daemon]\nring_ms = 200")
-    assert cfg.extra["daemon"] == {"ring_ms": 200}
+    assert cfg.owned["daemon"] == {"ring_ms": 200} == cfg.table("daemon")
 
 
 def test_cli_config_describe_and_check(tmp_path, capsys) -> None:

@@ -40,15 +40,15 @@ def test_core_config_names_no_module_above_it() -> None:
                 and ":" in s]
 
 
-def test_no_consumer_digs_in_cfg_extra() -> None:
+def test_no_consumer_digs_in_the_raw_tables() -> None:
     """Owners read their table with config.section(cfg, Owner); only iscd.core.config touches
-    Config.extra (and the receiver's raw-table entry point goes through Config.table)."""
+    Config.owned, the raw tables (the receiver's raw-table entry point goes through Config.table)."""
     offenders = []
     for p in [*(ROOT / "iscd").rglob("*.py"), *(ROOT / "drivers").rglob("*.py")]:
         if p == ROOT / "iscd/core/config.py":
             continue
         for node in ast.walk(ast.parse(p.read_text())):
-            if isinstance(node, ast.Attribute) and node.attr == "extra" and \
+            if isinstance(node, ast.Attribute) and node.attr in ("owned", "extra") and \
                     isinstance(node.value, ast.Name) and node.value.id in ("cfg", "c", "config"):
                 offenders.append(f"{p.relative_to(ROOT)}:{node.lineno}")
     assert not offenders, offenders

@@ -1,5 +1,5 @@
 """Property-based fuzzing (hypothesis) of the two text files a user hands iscd: the TOML
-config (:func:`iscd.core.config.loads` plus :func:`iscd.core.config.check_extra_sections`, as ``iscd
+config (:func:`iscd.core.config.loads` plus :func:`iscd.core.config.check_sections`, as ``iscd
 run`` does) and the stereo calibration (:func:`iscd.calibration.io.loads_calibration`). Any text
 gives a value or the module's own error (:class:`~iscd.core.config.ConfigError`,
 :class:`~iscd.calibration.io.CalibrationError`), whose message is one line.
@@ -73,7 +73,7 @@ def config_docs(draw: st.DrawFn) -> dict[str, dict[str, object]]:
 def _load_config(text: str) -> None:
     try:
         cfg = C.loads(text, "fuzz.toml")
-        C.check_extra_sections(cfg)
+        C.check_sections(cfg)
     except C.ConfigError as e:
         assert "\n" not in str(e).strip(), str(e)
 

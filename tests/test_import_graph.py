@@ -127,11 +127,7 @@ CONTRACT: list[tuple[tuple[str, ...], tuple[str, ...], str]] = [
 ]
 """(importers, what they must not import, why): the layers, one folder each."""
 
-EXCEPTIONS: dict[tuple[str, str], str] = {
-    ("iscd.core.config", "iscd.drivers.urls"):
-        "[rig] camera URLs are checked against the registered backends at load time; goes when "
-        "each config section is defined by the code that owns it (issue 13, item 3)",
-}
+EXCEPTIONS: dict[tuple[str, str], str] = {}
 """Imports that break the contract, each with why; the list only shrinks."""
 
 

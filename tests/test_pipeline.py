@@ -15,7 +15,7 @@ from iscd.sim.scene import Scene
 
 def _decode(cfg, frames: np.ndarray, block: int = 16, ranging: bool = False, async_demod: bool | str = False,
             on_block=None) -> tuple[list[dict], StreamDecoder, Scene]:
-    cfg = cfg.replace(extra={**cfg.extra, "tracking": {**dict(cfg.extra.get("tracking", {})), "ranging": ranging}})
+    cfg = cfg.replace(owned={**cfg.owned, "tracking": {**cfg.table("tracking"), "ranging": ranging}})
     scene = Scene(cfg)
     dec = StreamDecoder(cfg, async_demod=async_demod)
     H, W = cfg.camera.height, cfg.camera.width
@@ -125,9 +125,9 @@ def test_kalman_filtered_ranges_are_separate_records_and_follow_the_approach() -
     """[ranging] kalman: range_filtered records beside (never instead of) the per-frame ones;
     on a car closing at 40 km/h the filter's closing speed converges to 11.1 m/s."""
     cfg = override(single_led(default_config(), 40.0), scene={"speed_mps": 11.1})
-    cfg = cfg.replace(extra={"ranging": {"kalman": True}})
+    cfg = cfg.replace(owned={"ranging": {"kalman": True}})
     frames = np.arange(0, 800)
-    recs, dec, scene = _decode(cfg.replace(extra={**cfg.extra, "tracking": {"ranging": True}}), frames,
+    recs, dec, scene = _decode(cfg.replace(owned={**cfg.owned, "tracking": {"ranging": True}}), frames,
                                ranging=True)
     raw = [r for r in recs if r["type"] == "range"]
     filt = [r for r in recs if r["type"] == "range_filtered"]
@@ -145,7 +145,7 @@ def test_kalman_filtered_ranges_are_separate_records_and_follow_the_approach() -
 def test_restart_after_an_error_reacquires_and_decodes() -> None:
     """The daemon's recovery path: after restart() the decoder acquires again and decodes."""
     cfg = override(single_led(default_config(), 30.0), transmitter={"data_symbols": 100})
-    cfg = cfg.replace(extra={"tracking": {"ranging": False}})
+    cfg = cfg.replace(owned={"tracking": {"ranging": False}})
     scene = Scene(cfg)
     dec = StreamDecoder(cfg)
     L = np.empty((16, 512, 512), np.uint8)
@@ -225,7 +225,7 @@ def test_per_led_range_records_at_a_reduced_rate() -> None:
     (null where none), against the simulator's truth; separate from the whole-array
     range records, which stay one per frame."""
     cfg = default_config()
-    cfg = cfg.replace(extra={**cfg.extra, "ranging": {"per_led": True, "per_led_every_frames": 10}})
+    cfg = cfg.replace(owned={**cfg.owned, "ranging": {"per_led": True, "per_led_every_frames": 10}})
     frames = np.arange(0, 640)
     recs, dec, scene = _decode(cfg, frames, ranging=True)
     rl = [r for r in recs if r["type"] == "range_leds"]
@@ -308,7 +308,7 @@ def test_any_block_size_decodes_every_packet_from_the_first(block: int) -> None:
     blocks (``lit_background``; with each block's own minimum PWM-16 at blocks of 8 got 0
     of 4 packets): every packet, bit-exact, as with the daemon's usual 16."""
     cfg = override(default_config(), transmitter={"levels": 16})
-    cfg = cfg.replace(extra={**cfg.extra, "tracking": {"lit_background": True}})
+    cfg = cfg.replace(owned={**cfg.owned, "tracking": {"lit_background": True}})
     frames = np.arange(0, 2 * 1306 + 40)
     recs, dec, scene = _decode(cfg, frames, block=block)
     pk = [r for r in recs if r["type"] == "packet"]
@@ -344,7 +344,7 @@ def test_following_holds_against_a_prediction_half_a_pitch_off() -> None:
     on the next LED row for a block (297 wrong symbols, a lost packet). Below most of a
     pitch (the tracking's own test of following that walked off) the following holds."""
     cfg = default_config()
-    cfg = cfg.replace(extra={**cfg.extra, "tracking": {"ranging": False}})
+    cfg = cfg.replace(owned={**cfg.owned, "tracking": {"ranging": False}})
     scene = Scene(cfg)
     dec = StreamDecoder(cfg)
     H, W = cfg.camera.height, cfg.camera.width

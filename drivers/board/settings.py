@@ -73,9 +73,9 @@ def emulated_board_link(cfg: Any) -> str | None:
     s = board_settings(cfg)
     if not s.emulate:
         return None
-    if cfg.rig.backend != "mock":
+    if cfg.rig.scheme != "mock":
         raise ConfigError(f"board.emulate: the emulated board drives the simulated scene; it needs "
-                          f"rig.backend = \"mock\", not {cfg.rig.backend!r}")
+                          f"rig.backend = \"mock\", not {cfg.rig.scheme!r}")
     if not cfg.rig.pace:
         raise ConfigError("board.emulate: the board runs on wall-clock time; it needs rig.pace = true")
     link = s.port

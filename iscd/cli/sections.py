@@ -1,5 +1,6 @@
 """Imports every module that owns a config section, so that :func:`iscd.core.config.describe`
-and :func:`iscd.core.config.check_extra_sections` see them all.
+and :func:`iscd.core.config.check_sections` see them all, and the camera registry, whose
+resolver checks ``[rig]``'s camera URLs when a config is loaded (:mod:`iscd.drivers.urls`).
 
 The CLI sits above every layer, so it may import them; :mod:`iscd.core.config` sits below them
 all and knows the section names only (:data:`iscd.core.config.SECTION_NAMES`). A missing owner
@@ -12,6 +13,7 @@ from iscd.core import config as _config
 from iscd.decode.comms.settings import ReceiverConfig
 from iscd.decode.ranging.config import RangingSettings
 from iscd.decode.stream import PipelineSettings
+from iscd.drivers import urls as _camera_urls  # noqa: F401  (installs the [rig] resolver)
 from iscd.drivers.board.settings import BoardSettings
 from iscd.outputs.base import OutputConfig, RerunConfig
 from iscd.rig.acquisition import AcquisitionOptions

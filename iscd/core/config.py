@@ -216,100 +216,72 @@ class RigConfig:
                             "(genicam, v4l2: the ?buffers=N of their URL)")
     faults: list[FaultConfig] = _f([], doc="mock: injected faults")
 
+    def _resolved(self) -> "RigURLs":
+        """The URLs of this table resolved by the camera registry's resolver (once; the
+        table is frozen)."""
+        got = self.__dict__.get("_urls")
+        if got is None:
+            got = resolve_rig(self)
+            object.__setattr__(self, "_urls", got)
+        return got
+
     def __post_init__(self) -> None:
-        stereo_url, cams, backend = _resolve_rig(self)
-        object.__setattr__(self, "backend", backend)
-        object.__setattr__(self, "_stereo_url", stereo_url)
-        object.__setattr__(self, "_camera_urls", cams)
+        if _RIG_RESOLVER:  # checked at load when the camera registry is there (the CLI, the daemon)
+            self._resolved()
+
+    @property
+    def scheme(self) -> str:
+        """The camera backend of the rig, from its URLs (or ``backend``; ``mock`` without any)."""
+        return self._resolved().scheme
 
     @property
     def stereo_url(self) -> str:
         """The URL of the rig when it is one device (``mock://default``), else ''."""
-        return self._stereo_url  # type: ignore[attr-defined]
+        return self._resolved().stereo_url
 
     @property
     def camera_urls(self) -> tuple[str, str]:
         """The (left, right) camera URLs ('' where unset) when the rig is two cameras, with
         the old form mapped (``left = "0"`` of backend genicam -> ``genicam://0``) and
         ``producer`` as the ``cti`` of genicam URLs that lack it; ('', '') for a stereo URL."""
-        return self._camera_urls  # type: ignore[attr-defined]
+        return self._resolved().camera_urls
 
 
-def _resolve_rig(rig: RigConfig) -> tuple[str, tuple[str, str], str]:
-    """(stereo URL, (left URL, right URL), backend) of ``[rig]``, checked against the camera
-    registry (:mod:`iscd.drivers.urls`, which names the backends); ConfigError names the key."""
-    from iscd.drivers import urls
+@dataclass(frozen=True)
+class RigURLs:
+    """``[rig]`` resolved against the camera registry: ``stereo_url`` (a rig that is one
+    device, else ''), ``camera_urls`` (left, right; ('', '') for a stereo URL) and
+    ``scheme`` (the backend)."""
 
-    def parse(key: str, value: str) -> Any:
-        try:
-            return urls.parse_url(value)
-        except urls.CameraURLError as e:
-            raise ConfigError(f"rig.{key}: {e}") from None
+    stereo_url: str
+    camera_urls: tuple[str, str]
+    scheme: str
 
-    known = urls.schemes()
-    if rig.backend and rig.backend not in known:
-        raise ConfigError(f"rig.backend: expected one of {list(known)} (the camera URL schemes), "
-                          f"got {rig.backend!r}")
-    if rig.url:
-        u = parse("url", rig.url)
-        if not u.backend.stereo:
-            raise ConfigError(f"rig.url: {rig.url!r} is one camera, not a stereo rig: set the two "
-                              f"cameras as rig.left and rig.right")
-        for side in ("left", "right"):
-            if getattr(rig, side):
-                raise ConfigError(f"rig.{side}: not used with rig.url = {rig.url!r} (that rig gives "
-                                  f"both cameras): remove it")
-        if rig.backend and rig.backend != u.scheme:
-            raise ConfigError(f"rig.backend: {rig.backend!r} contradicts rig.url = {rig.url!r} "
-                              f"(remove rig.backend: the URL names the backend)")
-        return u.url, ("", ""), u.scheme
-    given = {side: getattr(rig, side) for side in ("left", "right")}
-    parsed = {side: parse(side, v) for side, v in given.items() if "://" in v}
-    for side, u in parsed.items():
-        if u.backend.stereo:
-            raise ConfigError(f"rig.{side}: {given[side]!r} is a whole stereo rig (both cameras): "
-                              f"set it as rig.url")
-    if len(parsed) == 1 and all(given.values()):
-        (side, u), = parsed.items()
-        other = "right" if side == "left" else "left"
-        raise ConfigError(f"rig.{other}: give a camera URL like rig.{side} ({u.scheme}://...), "
-                          f"not {given[other]!r}")
-    if len({u.scheme for u in parsed.values()}) > 1:
-        raise ConfigError(f"rig.right: {given['right']!r} is another backend than rig.left "
-                          f"{given['left']!r}: the two cameras of a rig use one backend")
-    if parsed:
-        scheme = next(iter(parsed.values())).scheme
-        if rig.backend and rig.backend != scheme:
-            side = next(iter(parsed))
-            raise ConfigError(f"rig.backend: {rig.backend!r} contradicts rig.{side} = {given[side]!r} "
-                              f"(remove rig.backend: the URLs name the backend)")
-    else:
-        scheme = rig.backend or "mock"
-    b = urls.backend(scheme)
-    if b.stereo:  # the old form: backend = "mock" (left/right unused, as before)
-        return urls.make_url(scheme, b.default_target or ""), ("", ""), scheme
-    cams = []
-    for side, v in given.items():
-        if not v:
-            cams.append("")  # refused when the rig is built (make_stereo), as before
-            continue
-        if side in parsed:
-            u = parsed[side]
-        else:  # the old form: a serial number / user id or a device path
-            if b.target == "path":
-                import os.path
 
-                v = os.path.abspath(v)
-            u = parse(side, urls.make_url(scheme, v))
-        defaults = {opt: getattr(rig, key) for opt, key in b.rig_defaults.items()
-                    if getattr(rig, key, "") and u.option(opt) is None}
-        if defaults:
-            try:
-                u = u.with_options(**defaults)
-            except urls.CameraURLError as e:
-                raise ConfigError(f"rig.{b.rig_defaults[next(iter(defaults))]}: {e}") from None
-        cams.append(u.url)
-    return "", (cams[0], cams[1]), scheme
+_RIG_RESOLVER: list[Callable[[RigConfig], RigURLs]] = []
+"""The resolver of ``[rig]`` camera URLs, set by the layer that knows the camera backends
+(:mod:`iscd.drivers.urls` registers one when it is imported); this module knows none."""
+
+
+def set_rig_resolver(fn: Callable[[RigConfig], RigURLs]) -> None:
+    """Install the function that resolves (and checks: ConfigError naming the ``rig.`` key)
+    a ``[rig]`` table's camera URLs. :mod:`iscd.drivers.urls` calls it when imported."""
+    _RIG_RESOLVER[:] = [fn]
+
+
+def resolve_rig(rig: RigConfig) -> RigURLs:
+    """``[rig]`` resolved by the installed resolver (:func:`set_rig_resolver`).
+
+    Raises
+    ------
+    ConfigError
+        A bad camera URL or key, naming it (``rig.left: ...``).
+    RuntimeError
+        No resolver installed (nothing imported :mod:`iscd.drivers.urls`): a programming error.
+    """
+    if not _RIG_RESOLVER:
+        raise RuntimeError("[rig] camera URLs: no resolver installed (import iscd.drivers.urls)")
+    return _RIG_RESOLVER[0](rig)
 
 
 @dataclass(frozen=True)
@@ -323,9 +295,9 @@ class Config:
     scene: SceneConfig = field(default_factory=SceneConfig)
     payload: PayloadConfig = field(default_factory=PayloadConfig)
     rig: RigConfig = field(default_factory=RigConfig)
-    extra: dict[str, Any] = field(default_factory=dict)
-    """Sections this module does not define (owned by other modules, e.g. ``[daemon]``),
-    kept raw so that they can validate them with :func:`build_section`."""
+    owned: dict[str, Any] = field(default_factory=dict)
+    """The raw tables of the sections this module does not define (each owned by the module
+    that uses it, e.g. ``[daemon]``); read them with :func:`section` (or :meth:`table`)."""
 
     def replace(self, **sections: Any) -> "Config":
         return dataclasses.replace(self, **sections)
@@ -335,12 +307,12 @@ class Config:
         file leaves it out). Read validated settings with :func:`section` instead."""
         if name not in SECTION_NAMES:
             raise KeyError(f"[{name}] is not an owned config section")
-        return dict(self.extra.get(name, {}))
+        return dict(self.owned.get(name, {}))
 
     def with_keys(self, name: str, **keys: Any) -> "Config":
         """A copy with ``keys`` set in table ``[name]`` over what it holds (validated when
         its owner reads it with :func:`section`)."""
-        return dataclasses.replace(self, extra={**self.extra, name: {**self.table(name), **keys}})
+        return dataclasses.replace(self, owned={**self.owned, name: {**self.table(name), **keys}})
 
 
 SECTION_NAMES: tuple[str, ...] = ("daemon", "acquisition", "tracking", "receiver", "ranging", "output",
@@ -349,7 +321,7 @@ SECTION_NAMES: tuple[str, ...] = ("daemon", "acquisition", "tracking", "receiver
 defaults, documentation and validation) by the module that uses it, which declares its
 dataclass with :func:`config_section`; this module knows their names only, never their
 modules (it sits below all of them). Until its owner is imported a table is kept raw in
-:attr:`Config.extra`."""
+:attr:`Config.owned`."""
 
 _OWNERS: dict[str, type] = {}
 _S = TypeVar("_S")
@@ -409,12 +381,14 @@ def section(cfg: "Config", cls: type[_S]) -> _S:
     return build_section(cls, cfg.table(name), name)
 
 
-def check_extra_sections(cfg: "Config") -> None:
-    """Validate every extra table of ``cfg`` with its owner (ConfigError naming the key).
+def check_sections(cfg: "Config") -> None:
+    """Validate every owned table of ``cfg`` with its owner, and ``[rig]`` with the camera
+    registry's resolver (ConfigError naming the key).
 
     The owners must be imported (``import iscd.cli.sections`` does it); a table whose owner
     is not is a programming error here (RuntimeError), never silently passed."""
-    for name, table in cfg.extra.items():
+    resolve_rig(cfg.rig)
+    for name, table in cfg.owned.items():
         cls = _OWNERS.get(name)
         if cls is None:
             raise RuntimeError(f"[{name}]: its owner module is not imported (import iscd.cli.sections)")
@@ -490,8 +464,8 @@ def build_section(cls: type, table: dict[str, Any], prefix: str) -> Any:
     kwargs: dict[str, Any] = {}
     for k, v in table.items():
         key = f"{prefix}.{k}" if prefix else k
-        if k not in fields or k == "extra":
-            known = ", ".join(sorted(n for n in fields if n != "extra"))
+        if k not in fields or k == "owned":
+            known = ", ".join(sorted(n for n in fields if n != "owned"))
             raise ConfigError(f"{key}: unknown key (known keys: {known})")
         kwargs[k] = _convert(key, hints[k], v, dict(fields[k].metadata))
     try:
@@ -505,8 +479,8 @@ def build_section(cls: type, table: dict[str, Any], prefix: str) -> Any:
 def config_from_dict(data: dict[str, Any]) -> Config:
     """Build a :class:`Config` from parsed TOML (``tomllib.loads`` output)."""
     sections: dict[str, Any] = {}
-    extra: dict[str, Any] = {}
-    fields = {f.name: f for f in dataclasses.fields(Config) if f.name != "extra"}
+    owned: dict[str, Any] = {}
+    fields = {f.name: f for f in dataclasses.fields(Config) if f.name != "owned"}
     hints = typing.get_type_hints(Config)
     for name, table in data.items():
         if name in fields:
@@ -516,11 +490,11 @@ def config_from_dict(data: dict[str, Any]) -> Config:
         elif name in SECTION_NAMES:
             if not isinstance(table, dict):
                 raise ConfigError(f"{name}: expected a table [{name}], got {table!r}")
-            extra[name] = table
+            owned[name] = table
         else:
             known = ", ".join(sorted([*fields, *SECTION_NAMES]))
             raise ConfigError(f"{name}: unknown section (known sections: {known})")
-    cfg = Config(**sections, extra=extra)
+    cfg = Config(**sections, owned=owned)
     _cross_check(cfg)
     return cfg
 
@@ -589,7 +563,7 @@ def describe() -> str:
     """Every section and key with default and documentation (for ``--help`` and docs)."""
     lines: list[str] = []
     hints = typing.get_type_hints(Config)
-    classes = [(f.name, hints[f.name]) for f in dataclasses.fields(Config) if f.name != "extra"]
+    classes = [(f.name, hints[f.name]) for f in dataclasses.fields(Config) if f.name != "owned"]
     classes += list(section_owners().items())
     for name, cls in classes:
         lines.append(f"[{name}]  {(cls.__doc__ or '').strip().splitlines()[0]}")

@@ -231,7 +231,7 @@ class Daemon:
         last_t_s: float | None = None
         acq.start()
         notifier.ready(status="acquiring")
-        log.info("daemon started: backend %s, %dx%d @ %g fps, ring %d pairs", cfg.rig.backend, W, H, fps,
+        log.info("daemon started: backend %s, %dx%d @ %g fps, ring %d pairs", cfg.rig.scheme, W, H, fps,
                  ring.capacity)
 
         def emit(records: list[dict]) -> None:

@@ -69,8 +69,8 @@ def config_to_toml(cfg: Config, header: str = "") -> str:
         The TOML document, ending in a newline.
     """
     d = to_dict(cfg)
-    extra = d.pop("extra", {}) or {}
+    owned = d.pop("owned", {}) or {}
     out: list[str] = [f"# {line}" for line in header.splitlines()] + ([""] if header else [])
-    for name, table in [*d.items(), *extra.items()]:
+    for name, table in [*d.items(), *owned.items()]:
         _table(name, table, out)
     return "\n".join(out).rstrip() + "\n"

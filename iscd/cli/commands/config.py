@@ -27,7 +27,7 @@ def run(args: argparse.Namespace) -> int:
         print(C.describe())
         return 0
     cfg = C.load(args.file)
-    C.check_extra_sections(cfg)
+    C.check_sections(cfg)
     if args.check:
         print(f"{args.file or '<embedded default>'}: OK")
         return 0

@@ -131,7 +131,7 @@ def run(args: argparse.Namespace) -> int:
     import iscd.cli.sections  # noqa: F401  (every section's owner, to validate them all)
 
     cfg = C.load(args.config)
-    C.check_extra_sections(cfg)
+    C.check_sections(cfg)
     check_stereo_config(cfg)  # refuse a bad camera/board config before spawning anything
     # the inputs the daemon would only read after starting its processes are checked here
     settings = C.section(cfg, DaemonSettings)
