@@ -1,0 +1,47 @@
+"""The frame loop's intake (iscd.service.blocks.BlockReader) on a real shared-memory ring:
+whole frames while acquiring, only the decoder's windows once tracking, ids / timestamps /
+arrival kept per pair, a short block when the ring runs dry, the rest discarded."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from iscd.rig.ringbuffer import StereoRing
+from iscd.service.blocks import BlockReader
+
+
+def _frame(fid: int, side: int) -> np.ndarray:
+    return ((np.arange(24 * 32).reshape(24, 32) + 7 * fid + 100 * side) % 251).astype(np.uint8)
+
+
+def test_blocks_whole_frames_then_windows_then_discard() -> None:
+    ring = StereoRing.create(height=24, width=32, capacity=64, max_held=4)
+    try:
+        for fid in range(11):
+            ring.write(_frame(fid, 0), _frame(fid, 1), frame_id=fid,
+                       ts_left_ns=0 if fid == 2 else 1_000_000 * fid + 5)
+        rd = BlockReader(ring, 24, 32, np.uint8, block_max=4, fps=1000.0, block_wait_s=0.0)
+        assert rd.read(None, pace=False) == 4
+        for i in range(4):
+            assert np.array_equal(rd.left[i], _frame(i, 0)) and np.array_equal(rd.right[i], _frame(i, 1))
+        assert rd.ids.tolist() == [0, 1, 2, 3]
+        # the camera's timestamp where it gives one, else the id over the frame rate
+        assert np.allclose(rd.t_s, [5e-9, 1e-3 + 5e-9, 2e-3, 3e-3 + 5e-9])
+        assert (rd.arrival_ns > 0).all()
+        # windows: only those pixels are copied, the rest of the buffers stays as it was
+        rd.left[:] = 0
+        rd.right[:] = 0
+        win = ((2, 3, 10, 9), (20, 0, 32, 5))
+        assert rd.read(win, pace=False) == 4
+        for i, fid in enumerate(range(4, 8)):
+            assert np.array_equal(rd.left[i, 3:9, 2:10], _frame(fid, 0)[3:9, 2:10])
+            assert np.array_equal(rd.right[i, 0:5, 20:32], _frame(fid, 1)[0:5, 20:32])
+            assert rd.left[i].sum() == _frame(fid, 0)[3:9, 2:10].sum()
+            assert rd.right[i].sum() == _frame(fid, 1)[0:5, 20:32].sum()
+        assert rd.read(None, pace=False) == 3  # what is left: a short block, no waiting for more
+        assert rd.ids[:3].tolist() == [8, 9, 10]
+        for fid in range(11, 16):
+            ring.write(_frame(fid, 0), _frame(fid, 1), frame_id=fid)
+        assert rd.discard() == 5 and ring.queued == 0
+    finally:
+        ring.close()
