@@ -598,7 +598,7 @@ class StreamDecoder:
         if (self.settings.background or self.settings.lit_background) and self._backgrounds is None:
             rise = self.settings.background_rise_dn
             self._backgrounds = [PixelBackground(left.shape[1:], rise), PixelBackground(right.shape[1:], rise)]
-        sigmas = [float(np.clip(sig * g, 0.6, max(sig, self.MAX_SIGMA_PX))) for sig, g in zip(tr.roi_sigma, growth)]
+        sigmas = [min(max(sig * g, 0.6), max(sig, self.MAX_SIGMA_PX)) for sig, g in zip(tr.roi_sigma, growth)]
         spot_r = None
         if self.settings.window_follows_spot:
             sigmas = self._spot_window(tr, growth, sigmas)

@@ -23,12 +23,22 @@ All coordinates are in px, x right and y down, pixel centres at integers.
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass, replace
 from functools import cached_property
 
 import cv2
 import numpy as np
 from scipy import ndimage, optimize
+
+
+@functools.lru_cache(maxsize=64)
+def _grid_index(rows: int, cols: int) -> np.ndarray:
+    """(rows * cols, 2) float64 (column, row) of each LED, row-major LED order (read-only)."""
+    r, c = np.divmod(np.arange(rows * cols, dtype=np.float64), cols)
+    out = np.stack([c, r], axis=1)
+    out.setflags(write=False)
+    return out
 
 
 @dataclass(frozen=True)
@@ -51,10 +61,9 @@ class GridFit:
     def centers(self) -> np.ndarray:
         """(N, 2) LED centres (x, y) in px, row-major LED order (read-only; computed once:
         the fit is frozen)."""
-        r, c = np.mgrid[0:self.rows, 0:self.cols]
-        x = self.origin[0] + c.ravel() * self.pitch_px
-        y = self.origin[1] + r.ravel() * self.pitch_px
-        out = np.stack([x, y], axis=1).astype(np.float64)
+        out = _grid_index(self.rows, self.cols) * self.pitch_px
+        out[:, 0] += self.origin[0]
+        out[:, 1] += self.origin[1]
         out.setflags(write=False)
         return out
 
@@ -97,7 +106,8 @@ class GridFit:
         GridFit
             A copy with ``origin`` + (dx, dy).
         """
-        return replace(self, origin=(self.origin[0] + dx, self.origin[1] + dy))
+        return GridFit((self.origin[0] + dx, self.origin[1] + dy), self.pitch_px, self.rows, self.cols,
+                       self.score, self.spot_px)
 
 
 @dataclass(frozen=True)
