@@ -12,7 +12,10 @@
 Every reader is a :class:`~iscd.recording.base.Recording`; every problem is a
 :class:`~iscd.recording.base.RecordingError` whose message is one line naming the file.
 A stereo recording is two recordings (left, right) paired by frame id
-(:func:`~iscd.recording.base.match_frames`).
+(:func:`~iscd.recording.base.match_frames`), or one stereo ``.iscr`` (version 2, both
+cameras, what ``iscd run --record`` writes): :func:`open_stereo` opens one such file or a
+run's folder of them (:mod:`iscd.recording.pairs`); :func:`open_recording` refuses it with
+a line saying so.
 """
 
 from __future__ import annotations
@@ -23,7 +26,7 @@ from iscd.recording.base import Recording, RecordingError, RecordingWarning, mat
 from iscd.recording.iscr import MAGIC, IscrRecording, IscrWriter
 
 __all__ = ["Recording", "RecordingError", "RecordingWarning", "IscrWriter", "IscrRecording", "open_recording",
-           "match_frames"]
+           "match_frames", "open_stereo"]
 
 PHOTRON_SUFFIXES = (".cih", ".cihx", ".mraw")
 
@@ -44,6 +47,14 @@ def open_recording(path: str | Path) -> Recording:
         return IscrRecording(p)
     raise RecordingError(p, "unknown recording format (expected an .iscr file, a Photron "
                             ".cih/.cihx/.mraw file or a folder of PNG/TIFF frames)")
+
+
+def open_stereo(path: str | Path) -> "PairSession":  # noqa: F821
+    """A stereo recording of ``iscd run --record`` (a run folder or one of its files) as a
+    :class:`~iscd.recording.pairs.PairSession`."""
+    from iscd.recording.pairs import PairSession
+
+    return PairSession(path)
 
 
 def _has_iscr_magic(p: Path) -> bool:

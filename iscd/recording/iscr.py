@@ -242,9 +242,11 @@ def _writer_name() -> str:
         return "iscd"
 
 
-def read_header(path: str | Path) -> tuple[dict[str, Any], int, int]:
+def read_header(path: str | Path, versions: tuple[int, ...] = (VERSION,)) -> tuple[dict[str, Any], int, int]:
     """Parse an ``.iscr`` header: (metadata dict, data offset D, record size R).
-    Raises :class:`RecordingError` for anything that is not a valid v1 header."""
+    ``versions``: the format versions the caller reads (1: one camera, fixed-size records;
+    2: stereo pair streams, :mod:`iscd.recording.pairfile`).
+    Raises :class:`RecordingError` for anything that is not a valid header of those versions."""
     p = Path(path)
     try:
         with open(p, "rb") as f:
@@ -255,9 +257,13 @@ def read_header(path: str | Path) -> tuple[dict[str, Any], int, int]:
             magic, version, hsize, mlen, doff, rsize = FIXED_HEADER.unpack(head)
             if magic != MAGIC:
                 raise RecordingError(p, "not an .iscr recording (bad magic bytes)")
-            if version > VERSION or version < 1:
+            if version not in versions:
+                if version == 2 and 2 not in versions:
+                    raise RecordingError(p, "a stereo .iscr (version 2, both cameras, as 'iscd run "
+                                            "--record' writes): give it alone to 'iscd replay' or "
+                                            "'iscd info', or open it with iscd.recording.open_stereo")
                 raise RecordingError(p, f".iscr version {version} is not supported (this reader "
-                                        f"reads version {VERSION})")
+                                        f"reads version {', '.join(map(str, versions))})")
             if hsize < FIXED_HEADER_SIZE or doff < hsize + mlen:
                 raise RecordingError(p, f"corrupt .iscr header (header size {hsize}, metadata "
                                         f"{mlen} bytes, data offset {doff})")
