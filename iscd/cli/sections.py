@@ -16,13 +16,14 @@ from iscd.decode.stream import PipelineSettings
 from iscd.drivers import urls as _camera_urls  # noqa: F401  (installs the [rig] resolver)
 from iscd.drivers.board.settings import BoardSettings
 from iscd.outputs.base import OutputConfig, RerunConfig
+from iscd.recording.recorder import RecordSettings
 from iscd.rig.acquisition import AcquisitionOptions
 from iscd.service.daemon import DaemonSettings
 
 OWNERS: dict[str, type] = {
     "daemon": DaemonSettings, "acquisition": AcquisitionOptions, "tracking": PipelineSettings,
     "receiver": ReceiverConfig, "ranging": RangingSettings, "output": OutputConfig,
-    "rerun": RerunConfig, "board": BoardSettings,
+    "rerun": RerunConfig, "board": BoardSettings, "record": RecordSettings,
 }
 """Each section's owner (the same classes :func:`iscd.core.config.section_owners` returns
 once this module is imported)."""

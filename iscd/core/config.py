@@ -316,7 +316,7 @@ class Config:
 
 
 SECTION_NAMES: tuple[str, ...] = ("daemon", "acquisition", "tracking", "receiver", "ranging", "output",
-                                   "rerun", "board")
+                                   "rerun", "board", "record")
 """The tables a config file may hold beside the ones defined here. Each is owned (its keys,
 defaults, documentation and validation) by the module that uses it, which declares its
 dataclass with :func:`config_section`; this module knows their names only, never their
