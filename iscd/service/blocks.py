@@ -11,6 +11,10 @@ Between blocks it sleeps until the block is about due instead of waking for ever
 Per pair it keeps the left camera's frame id, the exposure start ``t_s`` (s, the left
 camera's timestamp; the id over the frame rate where the camera gives none) and the
 arrival time on the host ``arrival_ns`` (``time.monotonic_ns``, what the latency counts from).
+
+An optional :attr:`BlockReader.tap` (the run's recording, :mod:`iscd.service.recording`)
+sees every pair taken, before its slot goes back to the ring: ``tap.pair(slot, windows,
+block)``, ``block`` numbering the blocks read (it must copy what it keeps, and never wait).
 """
 
 from __future__ import annotations
@@ -54,6 +58,10 @@ class BlockReader:
         self.ids = np.zeros(B, np.int64)
         self.t_s = np.zeros(B, np.float64)
         self.arrival_ns = np.zeros(B, np.int64)
+        self.tap: Any = None
+        """sees each pair before its slot is released (see the module docstring)"""
+        self.blocks_read = 0
+        """blocks read so far (the number of the next one)"""
 
     def read(self, windows: tuple[Window, Window] | None, *, pace: bool = True) -> int:
         """Take the next block; returns how many pairs it holds (0: none came within the
@@ -83,11 +91,15 @@ class BlockReader:
                     self.ids[n] = slot.frame_id
                     self.t_s[n] = slot.ts_left_ns * 1e-9 if slot.ts_left_ns else slot.frame_id / self.fps
                     self.arrival_ns[n] = slot.arrival_ns
+                    if self.tap is not None:
+                        self.tap.pair(slot, windows, self.blocks_read)
                     n += 1
             finally:
                 ring.release_batch(slots)
             if time.monotonic() >= t_fill:
                 break
+        if n:
+            self.blocks_read += 1
         return n
 
     def discard(self) -> int:

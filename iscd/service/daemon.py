@@ -174,6 +174,8 @@ class Daemon:
         run: _Run | None = None
         try:
             run = _Run(self)
+            if self.install_signals and run.recorder is not None:  # SIGUSR1: the blackbox trigger
+                old_handlers[signal.SIGUSR1] = signal.signal(signal.SIGUSR1, run.recorder.on_signal)
             run.warm_up()
             run.start()
             _prof = None
@@ -256,6 +258,7 @@ class _Run:
         self.acq: Any = None
         self.outputs: Any = None
         self.notifier: Any = None
+        self.recorder: Any = None
         try:
             self._build()
         except BaseException:
@@ -311,6 +314,11 @@ class _Run:
         self.view = daemon._rerun(self.decoder.air.n_leds)  # also drawn on directly: images, luminance
         self.outputs = Outputs([*daemon._outputs(), *([self.view] if self.view is not None else [])])
         self.notifier = Notifier.from_env()
+        from iscd.service.recording import live_recording
+
+        self.recorder = live_recording(cfg, daemon.calibration_path, lambda: self.decoder.counters.get("losses", 0),
+                                       st.block_max)
+        self.blocks.tap = self.recorder  # [record]: every pair taken, before its slot goes back
 
     # ------------------------------------------------------------------ start and end
     def warm_up(self) -> None:
@@ -341,6 +349,8 @@ class _Run:
         """The end of a run: what the decoder still holds, the final stats record (with the
         cameras' rate error, raised as ConfigError after it is written)."""
         self.emit(self.finish_decoder())
+        if self.recorder is not None:
+            self.recorder.drain()  # what is queued written: the final stats count it
         final = self.stats_record(True)
         if self.fps_error:
             final["error"] = self.fps_error
@@ -367,6 +377,8 @@ class _Run:
                 log.error("stopping acquisition: %s", e)
         if self.outputs is not None:
             self.outputs.close()
+        if self.recorder is not None:
+            self.recorder.close()
         if self.ring is not None:
             self.ring.close()
         if self.notifier is not None:
@@ -437,6 +449,8 @@ class _Run:
 
     # ------------------------------------------------------------------ decoding
     def emit(self, records: list[dict]) -> None:
+        if self.recorder is not None:
+            self.recorder.observe(records)  # a failed packet triggers the blackbox
         for r in records:
             self.outputs.write(r)  # never raises: an output must never stop decoding
         self.daemon.records_written += len(records)
@@ -573,6 +587,8 @@ class _Run:
                "device_fps_mismatch": self.fps_mismatch,
                "demod_worker_restarts": decoder.counters.get("demod_worker_restarts", 0)}
         rec.update(self.outputs.counters())  # output_errors and each output's own counters
+        if self.recorder is not None:
+            rec.update(self.recorder.counters())  # record_written, record_dropped, record_mb_per_s...
         spec = {k: rec.pop(k) for k in StatsRecord.spec_fields()}
         # t_s: camera time of the last decoded frame, as in the other records
         return StatsRecord(tx=0, frame=int(self.last_frame), t_s=self.last_t_s, **spec, extra=rec).to_json()

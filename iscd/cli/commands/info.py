@@ -18,7 +18,11 @@ def register(sub: argparse._SubParsersAction) -> None:
                      "height, fps, bit_depth, dtype, format, path, camera, duration_s, exposure_s, "
                      "first/last frame id, missing_frame_ids (dropped frames) and format-specific "
                      "details under 'extra'. RECORDING is a Photron .cih/.cihx/.mraw file (its "
-                     "partner beside it), a folder of PNG/TIFF frames, or an .iscr file. Problems "
+                     "partner beside it), a folder of PNG/TIFF frames, or an .iscr file. For a "
+                     "recording of 'iscd run --record' (a run folder, or one of its stereo .iscr "
+                     "files): the mode, pairs, frame ranges, windows, blocks and each file; with "
+                     "--check also how much of each file was recovered (a file cut by a crash: "
+                     "its whole pairs, the trailing bytes ignored). Problems "
                      "with the recording are printed as one line on stderr (exit status 2)."))
     p.add_argument("recording", metavar="RECORDING",
                    help="a .cih/.cihx/.mraw file, a folder of PNG/TIFF frames, or an .iscr file")
@@ -40,9 +44,50 @@ def check_pixels(rec: Any, block: int = 64) -> dict[str, Any]:
     return {"pixel_min": lo, "pixel_max": hi}
 
 
+def stereo_info(path: str, check: bool) -> dict[str, Any]:
+    """The summary of an ``iscd run --record`` recording (folder or file); ``check``: also
+    read every pair and say, per file, how much was recovered (``recovery``: sealed, whole
+    pairs read back, the share of the file's records in them, the trailing bytes ignored)."""
+    from iscd.recording.pairs import open_stereo
+
+    with open_stereo(path) as session:
+        info = session.info()
+        if check:
+            checks = [{"path": r.path.name, **r.check()} for r in session.files]
+            info["check"] = checks
+            lo = [c["pixel_min"] for c in checks if c["pixel_min"] is not None]
+            hi = [c["pixel_max"] for c in checks if c["pixel_max"] is not None]
+            info.update(pixel_min=min(lo) if lo else None, pixel_max=max(hi) if hi else None,
+                        recovered_pairs=sum(c["pairs"] for c in checks),
+                        unsealed_files=sum(not c["sealed"] for c in checks))
+    return info
+
+
 def run(args: argparse.Namespace) -> int:
+    from pathlib import Path
+
     from iscd.core.errors import UserError
     from iscd.recording import RecordingError, open_recording
+    from iscd.recording.pairs import is_pair_file
+
+    p = Path(args.recording)
+    if (p.is_file() and is_pair_file(p)) or (p.is_dir() and any(is_pair_file(f) for f in p.glob("*.iscr"))
+                                             and not (p / "left.iscr").exists()):
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            try:
+                info = stereo_info(args.recording, args.check)
+            except RecordingError as e:
+                raise UserError(str(e)) from None
+            except (OSError, ValueError) as e:
+                raise UserError(f"{args.recording}: {e}") from None
+        notes = [str(w.message) for w in caught if issubclass(w.category, UserWarning)]
+        for msg in notes:
+            print(f"iscd info: warning: {msg}", file=sys.stderr)
+        if notes:
+            info["warnings"] = notes
+        print(json.dumps(info, indent=None if args.compact else 2, default=_jsonable))
+        return 0
 
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")

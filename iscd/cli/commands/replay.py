@@ -25,10 +25,15 @@ def register(sub: argparse._SubParsersAction) -> None:
             "section 7: packet, range, stats). LEFT and RIGHT may each be an .iscr file, a Photron "
             ".cih/.cihx (with its .mraw beside it) or a folder of PNG/TIFF frames; frames are paired "
             "by frame id. A recording made by 'iscd simulate' holds left.iscr, right.iscr, config.toml "
-            "and calibration.yml: give the folder as LEFT and omit RIGHT, --config and --calibration."),
+            "and calibration.yml: give the folder as LEFT and omit RIGHT, --config and --calibration. "
+            "A recording made by 'iscd run --record' (a run folder of stereo .iscr files, any mode, "
+            "or one of its files) is given alone as LEFT: it is decoded in the blocks the live "
+            "daemon decoded, with the config and calibration stored beside it, and gives the "
+            "live run's packet records."),
         epilog="Example: iscd replay sim/left.iscr sim/right.iscr --config sim/config.toml "
                "--calibration sim/calibration.yml --out sim.jsonl")
-    p.add_argument("left", help="left-camera recording (or a simulate output folder)")
+    p.add_argument("left", help="left-camera recording (or a simulate output folder, or an 'iscd run --record' "
+                                "run folder or file)")
     p.add_argument("right", nargs="?", help="right-camera recording")
     p.add_argument("--config", help="TOML config with the [transmitter] the recording shows")
     add_calibration_options(p, "the recording's image size")
@@ -74,7 +79,97 @@ def config_mismatch(rec: object, camera: object) -> tuple[list[str], list[str]]:
     return refuse, warn
 
 
+def _is_stereo(path: Path) -> bool:
+    """Whether ``path`` is an ``iscd run --record`` recording: a version-2 .iscr file, or a
+    folder holding some (and no simulate-style left.iscr)."""
+    from iscd.recording.pairs import is_pair_file
+
+    if path.is_dir():
+        return not (path / "left.iscr").exists() and any(is_pair_file(f) for f in path.glob("*.iscr"))
+    return path.is_file() and is_pair_file(path)
+
+
+def run_stereo(args: argparse.Namespace) -> int:
+    """Replay of an ``iscd run --record`` recording: block by block as the live daemon
+    decoded it (pairs rebuilt with the recorded windows at their positions, zeros
+    elsewhere; exposure start t_s as the daemon's intake takes it)."""
+    from iscd.calibration.io import CalibrationError, load_calibration
+    from iscd.core import config as C
+    from iscd.decode.stream import StreamDecoder
+    from iscd.outputs.jsonl import JsonlWriter
+    from iscd.recording import RecordingError
+    from iscd.recording.pairs import open_stereo
+
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        try:
+            session = open_stereo(args.left)
+        except RecordingError as e:
+            raise UserError(str(e)) from None
+    for w in caught:
+        print(f"iscd replay: warning: {w.message}", file=sys.stderr)
+    with session:
+        if session.n_pairs == 0:
+            raise UserError(f"{args.left}: the recording holds no whole pair")
+        if args.config:
+            cfg = C.load(args.config)
+        else:
+            text = session.config_text()
+            if text is None:
+                raise UserError(f"{args.left}: no config stored with the recording; give --config")
+            cfg = C.loads(text, f"{args.left}: {'config.toml'}")
+        cal_path = args.calibration or session.calibration_path()
+        try:
+            cal = load_calibration(cal_path) if cal_path else None
+        except CalibrationError as e:
+            raise UserError(str(e)) from None
+        refuse, warn = config_mismatch(session, cfg.camera)
+        if refuse and not args.allow_mismatch:
+            raise UserError(f"{args.left}: the recording differs from the config: {'; '.join(refuse + warn)}; "
+                            f"set [camera] to match the recording, or pass --allow-mismatch to decode anyway")
+        for w in refuse + warn:
+            print(f"iscd replay: warning: {args.left}: the recording differs from the config: {w}", file=sys.stderr)
+        fps = float(cfg.camera.fps)
+        dec = StreamDecoder(cfg, cal)
+        counts: dict[str, int] = {}
+        t0 = time.perf_counter()
+        last = prev = None
+        gaps = 0
+        with JsonlWriter(args.out) as out:
+            def emit(recs: list[dict]) -> None:
+                for r in recs:
+                    counts[r["type"]] = counts.get(r["type"], 0) + 1
+                    out.write(r)
+
+            for ids, ts_l, _ts_r, L, R in session.iter_blocks():
+                # t_s as iscd.service.blocks.BlockReader takes it: the left timestamp, or id / fps
+                t_s = np.array([t * 1e-9 if t else i / fps for i, t in zip(ids.tolist(), ts_l.tolist())])
+                if prev is not None:
+                    gaps += int(np.clip(np.diff(np.concatenate([[prev], ids])) - 1, 0, None).sum())
+                prev = int(ids[-1])
+                emit(dec.push(ids, t_s, L, R))
+                last = (int(ids[-1]), float(t_s[-1]))
+            emit(dec.finish())
+            wall = time.perf_counter() - t0
+            n = session.n_pairs
+            stats = StatsRecord(
+                tx=0, frame=last[0], t_s=last[1], frames_in=2 * n, frames_dropped=gaps, pairs_decoded=n,
+                packets_ok=dec.counters["packets_ok"], packets_bad=dec.counters["packets_bad"],
+                latency_ms_p50=None, latency_ms_p99=None,
+                extra={"wall_s": round(wall, 3), "pairs_per_s": round(n / wall, 1) if wall > 0 else None,
+                       "recording_mode": session.mode,
+                       **{k: v for k, v in dec.counters.items() if k not in ("packets_ok", "packets_bad")}}).to_json()
+            out.write(stats)
+    print(json.dumps({k: stats[k] for k in ("pairs_decoded", "packets_ok", "packets_bad", "ranges",
+                                            "frames_dropped", "pairs_per_s")}), file=sys.stderr)
+    return 0
+
+
 def run(args: argparse.Namespace) -> int:
+    if args.right is None and _is_stereo(Path(args.left)):
+        if args.block < 2:
+            raise UserError("--block must be >= 2")
+        return run_stereo(args)
     from iscd.calibration.io import CalibrationError, load_calibration
     from iscd.core import config as C
     from iscd.outputs.jsonl import JsonlWriter

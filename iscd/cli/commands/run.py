@@ -40,6 +40,13 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="stop after this many seconds, a finite number > 0 (default: run until stopped)")
     p.add_argument("--out", help="JSON Lines output file (rotated at [daemon] rotate_mb)")
     add_calibration_options(p, "the [camera] width x height")
+    p.add_argument("--record", metavar="DIR",
+                   help="record the stereo pairs into DIR (a run-YYYYmmdd-HHMMSS folder per run, with the "
+                        "config and calibration; replay it with 'iscd replay DIR/run-...'); [record] in the config")
+    p.add_argument("--record-mode", choices=("full", "roi", "blackbox"),
+                   help="full: every pair whole; roi: the windows the decoder reads (default); blackbox: the "
+                        "last [record] pre_s seconds in memory, written on SIGUSR1, a failed packet or a lost "
+                        "transmitter, with post_s seconds after")
     p.add_argument("--socket", metavar="ENDPOINT",
                    help="also publish records on a ZeroMQ PUB socket, e.g. tcp://127.0.0.1:5556")
     g = p.add_argument_group("Rerun live view (optional)")
@@ -58,6 +65,8 @@ class _Console:
             return
         keys = ("uptime_s", "pairs_decoded", "frames_dropped", "packets_ok", "packets_bad", "ranges",
                 "latency_ms_p50", "latency_ms_p99", "cpu_cores", "rss_mb")
+        if "record_written" in r:
+            keys += ("record_written", "record_dropped", "record_mb_per_s")
         print("stats " + " ".join(f"{k}={r.get(k)}" for k in keys), file=sys.stderr, flush=True)
 
     def close(self) -> None:
@@ -82,6 +91,23 @@ def check_out_path(path: str, what: str = "--out") -> None:
             fd, tmp = tempfile.mkstemp(prefix=f".{p.name}.", suffix=".check", dir=p.parent)
             os.close(fd)
             os.unlink(tmp)
+    except OSError as e:
+        raise UserError(f"{what} {path}: cannot write there: {e.strerror or e}") from None
+
+
+def check_record_dir(path: str, what: str = "--record") -> None:
+    """Raise UserError (one line) unless recordings can be written under folder ``path``:
+    it is a folder or can be made, and a file can be created in it (none is left behind)."""
+    from iscd.core.errors import UserError
+
+    p = Path(path)
+    if p.exists() and not p.is_dir():
+        raise UserError(f"{what} {path}: is a file; give a folder")
+    try:
+        p.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(prefix=".iscd-record.", suffix=".check", dir=p)
+        os.close(fd)
+        os.unlink(tmp)
     except OSError as e:
         raise UserError(f"{what} {path}: cannot write there: {e.strerror or e}") from None
 
@@ -124,6 +150,7 @@ def checked_calibration(path: str, width: int, height: int, *, scale: bool, what
 
 def run(args: argparse.Namespace) -> int:
     from iscd.core import config as C
+    from iscd.core.errors import UserError
     from iscd.service.daemon import Daemon, DaemonSettings
 
     from iscd.drivers.registry import check_stereo_config
@@ -131,6 +158,10 @@ def run(args: argparse.Namespace) -> int:
     import iscd.cli.sections  # noqa: F401  (every section's owner, to validate them all)
 
     cfg = C.load(args.config)
+    if args.record:
+        cfg = cfg.with_keys("record", dir=args.record)
+    if args.record_mode:
+        cfg = cfg.with_keys("record", mode=args.record_mode)
     C.check_sections(cfg)
     check_stereo_config(cfg)  # refuse a bad camera/board config before spawning anything
     # the inputs the daemon would only read after starting its processes are checked here
@@ -138,6 +169,13 @@ def run(args: argparse.Namespace) -> int:
     out = args.out or settings.out or None
     if out:
         check_out_path(out, "--out" if args.out else "daemon.out")
+    from iscd.recording.recorder import RecordSettings
+
+    record = C.section(cfg, RecordSettings)
+    if record.dir:
+        check_record_dir(record.dir, "--record" if args.record else "record.dir")
+    elif args.record_mode:
+        raise UserError("--record-mode needs --record DIR (or [record] dir in the config)")
     cal_path = args.calibration or settings.calibration or None
     tmp_dir = None
     if cal_path:
@@ -162,7 +200,8 @@ def run(args: argparse.Namespace) -> int:
     finally:
         if tmp_dir is not None:
             tmp_dir.cleanup()
-    print(json.dumps({k: final.get(k) for k in ("pairs_decoded", "frames_dropped", "packets_ok",
-                                                 "packets_bad", "ranges", "latency_ms_p50",
-                                                 "latency_ms_p99")}))
+    print(json.dumps({**{k: final.get(k) for k in ("pairs_decoded", "frames_dropped", "packets_ok",
+                                                    "packets_bad", "ranges", "latency_ms_p50",
+                                                    "latency_ms_p99")},
+                      **{k: final[k] for k in ("record_written", "record_dropped", "record_mb") if k in final}}))
     return 0
