@@ -286,3 +286,162 @@ def test_deferred_block_tail_gives_the_same_records(rendered_default) -> None:
     assert ra == rb and any("'range'" in r for r in ra)
     assert ta == tb and ca == cb
     np.testing.assert_array_equal(la, lb)
+
+
+def test_light_map_median_is_numpys_exactly() -> None:
+    """The smoothing's median (a radix selection on the float32 bits) is np.median's value
+    bit for bit: odd and even counts, ties, signed zeros, subnormals, infinities, negative
+    values (NaN, which a light map has not, goes to Numba's np.median as before)."""
+    from iscd.decode.tracking.track_kernel import _median_f32
+
+    rng = np.random.default_rng(11)
+    for trial in range(600):
+        n = int(rng.integers(1, 400)) if trial % 2 else int(rng.integers(1, 9000))
+        kind = trial % 5
+        if kind == 0:
+            x = rng.normal(0, 10, n)
+        elif kind == 1:
+            x = rng.integers(-3, 4, n) / 4
+        elif kind == 2:
+            x = rng.integers(0, 5, n) * 1.0
+        elif kind == 3:
+            x = rng.choice([0.0, -0.0, 1e-40, -1e-40, np.inf, -np.inf, 3.0], n)
+        else:
+            x = rng.exponential(1, n) * 10.0 ** rng.integers(-30, 30, n)
+        x = x.astype(np.float32)
+        ref = np.median(x.astype(np.float64))
+        assert _median_f32(x) == ref, trial
+
+
+@pytest.mark.parametrize("sigma", [0.7, 0.4, 1.3])
+def test_light_smoothing_is_scipys_arithmetic(rendered_default, fits, sigma: float) -> None:
+    """The compiled smoothing (median removed, Gaussian filter) against scipy's
+    gaussian_filter on the same map: seven taps (the tracking's) and other sizes."""
+    from scipy.ndimage import gaussian_filter
+
+    from iscd.decode.tracking.track_kernel import _smooth_light
+
+    L, _ = rendered_default
+    fl, _ = fits
+    x0, y0, x1, y1 = fl.bbox(2 * fl.pitch_px + 4)
+    light = light_map(L[64:96, y0:y1, x0:x1]).astype(np.float32)
+    out = np.empty(light.shape)
+    assert _smooth_light(np.ascontiguousarray(light), sigma, out)
+    act = np.maximum(light.astype(np.float64) - np.median(light.astype(np.float64)), 0.0)
+    np.testing.assert_allclose(out, gaussian_filter(act, sigma), rtol=1e-12, atol=1e-12)
+
+
+@pytest.mark.parametrize("dtype", [np.uint8, np.uint16, np.int8, np.int16])
+def test_light_fold_in_narrow_sums_is_exact(dtype) -> None:
+    """The fold's partial sums in narrow integers (16 bits for 8-bit frames, 257 frames at a
+    time) give numpy's int64 sums and minima exactly, at the extremes of the type and across
+    a chunk boundary."""
+    from iscd.decode.tracking.track_kernel import LightAccumulator
+
+    info = np.iinfo(dtype)
+    rng = np.random.default_rng(3)
+    n = 300 if np.dtype(dtype).itemsize == 1 else 40
+    fr = rng.integers(info.min, int(info.max) + 1, (n, 12, 15)).astype(dtype)
+    fr[:, 2, 3] = info.max
+    fr[:, 4, 5] = info.min
+    acc = LightAccumulator((2, 1, 13, 11))
+    acc.add(fr[:7])
+    acc.add(fr[7:])
+    win = fr[:, 1:11, 2:13]
+    np.testing.assert_array_equal(acc._sum, win.astype(np.int64).sum(axis=0))
+    np.testing.assert_array_equal(acc._min, win.min(axis=0))
+    ref = (win.astype(np.int64).sum(axis=0) / n - win.min(axis=0)).astype(np.float32)
+    np.testing.assert_array_equal(acc.light_map(), ref)
+
+
+def test_ring_medians_by_counting_equal_numpys() -> None:
+    """The ring's pedestal and MAD (counted when the residuals are integers of a small span,
+    np.median otherwise: a background that is not integers, a wide span of 16-bit values)
+    are robust_level's exactly."""
+    from iscd.decode.ranging.project_kernel import project_patches
+    from iscd.decode.ranging.projected import ring_indices, robust_level
+
+    rng = np.random.default_rng(8)
+    h, w = 20, 24
+    ring = ring_indices(h, w)
+    for dtype, hi, frac in ((np.uint8, 6, False), (np.uint8, 250, False), (np.uint16, 60000, False),
+                            (np.uint8, 6, True), (np.uint16, 4000, True)):
+        fr = rng.integers(0, hi, (9, 40, 40)).astype(dtype)
+        bg = rng.integers(0, 3, (h, w)).astype(np.float32) + (0.25 if frac else 0.0)
+        ped, mad, _, _ = project_patches(fr, 7, 5, bg, ring, rng.random(h * w), rng.random(h))
+        res = fr[:, 5:5 + h, 7:7 + w].reshape(9, -1)[:, ring].astype(np.float64) - bg.ravel()[ring]
+        rp, rm = robust_level(res.astype(np.float32), spread=True)
+        np.testing.assert_array_equal(ped, rp)
+        np.testing.assert_allclose(mad, rm, rtol=1e-6)
+        for f in range(9):  # exact against float64 medians
+            p = np.median(res[f])
+            assert ped[f] == p and mad[f] == 1.4826 * np.median(np.abs(res[f] - p))
+
+
+def test_block_ranging_follows_a_moving_patch(rendered_default, fits) -> None:
+    """The live one-call ranging (block minima and the running background inside the kernel)
+    equals the reference while the patch moves by whole pixels between blocks (the held
+    backgrounds overlap it only in part) and with read-only and 16-bit frames."""
+    from dataclasses import replace
+
+    from iscd.calibration.io import StereoCalibration
+    from iscd.decode.ranging.stereo import StereoRanger
+
+    L, R = rendered_default
+    fl, fr = fits
+    cal = StereoCalibration.ideal(default_config().camera)
+    for frames in ("u8", "readonly", "u16"):
+        a, b = StereoRanger(cal, compiled=False), StereoRanger(cal, compiled=True)
+        for i, s in enumerate(range(64, 160, 16)):
+            dx = (0, 1, 3, 3, -2, 0)[i]
+            gl, gr = (replace(g, origin=(g.origin[0] + dx, g.origin[1] - dx / 2)) for g in (fl, fr))
+            bl, br = L[s:s + 16], R[s:s + 16]
+            if frames == "readonly":
+                bl, br = bl.copy(), br.copy()
+                bl.setflags(write=False)
+                br.setflags(write=False)
+            elif frames == "u16":
+                bl, br = bl.astype(np.uint16) * 16, br.astype(np.uint16) * 16
+            ra, rb = a.measure(bl, br, gl, gr), b.measure(bl, br, gl, gr)
+            np.testing.assert_array_equal(ra.valid, rb.valid)
+            np.testing.assert_allclose(ra.disparity_px, rb.disparity_px, rtol=0, atol=1e-5)
+            np.testing.assert_allclose(ra.z_m, rb.z_m, rtol=1e-6, atol=0, equal_nan=True)
+            np.testing.assert_allclose(ra.snr, rb.snr, rtol=1e-6, atol=1e-6)
+
+
+def test_live_ranging_equals_the_block_kernels_across_the_image_edges(rendered_default, fits) -> None:
+    """StereoRanger's one-call live path (block minima in the projection pass, the running
+    background in the kernel) gives block_minima + RunningMinimum.update_min + range_block's
+    numbers with the patches cut across each image edge (pixels outside count as 0)."""
+    from dataclasses import replace
+
+    from iscd.calibration.io import StereoCalibration
+    from iscd.decode.ranging.project_kernel import block_minima, range_block
+    from iscd.decode.ranging.stereo import _QUANT_NOISE_DN, RunningMinimum, StereoRanger
+
+    L, R = rendered_default
+    fl, fr = fits
+    cal = StereoCalibration.ideal(default_config().camera)
+    for shift in ((-240, 0), (260, 0), (0, -245), (0, 250)):
+        live = StereoRanger(cal, compiled=True)
+        gl, gr = (replace(g, origin=(g.origin[0] + shift[0], g.origin[1] + shift[1])) for g in (fl, fr))
+        x0l, y0, x0r, w, h = live.patch_geometry(gl, gr)
+        assert min(x0l, x0r, y0) < 0 or max(x0l, x0r) + w > 512 or y0 + h > 512
+        back = RunningMinimum(live.settings.background_frames), RunningMinimum(live.settings.background_frames)
+        for s in range(64, 128, 16):
+            bl = np.ascontiguousarray(np.roll(L[s:s + 16], shift, axis=(2, 1)))
+            br = np.ascontiguousarray(np.roll(R[s:s + 16], shift, axis=(2, 1)))
+            got = live.measure(bl, br, gl, gr)
+            g = live._geometry(gl, gr)
+            est = live._estimator_for(gl.pitch_px, live.saturation_level(bl))
+            assert g.plan is not None
+            cl, cr = block_minima(bl, br, x0l, x0r, y0, h, w)
+            z, d, sig, q, valid, snr = range_block(
+                bl, br, x0l, x0r, y0, back[0].update_min(cl, x0l, y0, 16), back[1].update_min(cr, x0r, y0, 16),
+                g.ring, g.snr_left, g.snr_right, g.plan.weights_left, g.plan.weights_right, beta=est.beta,
+                band_cutoff=est.band_cutoff, max_shift_px=g.plan.max_shift_px, iterations=est.iterations,
+                sigma_floor_px=est.sigma_floor_px, focal_px=live.f_px, baseline_m=live.b_m,
+                quant_noise_dn=_QUANT_NOISE_DN, min_snr=live.settings.min_snr, min_quality=live.min_quality)
+            np.testing.assert_array_equal(got.valid, valid)
+            for a, b in ((got.z_m, z), (got.disparity_px, d), (got.sigma_m, sig), (got.quality, q), (got.snr, snr)):
+                np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-12, equal_nan=True)

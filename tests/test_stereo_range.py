@@ -268,3 +268,20 @@ def test_settings_are_validated_with_one_line_errors() -> None:
     assert s.subtracts_background() and s.method == "iscd-fast"
     assert not RangingSettings(method="dissertation").subtracts_background()
     assert RangingSettings(method="dissertation", background="all").subtracts_background()
+
+
+def test_running_minimum_held_part_and_push_are_update() -> None:
+    """held_min + push (the compiled ranging's use) is update_min: the same background and
+    the same blocks held, for the same patch, a moved one and one with no overlap."""
+    rng = np.random.default_rng(4)
+    a, b = RunningMinimum(frames=48), RunningMinimum(frames=48)
+    for x0, y0, h, w, n in ((5, 5, 8, 10, 16), (5, 5, 8, 10, 16), (6, 4, 8, 10, 16), (6, 4, 8, 10, 8),
+                            (40, 40, 8, 10, 16), (6, 4, 9, 11, 16), (6, 4, 9, 11, 16), (6, 4, 9, 11, 16)):
+        cur = rng.integers(0, 50, (h, w)).astype(np.float32)
+        ref = a.update_min(cur.copy(), x0, y0, n)
+        held = b.held_min(x0, y0, h, w)
+        got = cur.copy() if held is None else np.minimum(cur, held)
+        b.push(cur.copy(), x0, y0, n)
+        np.testing.assert_array_equal(got, ref)
+        assert a.frames_held == b.frames_held
+        assert [(x, y, m.shape, k) for x, y, m, k in a._blocks] == [(x, y, m.shape, k) for x, y, m, k in b._blocks]

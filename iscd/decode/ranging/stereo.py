@@ -41,7 +41,7 @@ import numpy as np
 from iscd.calibration.io import StereoCalibration, rectify_points
 from iscd.decode.ranging.config import PROJECT_METHODS, RangingSettings
 from iscd.decode.ranging.estimators import Estimator, get_estimator
-from iscd.decode.ranging.project_kernel import block_minima, range_block
+from iscd.decode.ranging.project_kernel import _range_live, range_block_args
 from iscd.decode.ranging.projected import Plan, ProjectedShift, make_plan, ring_indices, robust_level
 from iscd.decode.ranging.range import DEFAULT_MIN_QUALITY, range_from_disparity, range_sigma
 from iscd.decode.tracking.detect import GridFit
@@ -83,13 +83,15 @@ class RunningMinimum:
             raise ValueError(f"frames: expected >= 1, got {frames}")
         self.frames = int(frames)
         self._blocks: deque[tuple[int, int, np.ndarray, int]] = deque()
+        self._held = 0
 
     def reset(self) -> None:
         self._blocks.clear()
+        self._held = 0
 
     @property
     def frames_held(self) -> int:
-        return sum(b[3] for b in self._blocks)
+        return self._held
 
     def update(self, patches: np.ndarray, x0: int, y0: int) -> np.ndarray:
         """Add a block of patches (n, h, w) cut at image position (x0, y0) and return the
@@ -128,20 +130,69 @@ class RunningMinimum:
         ndarray of float32
             (h, w) per-pixel minimum over this and the held blocks, DN.
         """
-        h, w = cur.shape
-        bg = cur.copy()
+        held = self.held_min(x0, y0, *cur.shape)
+        bg = cur.copy() if held is None else np.minimum(cur, held)
+        self.push(cur, x0, y0, n)
+        return bg
+
+    def held_min(self, x0: int, y0: int, h: int, w: int) -> np.ndarray | None:
+        """The per-pixel minimum over the held blocks of the (h, w) patch at image position
+        (x0, y0), +inf where none of them overlaps it; None if none does (:meth:`update_min`
+        is ``minimum(cur, held_min)`` then :meth:`push`).
+
+        Parameters
+        ----------
+        x0, y0 : int
+            Image position of the patch's top-left pixel, px.
+        h, w : int
+            Patch size, px.
+
+        Returns
+        -------
+        ndarray of float32 or None
+            (h, w), DN; read only (it may be a held block itself).
+        """
+        out: np.ndarray | None = None
+        owned = False
         for bx, by, bmin, _ in self._blocks:
             bh, bw = bmin.shape
+            if bx == x0 and by == y0 and bh == h and bw == w:  # the same patch (the usual case)
+                if out is None:
+                    out = bmin
+                elif owned:
+                    np.minimum(out, bmin, out=out)
+                else:
+                    out, owned = np.minimum(out, bmin), True
+                continue
             xa, xb = max(x0, bx), min(x0 + w, bx + bw)
             ya, yb = max(y0, by), min(y0 + h, by + bh)
             if xa < xb and ya < yb:
-                dst = bg[ya - y0:yb - y0, xa - x0:xb - x0]
+                if not owned:
+                    out = np.full((h, w), np.inf, np.float32) if out is None else out.copy()
+                    owned = True
+                assert out is not None
+                dst = out[ya - y0:yb - y0, xa - x0:xb - x0]
                 np.minimum(dst, bmin[ya - by:yb - by, xa - bx:xb - bx], out=dst)
+        return out
+
+    def push(self, cur: np.ndarray, x0: int, y0: int, n: int) -> None:
+        """Hold a block's own per-pixel minimum ``cur`` (h, w) of ``n`` frames at image
+        position (x0, y0) (kept: do not reuse it), and let go of the oldest blocks beyond
+        ``frames`` frames.
+
+        Parameters
+        ----------
+        cur : ndarray of float32
+            (h, w) the block's per-pixel minimum, DN.
+        x0, y0 : int
+            Image position of its top-left pixel, px.
+        n : int
+            Frames in the block.
+        """
         self._blocks.append((int(x0), int(y0), cur, int(n)))
-        held = self.frames_held
-        while len(self._blocks) > 1 and held - self._blocks[0][3] >= self.frames:
-            held -= self._blocks.popleft()[3]
-        return bg
+        self._held += int(n)
+        while len(self._blocks) > 1 and self._held - self._blocks[0][3] >= self.frames:
+            self._held -= self._blocks.popleft()[3]
 
 
 def snr_weights(h: int, w: int, centres_xy: np.ndarray, spot_px: float) -> np.ndarray:
@@ -255,6 +306,9 @@ class StereoRanger:
         self._est_cache: dict[tuple[float | None, float], Estimator] = {}
         self._geo_key: tuple | None = None
         self._geo: _Geometry | None = None
+        # the last fits (frozen: the same objects, the same answers) and what follows from them
+        self._pg_last: tuple[GridFit, GridFit, tuple[int, int, int, int, int]] | None = None
+        self._live: tuple[GridFit, GridFit, np.dtype, _Geometry, Estimator, tuple] | None = None
 
     def reset(self) -> None:
         """Forget the running background (e.g. after re-acquisition)."""
@@ -303,6 +357,9 @@ class StereoRanger:
         tuple of int
             (x0_left, y0, x0_right, w, h), rectified px.
         """
+        last = self._pg_last
+        if last is not None and last[0] is fit_l and last[1] is fit_r:
+            return last[2]
         if self.identity:
             cl, cr = fit_l.center, fit_r.center
         else:
@@ -315,6 +372,7 @@ class StereoRanger:
         x0l = int(round(cl[0] - w / 2))
         y0 = int(round((cl[1] + cr[1]) / 2 - h / 2))
         x0r = int(round(cr[0] - w / 2))
+        self._pg_last = (fit_l, fit_r, (x0l, y0, x0r, w, h))
         return x0l, y0, x0r, w, h
 
     def saturation_level(self, frames: np.ndarray) -> float:
@@ -395,12 +453,23 @@ class StereoRanger:
         Dissertation, eq. (2.2).
         """
         n = left.shape[0]
+        live = self._live
+        if (live is not None and live[0] is fit_l and live[1] is fit_r and live[2] == left.dtype
+                and self.compiled and n > 0):
+            # the same fits as the last block (frozen: the same geometry): nothing to look up
+            return self._measure_live(left, right, live[5])
         g = self._geometry(fit_l, fit_r)
         est_obj = self._estimator_for(fit_l.pitch_px, self.saturation_level(left))
         if (self.compiled and self.identity and g.plan is not None and self.subtract_background
                 and isinstance(est_obj, ProjectedShift) and not est_obj.declips(g.plan)
-                and g.plan.weights_left is not None and left.dtype.kind in "ui"):
-            return self._measure_compiled(left, right, g, est_obj)
+                and g.plan.weights_left is not None and left.dtype.kind in "ui" and n > 0):
+            if live is not None and live[3] is g and live[4] is est_obj and live[2] == left.dtype:
+                args = live[5]  # other fits, the same geometry (it moved by < 0.05 px)
+            else:
+                args = self._live_args(g, est_obj)
+            self._live = (fit_l, fit_r, left.dtype, g, est_obj, args)
+            return self._measure_live(left, right, args)
+        self._live = None
         pl = self._cut(left, "left", g.x0l, g.y0, g.w, g.h)
         pr = self._cut(right, "right", g.x0r, g.y0, g.w, g.h)
         bl = self.background["left"].update(pl, g.x0l, g.y0)
@@ -429,27 +498,52 @@ class StereoRanger:
             est = est_obj.estimate(pl, pr)
         return self._result(g, est, snr)
 
-    def _measure_compiled(self, left: np.ndarray, right: np.ndarray, g: _Geometry,
-                          est_obj: ProjectedShift) -> RangeResult:
-        """:meth:`measure` for the live case (identity rectification, ``"iscd-fast"`` with
-        its row weights, no core refill) on the compiled kernels of
-        :mod:`iscd.decode.ranging.project_kernel`: both cameras' block minima in one call, the
-        running backgrounds, then the projections, noise, SNR, correlation peak and range
-        of both cameras in one more (:func:`~iscd.decode.ranging.project_kernel.range_block`), no
-        (n, h, w) temporaries and no per-frame Python."""
-        n = left.shape[0]
-        cur_l, cur_r = block_minima(left, right, g.x0l, g.x0r, g.y0, g.h, g.w)
-        bl = self.background["left"].update_min(cur_l, g.x0l, g.y0, n)
-        br = self.background["right"].update_min(cur_r, g.x0r, g.y0, n)
+    def _live_args(self, g: _Geometry, est_obj: ProjectedShift) -> tuple:
+        """Everything :meth:`_measure_live` passes the kernel that does not change between
+        blocks of the same fits, made once (writable contiguous arrays: the kernel's types)."""
         plan = g.plan
         assert plan is not None and plan.weights_left is not None and plan.weights_right is not None
-        z, d, sig, q, valid, snr = range_block(
-            left, right, g.x0l, g.x0r, g.y0, bl, br, g.ring, g.snr_left, g.snr_right,
-            plan.weights_left, plan.weights_right, beta=est_obj.beta, band_cutoff=est_obj.band_cutoff,
-            max_shift_px=plan.max_shift_px, iterations=est_obj.iterations,
-            sigma_floor_px=est_obj.sigma_floor_px, focal_px=self.f_px, baseline_m=self.b_m,
-            quant_noise_dn=_QUANT_NOISE_DN, min_snr=self.settings.min_snr, min_quality=self.min_quality)
-        return RangeResult(z_m=z, disparity_px=d, sigma_m=sig, quality=q, valid=valid, snr=snr)
+        (ring, snr_l, snr_r, row_l, row_r, cos_t, sin_t, omega, mult, band, w2, w2m, beta, max_shift,
+         iterations, tiny, floor_px, fb, quant, min_snr, min_q) = range_block_args(
+            g.w, g.ring, g.snr_left, g.snr_right, plan.weights_left, plan.weights_right,
+            beta=est_obj.beta, band_cutoff=est_obj.band_cutoff, max_shift_px=plan.max_shift_px,
+            iterations=est_obj.iterations, sigma_floor_px=est_obj.sigma_floor_px, focal_px=self.f_px,
+            baseline_m=self.b_m, quant_noise_dn=_QUANT_NOISE_DN, min_snr=self.settings.min_snr,
+            min_quality=self.min_quality)
+        geo = np.array([g.x0l, g.x0r, g.y0, iterations], np.int64)
+        par = np.array([beta, max_shift, tiny, floor_px, fb, quant, min_snr, min_q], np.float64)
+        kernel_args = (geo, par, ring, np.stack([snr_l, snr_r]), np.stack([row_l, row_r]), cos_t, sin_t,
+                       np.stack([omega, mult, band, w2, w2m]))
+        return int(g.x0l), int(g.x0r), int(g.y0), int(g.h), int(g.w), kernel_args, \
+            np.full((g.h, g.w), np.inf, np.float32)
+
+    def _measure_live(self, left: np.ndarray, right: np.ndarray, args: tuple) -> RangeResult:
+        """:meth:`measure` for the live case (identity rectification, ``"iscd-fast"`` with
+        its row weights, no core refill) in one compiled call
+        (:func:`~iscd.decode.ranging.project_kernel._range_live`: the same numbers as
+        :func:`~iscd.decode.ranging.project_kernel.block_minima`, the running background and
+        :func:`~iscd.decode.ranging.project_kernel.range_block`) on the arguments
+        :meth:`_live_args` made for these fits: one pass over each patch's pixels, no (n, h, w)
+        temporaries, no per-frame Python."""
+        x0l, x0r, y0, h, w, kernel_args, none_held = args
+        fl, fr_ = left.flags, right.flags
+        L = left if fl.c_contiguous and fl.writeable else np.require(left, requirements=["C", "W"])
+        R = (right if fr_.c_contiguous and fr_.writeable and right.dtype == L.dtype
+             else np.require(right, dtype=L.dtype, requirements=["C", "W"]))
+        n = L.shape[0]
+        back_l, back_r = self.background["left"], self.background["right"]
+        held_l = back_l.held_min(x0l, y0, h, w)
+        held_r = back_r.held_min(x0r, y0, h, w)
+        cur_l = np.empty((h, w), np.float32)
+        cur_r = np.empty((h, w), np.float32)
+        out = np.empty((5, n))
+        valid = np.empty(n, np.bool_)
+        _range_live(L, R, *kernel_args, none_held if held_l is None else held_l,
+                    none_held if held_r is None else held_r, cur_l, cur_r, out, valid)
+        back_l.push(cur_l, x0l, y0, n)
+        back_r.push(cur_r, x0r, y0, n)
+        return RangeResult(z_m=out[0], disparity_px=out[1], sigma_m=out[2], quality=out[3], valid=valid,
+                           snr=out[4])
 
     def _result(self, g: _Geometry, est, snr: np.ndarray) -> RangeResult:  # est: ShiftEstimate
         d = (g.x0l - g.x0r) + np.asarray(est.dx, dtype=np.float64)
