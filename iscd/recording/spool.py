@@ -12,6 +12,7 @@ while nothing is being written.
 
 from __future__ import annotations
 
+import mmap
 import threading
 from collections import deque
 from typing import NamedTuple
@@ -32,14 +33,19 @@ class Spool:
 
     Parameters
     ----------
-    capacity : bytes of memory (allocated at once; pages are touched as records come)
+    capacity : bytes of memory, allocated and populated at once (where the system can:
+        ``MAP_POPULATE``), so that the frame loop never takes the page faults of fresh
+        memory while it packs (a 512 KiB pair into untouched pages cost ~1.8 ms instead of
+        40 us on a loaded 2-core VM)
     """
 
     def __init__(self, capacity: int) -> None:
         self.capacity = int(capacity) // 8 * 8
         if self.capacity < 64:
             raise ValueError(f"spool capacity must be >= 64 bytes, got {capacity}")
-        self.buf = np.empty(self.capacity, np.uint8)
+        flags = mmap.MAP_PRIVATE | mmap.MAP_ANONYMOUS | getattr(mmap, "MAP_POPULATE", 0)
+        self._mem = mmap.mmap(-1, self.capacity, flags=flags)
+        self.buf = np.frombuffer(self._mem, np.uint8)
         self.items: deque[Item] = deque()
         self.lock = threading.Lock()
         self._head = 0

@@ -18,6 +18,7 @@ BENCHES = {
     "receiver": "the demodulator alone on 8x8 PWM-16 luminance",
     "ranging": "range estimates per second, one LED and an 8x8 array",
     "decode_loop": "the whole decode loop (tracking, luminance, demodulation, ranging every frame)",
+    "record": "the recording's writer per mode (full, roi, blackbox), as a ratio to a raw sequential write of the same bytes",
 }
 
 
