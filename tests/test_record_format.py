@@ -130,3 +130,26 @@ def test_the_one_camera_reader_points_to_the_stereo_one(tmp_path: Path) -> None:
 def test_frame_ranges() -> None:
     assert frame_ranges(np.array([3, 4, 5, 9, 10, 12])) == [[3, 5], [9, 10], [12, 12]]
     assert frame_ranges(np.array([], np.int64)) == []
+
+
+def test_block_notes_say_what_the_decoder_shed(tmp_path: Path) -> None:
+    """A block note (a header alone) after a block's pairs: read back per block, not a pair,
+    in a sealed file and in a cut one."""
+    frames = _frames(8)
+    p = tmp_path / "n.iscr"
+    with PairFileWriter(p, width=W, height=H, mode="roi", fps=1000.0) as w:
+        for i, (left, right) in enumerate(frames):
+            w.append(i, i, i, left, right, (0, 0, 8, 8), (0, 0, 8, 8), block=i // 4)
+            if i == 3:
+                w.note(3, 0, ranging_every=4, per_led=False)
+    with PairSession(p) as s:
+        r = s.files[0]
+        assert r.n_pairs == 8 and r.notes == {0: (4, False)} and r.frame_ids.tolist() == list(range(8))
+        assert s.block_service(0) == (4, False) and s.block_service(1) == (1, True)
+        assert [b.block for b in s.iter_blocks()] == [0, 1]
+    data = p.read_bytes()
+    cut = tmp_path / "cut.iscr"
+    cut.write_bytes(data[:int(r.offsets[5]) + 10])
+    with pytest.warns(Warning, match="not sealed"):
+        c = PairRecording(cut)
+    assert c.n_pairs == 5 and c.notes == {0: (4, False)}

@@ -14,6 +14,7 @@ docs/recording-format.md)::
                     left and right exposure timestamps ns, decoder block number, left and
                     right window x0 y0 x1 y1 px, flags, CRC-32 of the header's first 60 bytes)
                     left window pixels, right window pixels (row-major), zero padding
+                  (or a 64-byte block note, sync "ISCB": what the decoder shed on that block)
     ...     16+8n index (written when the file is closed): "ISCX", 0, n, n uint64 offsets
     end-32  32    seal: "ISCRSEAL", index offset, n, CRC-32 of the index, 0
 
@@ -42,6 +43,10 @@ from iscd.recording.iscr import ALIGN, FIXED_HEADER, FIXED_HEADER_SIZE, MAGIC, _
 
 VERSION = 2
 SYNC = b"ISCP"
+NOTE_SYNC = b"ISCB"
+"""Sync of a block note: a header alone (no pixels, windows 0), ``block`` the decoder block,
+``frame_id`` its last pair's, flags = ranging_every | per_led << 16 (what the daemon's
+overload policy let the decoder do on that block; written only when it shed something)."""
 INDEX_SYNC = b"ISCX"
 SEAL_MAGIC = b"ISCRSEAL"
 PAIR_HEADER = struct.Struct("<4sIqqqq4H4HII")
@@ -106,6 +111,21 @@ def pack_pair_into(buf: np.ndarray, off: int, frame_id: int, ts_left_ns: int, ts
 
 _write = os.write
 """The system call that writes (a test injects a full or slow disk here)."""
+
+
+def pack_note_into(buf: np.ndarray, off: int, frame_id: int, block: int, ranging_every: int, per_led: bool) -> int:
+    """Write a block note (see :data:`NOTE_SYNC`) into ``buf`` at byte ``off``; returns its
+    size (64 bytes)."""
+    flags = (int(ranging_every) & 0xFFFF) | (int(bool(per_led)) << 16)
+    PAIR_HEADER.pack_into(buf, off, NOTE_SYNC, PAIR_HEADER_SIZE, frame_id, 0, 0, block, 0, 0, 0, 0, 0, 0, 0, 0,
+                          flags, 0)
+    struct.pack_into("<I", buf, off + CRC_SPAN, zlib.crc32(buf[off:off + CRC_SPAN]))
+    return PAIR_HEADER_SIZE
+
+
+def note_flags(flags: int) -> tuple[int, bool]:
+    """(ranging_every, per_led) of a block note's flags."""
+    return max(int(flags) & 0xFFFF, 1), bool((int(flags) >> 16) & 1)
 
 
 def _write_all(fd: int, data: memoryview) -> None:
@@ -189,12 +209,13 @@ class PairFileWriter:
         """Bytes in the file so far (header and whole records)."""
         return self._end
 
-    def write_records(self, data: memoryview | bytes, sizes: list[int]) -> None:
+    def write_records(self, data: memoryview | bytes, sizes: list[int], pairs: int | None = None) -> None:
         """Append whole pair records packed with :func:`pack_pair_into`, back to back in
         ``data``, of byte ``sizes``. An OSError (e.g. ENOSPC) part-way keeps the records
         written whole before it (their number in the error's ``pairs_written``), cuts the
         file back to the last of them and is raised; the writer then takes nothing more and
-        writes no seal."""
+        writes no seal. ``pairs``: how many of the records are pairs (default all; the rest
+        are block notes)."""
         if self._fd is None or self._failed:
             raise ValueError(f"{self.path}: the writer is closed")
         mv = memoryview(data)
@@ -211,23 +232,23 @@ class PairFileWriter:
             while whole < len(sizes) and nbytes + sizes[whole] <= done:
                 nbytes += sizes[whole]
                 whole += 1
-            self._add(sizes[:whole], nbytes)
+            self._add(sizes[:whole], nbytes, None if pairs is None else min(pairs, whole))
             try:
                 os.ftruncate(self._fd, self._end)  # the partial record goes; freeing space works on a full disk
             except OSError:
                 pass
             e.pairs_written = whole  # type: ignore[attr-defined]
             raise
-        self._add(sizes, len(mv))
+        self._add(sizes, len(mv), len(sizes) if pairs is None else pairs)
 
-    def _add(self, sizes: list[int], nbytes: int) -> None:
+    def _add(self, sizes: list[int], nbytes: int, pairs: int | None = None) -> None:
         off = self._end
         for s in sizes:
             self._offsets.append(off)
             off += s
         self._end = off
         self.bytes_written += nbytes
-        self.n_pairs += len(sizes)
+        self.n_pairs += len(sizes) if pairs is None else pairs
 
     def append(self, frame_id: int, ts_left_ns: int, ts_right_ns: int, left: np.ndarray, right: np.ndarray,
                wl: Window | None = None, wr: Window | None = None, block: int = 0) -> None:
@@ -243,6 +264,11 @@ class PairFileWriter:
         n = pack_pair_into(buf, 0, frame_id, ts_left_ns, ts_right_ns, block, left, right, wl, wr,
                            wl == full and wr == full)
         self.write_records(buf.data, [n])
+
+    def note(self, frame_id: int, block: int, ranging_every: int, per_led: bool) -> None:
+        """Append a block note (what the decoder shed on ``block``)."""
+        buf = np.empty(PAIR_HEADER_SIZE, np.uint8)
+        self.write_records(buf.data, [pack_note_into(buf, 0, frame_id, block, ranging_every, per_led)], pairs=0)
 
     def sync(self) -> None:
         """fsync what was written (survives a power cut)."""

@@ -18,14 +18,15 @@ import warnings
 import zlib
 from collections.abc import Iterator
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 
 from iscd.recording.base import Recording, RecordingError, RecordingWarning, header_number, missing_ids
 from iscd.recording.iscr import MAX_SIDE, _DTYPES, read_header
-from iscd.recording.pairfile import (CRC_SPAN, FLAG_WHOLE, HEADER_DTYPE, INDEX_HEADER, INDEX_SYNC, MODES,
-                                     PAIR_HEADER, PAIR_HEADER_SIZE, SEAL, SEAL_MAGIC, SYNC, VERSION, record_size)
+from iscd.recording.pairfile import (CRC_SPAN, FLAG_WHOLE, HEADER_DTYPE, INDEX_HEADER, INDEX_SYNC, MODES, NOTE_SYNC,
+                                     PAIR_HEADER, PAIR_HEADER_SIZE, SEAL, SEAL_MAGIC, SYNC, VERSION, note_flags,
+                                     record_size)
 
 CONFIG_NAME = "config.toml"
 CALIBRATION_NAME = "calibration.yml"
@@ -97,6 +98,13 @@ class PairRecording:
             hdr, offsets = self._scan(size)
         else:
             hdr, offsets = hdr
+        end = int(offsets[-1] + hdr["size"][-1]) if offsets.size else self.data_offset
+        is_note = hdr["sync"] == NOTE_SYNC
+        self.notes: dict[int, tuple[int, bool]] = {
+            int(b): note_flags(int(f)) for b, f in zip(hdr["block"][is_note], hdr["flags"][is_note])}
+        """block -> (ranging_every, per_led): what the live decoder was let do on that block
+        (blocks without a note: everything)"""
+        hdr, offsets = hdr[~is_note], offsets[~is_note]
         self.offsets = offsets
         self.frame_ids = hdr["frame_id"].astype(np.int64)
         self.ts_left_ns = hdr["ts_left_ns"].astype(np.int64)
@@ -105,7 +113,6 @@ class PairRecording:
         self.windows = np.stack([hdr["win_left"], hdr["win_right"]], 1).astype(np.int64).reshape(-1, 2, 4)
         self.whole = (hdr["flags"] & FLAG_WHOLE).astype(bool)
         self.sizes = hdr["size"].astype(np.int64)
-        end = int(offsets[-1] + self.sizes[-1]) if offsets.size else self.data_offset
         self.data_end = min(end, size) if size else 0
         tail = 0 if self.sealed else max(size - self.data_end, 0)
         whole_bytes = max(self.data_end - self.data_offset, 0)
@@ -122,10 +129,12 @@ class PairRecording:
         """Whether the header ``h`` unpacked at ``pos`` is a whole, consistent record."""
         sync, rsize, *_rest = h
         wl, wr, crc = h[6:10], h[10:14], h[15]
-        if sync != SYNC or pos + rsize > size:
+        if sync not in (SYNC, NOTE_SYNC) or pos + rsize > size:
             return False
         if zlib.crc32(self._mm[pos:pos + CRC_SPAN]) != crc:
             return False
+        if sync == NOTE_SYNC:
+            return rsize == PAIR_HEADER_SIZE and not any(wl) and not any(wr)
         for x0, y0, x1, y1 in (wl, wr):
             if not (x0 <= x1 <= self.width and y0 <= y1 <= self.height):
                 return False
@@ -325,6 +334,18 @@ def session_files(path: str | Path) -> list[Path]:
     return [p]
 
 
+class Block(NamedTuple):
+    """One decoder block of a recording: frame ids (n,), left and right exposure timestamps
+    (n,) ns, left and right frames (n, height, width), the block's number."""
+
+    frame_ids: np.ndarray
+    ts_left_ns: np.ndarray
+    ts_right_ns: np.ndarray
+    left: np.ndarray
+    right: np.ndarray
+    block: int
+
+
 class PairSession:
     """The files of one recorded run in order (a folder, or one file): their pairs as one
     sequence, grouped into the decoder's blocks.
@@ -373,12 +394,19 @@ class PairSession:
         v = self.metadata.get("intake_buffers")
         return v if isinstance(v, int) and not isinstance(v, bool) and 1 <= v <= 4096 else None
 
-    def iter_blocks(self, emulate_intake: bool = True, max_pairs: int = 4096
-                    ) -> Iterator[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]]:
+    def block_service(self, block: int) -> tuple[int, bool]:
+        """(ranging_every, per_led) the live decoder was let do on ``block`` (its overload
+        policy's shedding, from the block notes; (1, True) without a note)."""
+        for r in self.files:
+            if block in r.notes:
+                return r.notes[block]
+        return 1, True
+
+    def iter_blocks(self, emulate_intake: bool = True, max_pairs: int = 4096) -> Iterator["Block"]:
         """The pairs in the blocks the live decoder took them in (consecutive pairs with the
         same block number; a block cut by a file rotation is joined again), at most
-        ``max_pairs`` a block: (frame_ids, ts_left_ns, ts_right_ns, left, right), frames
-        (n, height, width) rebuilt from the recorded windows.
+        ``max_pairs`` a block, as :class:`Block` (frame_ids, ts_left_ns, ts_right_ns, left,
+        right, block): frames (n, height, width) rebuilt from the recorded windows.
 
         ``emulate_intake`` (and the file knows :meth:`intake_buffers`): the frames are
         rebuilt as the daemon's intake (:class:`iscd.service.blocks.BlockReader`) built them,
@@ -397,15 +425,15 @@ class PairSession:
             for i in range(r.n_pairs):
                 b = int(r.blocks[i])
                 if items and (b != cur or len(items) >= max_pairs):
-                    yield self._block(items, bufs)
+                    yield self._block(items, bufs, cur)
                     items = []
                 cur = b
                 items.append((r, i))
         if items:
-            yield self._block(items, bufs)
+            yield self._block(items, bufs, cur)
 
-    def _block(self, items: list[tuple[PairRecording, int]], bufs: tuple[np.ndarray, np.ndarray] | None
-               ) -> tuple[np.ndarray, ...]:
+    def _block(self, items: list[tuple[PairRecording, int]], bufs: tuple[np.ndarray, np.ndarray] | None,
+               block: int) -> "Block":
         n = len(items)
         if bufs is None or n > bufs[0].shape[0]:
             L = np.zeros((n, self.height, self.width), self.dtype)
@@ -418,7 +446,7 @@ class PairSession:
                 x0, y0, x1, y1 = (int(v) for v in r.windows[i, cam])
                 out[k, y0:y1, x0:x1] = r.window_pixels(i, cam)
             ids[k], tl[k], tr[k] = r.frame_ids[i], r.ts_left_ns[i], r.ts_right_ns[i]
-        return ids, tl, tr, L[:n].copy(), R[:n].copy()
+        return Block(ids, tl, tr, L[:n].copy(), R[:n].copy(), int(block))
 
     def info(self) -> dict[str, Any]:
         """A JSON-serializable summary of the whole run and of each file."""

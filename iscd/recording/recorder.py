@@ -31,7 +31,8 @@ import numpy as np
 
 from iscd.core.config import config_section
 from iscd.recording.base import RecordingError
-from iscd.recording.pairfile import MODES, PairFileWriter, Window, pack_pair_into, record_size
+from iscd.recording.pairfile import (MODES, PAIR_HEADER_SIZE, PairFileWriter, Window, pack_note_into, pack_pair_into,
+                                     record_size)
 from iscd.recording.spool import Spool
 
 log = logging.getLogger(__name__)
@@ -199,6 +200,19 @@ class Recorder:
         self.spool.commit(off, size, fid)
         return True
 
+    def note_block(self, block: int, ranging_every: int, per_led: bool) -> None:
+        """What the decoder was let do on ``block`` (the overload policy's shedding), stored
+        after its pairs as a block note so that a replay sheds the same; only called when
+        something was shed. A note that does not fit in the spool is left out."""
+        state = self._state
+        if state in (FAILED, CLOSED) or self._last_id is None:
+            return
+        off = self.spool.reserve(PAIR_HEADER_SIZE)
+        if off is None:
+            return
+        pack_note_into(self.spool.buf, off, self._last_id, int(block), int(ranging_every), bool(per_led))
+        self.spool.commit(off, PAIR_HEADER_SIZE, self._last_id, pair=False)
+
     def trigger(self, reason: str) -> None:
         """Blackbox: write out the last ``pre_s`` seconds and the ``post_s`` after (taken at
         the next pair offered; safe from a signal handler or another thread). Other modes:
@@ -271,7 +285,8 @@ class Recorder:
         if not items:
             return False
         done = 0
-        for a, _, sizes in self.spool.runs(items):
+        for a, _, run in self.spool.runs(items):
+            sizes = [it.size for it in run]
             pos, i = a, 0
             while i < len(sizes):  # a run is cut by the write size and by rotations
                 f = self._current_file()
@@ -288,16 +303,17 @@ class Recorder:
                 if j == i:  # this file is full
                     self._close_file()
                     continue
+                pairs = sum(it.pair for it in run[i:j])
                 try:
-                    f.write_records(self.spool.buf[pos:pos + nbytes].data, sizes[i:j])
+                    f.write_records(self.spool.buf[pos:pos + nbytes].data, sizes[i:j], pairs)
                 except OSError as e:  # the records written whole before the error count
                     k = getattr(e, "pairs_written", 0)
                     self.spool.release(k)
-                    self.written += k
+                    self.written += sum(it.pair for it in run[i:i + k])
                     self.bytes_written += sum(sizes[i:i + k])
                     raise
                 self.spool.release(j - i)
-                self.written += j - i
+                self.written += pairs
                 self.bytes_written += nbytes
                 done += nbytes
                 pos += nbytes
@@ -362,8 +378,9 @@ class Recorder:
         self.write_errors += 1
         self.failure = why
         left = len(self.spool)
+        pairs = self.spool.pairs_held()
         self.spool.release(left)
-        self.lost_at_failure += left
+        self.lost_at_failure += pairs
         log.error("recording stopped: %s; decoding goes on (%d pairs written; the pairs from now on are not "
                   "written, counted in record_dropped)", why, self.written)
         f, self._file = self._file, None
@@ -387,7 +404,7 @@ class Recorder:
             state = self._state
             if self._thread.is_alive():  # a stuck disk: the writer stops after its write
                 self._state = CLOSED
-        left = len(self.spool)
+        left = self.spool.pairs_held()
         if self._thread.is_alive():
             log.warning("recording: the writer did not finish in %g s; %d pairs are not written", timeout_s, left)
         if state in (RECORDING, DUMPING):
@@ -427,7 +444,7 @@ class Recorder:
             "record_written": self.written, "record_dropped": self.dropped,
             "record_dropped_queue_full": self.dropped_queue,
             "record_dropped_stopped": self.dropped_stopped + self.lost_at_failure,
-            "record_dropped_end": self.dropped_end, "record_queued": len(self.spool) if self._state != ARMED else 0,
+            "record_dropped_end": self.dropped_end, "record_queued": self.spool.pairs_held() if self._state != ARMED else 0,
             "record_mb": round(self.bytes_written / MiB, 3), "record_mb_per_s": round(rate, 3),
             "record_files": self.files, "record_errors": self.errors + self.write_errors, "record_stopped": self.failure is not None}
         if self.mode == "blackbox":

@@ -21,11 +21,13 @@ import numpy as np
 
 
 class Item(NamedTuple):
-    """A record in the spool: byte offset and size in the buffer, its frame id."""
+    """A record in the spool: byte offset and size in the buffer, its frame id, whether it
+    is a pair (else a block note)."""
 
     off: int
     size: int
     frame_id: int
+    pair: bool = True
 
 
 class Spool:
@@ -77,10 +79,10 @@ class Spool:
             return head if tail - head >= size else None
         return None  # head == tail with records held: full
 
-    def commit(self, off: int, size: int, frame_id: int) -> None:
+    def commit(self, off: int, size: int, frame_id: int, pair: bool = True) -> None:
         """The record packed at ``off`` is whole: the consumer may take it."""
         with self.lock:
-            self.items.append(Item(off, size, frame_id))
+            self.items.append(Item(off, size, frame_id, pair))
             self._head = off + size
             self.used += size
 
@@ -117,14 +119,19 @@ class Spool:
                 self.used -= self.items.popleft().size
                 k += 1
 
-    def runs(self, items: list[Item]) -> list[tuple[int, int, list[int]]]:
-        """``items`` in runs of records that lie back to back: (start byte, end byte, sizes)."""
-        out: list[tuple[int, int, list[int]]] = []
+    def pairs_held(self) -> int:
+        """How many of the records held are pairs."""
+        with self.lock:
+            return sum(it.pair for it in self.items)
+
+    def runs(self, items: list[Item]) -> list[tuple[int, int, list[Item]]]:
+        """``items`` in runs of records that lie back to back: (start byte, end byte, items)."""
+        out: list[tuple[int, int, list[Item]]] = []
         for it in items:
             if out and out[-1][1] == it.off:
-                a, _, sizes = out[-1]
-                sizes.append(it.size)
-                out[-1] = (a, it.off + it.size, sizes)
+                a, _, run = out[-1]
+                run.append(it)
+                out[-1] = (a, it.off + it.size, run)
             else:
-                out.append((it.off, it.off + it.size, [it.size]))
+                out.append((it.off, it.off + it.size, [it]))
         return out

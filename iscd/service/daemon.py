@@ -469,6 +469,8 @@ class _Run:
         counters["pair_gaps"] += int(np.clip(steps - 1, 0, None).sum())
         # falling behind: shed work in the policy's order so that no packet is lost
         svc = self.overload.service(self.ring.stats().queued / self.ring.capacity)
+        if self.recorder is not None:  # what is shed goes into the recording: its replay sheds the same
+            self.recorder.note_block(b.blocks_read - 1, svc.ranging_every, svc.per_led)
         try:
             # the block's ranges first; its demodulation hand-off and tracking update
             # after they are out (finish_block below)

@@ -92,7 +92,8 @@ def _is_stereo(path: Path) -> bool:
 def run_stereo(args: argparse.Namespace) -> int:
     """Replay of an ``iscd run --record`` recording: block by block as the live daemon
     decoded it (pairs rebuilt with the recorded windows at their positions, zeros
-    elsewhere; exposure start t_s as the daemon's intake takes it)."""
+    elsewhere; exposure start t_s as the daemon's intake takes it; the ranging the daemon's
+    overload policy shed on a block, from its block note, shed again)."""
     from iscd.calibration.io import CalibrationError, load_calibration
     from iscd.core import config as C
     from iscd.decode.stream import StreamDecoder
@@ -141,13 +142,16 @@ def run_stereo(args: argparse.Namespace) -> int:
                     counts[r["type"]] = counts.get(r["type"], 0) + 1
                     out.write(r)
 
-            for ids, ts_l, _ts_r, L, R in session.iter_blocks():
+            for blk in session.iter_blocks():
+                ids = blk.frame_ids
                 # t_s as iscd.service.blocks.BlockReader takes it: the left timestamp, or id / fps
-                t_s = np.array([t * 1e-9 if t else i / fps for i, t in zip(ids.tolist(), ts_l.tolist())])
+                t_s = np.array([t * 1e-9 if t else i / fps for i, t in zip(ids.tolist(), blk.ts_left_ns.tolist())])
                 if prev is not None:
                     gaps += int(np.clip(np.diff(np.concatenate([[prev], ids])) - 1, 0, None).sum())
                 prev = int(ids[-1])
-                emit(dec.push(ids, t_s, L, R))
+                # what the live decoder shed on this block (overload), so that the ranges match too
+                every, per_led = session.block_service(blk.block)
+                emit(dec.push(ids, t_s, blk.left, blk.right, ranging_every=every, per_led=per_led))
                 last = (int(ids[-1]), float(t_s[-1]))
             emit(dec.finish())
             wall = time.perf_counter() - t0
