@@ -169,3 +169,23 @@ def test_failed_packets_and_a_lost_transmitter_trigger(tmp_path: Path) -> None:
         assert [(r.metadata["reason"], r.metadata["trigger_frame"]) for r in s.files] == [
             ("bad packet", 100), ("transmitter lost", 200)]
         assert s.info()["whole_frame_pairs"] == s.n_pairs == 42
+
+
+def test_the_config_and_calibration_in_force_are_stored_beside(tmp_path: Path) -> None:
+    from iscd.calibration.io import StereoCalibration, save_calibration
+    from iscd.core import config as C
+    from iscd.service.recording import live_recording
+
+    cal = tmp_path / "rig.yml"
+    save_calibration(StereoCalibration.from_parameters(512, 512, 3500.0, baseline_m=0.25), cal)
+    cfg = C.loads(f'[record]\ndir = "{tmp_path / "rec"}"\n[scene]\nseed = 11\n')
+    live = live_recording(cfg, str(cal), lambda: 0, 16)
+    live.close()
+    folder = live.folder
+    assert folder.parent == tmp_path / "rec" and folder.name.startswith("run-")
+    assert (folder / "calibration.yml").read_bytes() == cal.read_bytes()
+    assert C.loads((folder / "config.toml").read_text()) == cfg  # the config, exactly
+    assert live_recording(C.loads(""), None, lambda: 0, 16) is None  # no [record] dir: off
+    live2 = live_recording(cfg, None, lambda: 0, 16)  # a second run: a folder of its own
+    live2.close()
+    assert live2.folder != folder and not (live2.folder / "calibration.yml").exists()

@@ -230,9 +230,11 @@ class Recorder:
                 self._trigger_id = fid
                 self._end_id = fid + self.post_frames
                 self._state = DUMPING
-                log.warning("blackbox: %s at frame %d: writing frames from %d (%g s before) to %d (%g s after)",
-                            reason, fid, max(fid - self.pre_frames, 0), self.settings.pre_s, self._end_id,
-                            self.settings.post_s)
+                held = self.spool.peek(1)
+                first = held[0].frame_id if held else fid
+                log.warning("blackbox: %s at frame %d: writing frames from %d (%.2f s before; pre_s %g) to %d "
+                            "(%g s after)", reason, fid, first, (fid - first) / self.fps, self.settings.pre_s,
+                            self._end_id, self.settings.post_s)
             elif self._state == DUMPING and fid <= self._end_id:  # within the frames after the last one
                 self._end_id = fid + self.post_frames
                 log.info("blackbox: %s at frame %d: writing on to frame %d", reason, fid, self._end_id)
