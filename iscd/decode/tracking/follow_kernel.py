@@ -7,7 +7,8 @@ the shift and scale of the array from box centroids (:func:`~iscd.decode.trackin
 refine_in_patches`, accelerated rounds), then the Gaussian-weighted luminance (eq. 3.10
 with smooth weights, :func:`~iscd.decode.tracking.luminance.gauss_in_patches`) -- in fused loops
 that read each LED's pixels straight out of the frames (no patch copies, no temporaries
-of the size of the block). It works in float64 where the reference works partly in
+of the size of the block; only the luminance converts a frame's patches to float64 once,
+over their bounding box). It works in float64 where the reference works partly in
 float32: the two agree to ~1e-5 px in position and ~1e-5 relative in luminance
 (``tests/test_frame_kernels.py``).
 
@@ -48,6 +49,24 @@ def _gauss_row(out: np.ndarray, e0: float, a2: float, K: int) -> float:
     return s
 
 
+_GAUSS_SAFE = 600.0
+"""|a2| (e0 + k)^2 below which every Gaussian weight of a patch row is a normal float
+(exp(-600) ~ 1e-261): such a row may be scaled by 1 / exp(a2 e0^2)."""
+
+
+@njit(fastmath={"reassoc", "contract", "nsz", "arcp"})
+def _gauss_start(e0: float, a2: float, K: int) -> tuple[float, float]:
+    """The first weight and ratio (w_0, r_0) of :func:`_gauss_row`'s recurrence, the row
+    divided by its first weight exp(a2 e0^2) (one exponential a row; a weighted mean
+    does not change but for rounding) unless a weight could leave the normal floats
+    (an LED far outside its patch): then :func:`_gauss_row`'s own."""
+    e1 = e0 + (K - 1)
+    r = math.exp(a2 * (2.0 * e0 + 1.0))
+    if -a2 * max(e0 * e0, e1 * e1) >= _GAUSS_SAFE:
+        return math.exp(a2 * e0 * e0), r
+    return 1.0, r
+
+
 @njit
 def _percentile90(v: np.ndarray) -> float:
     """numpy's default (linear) 90th percentile of a 1-D array."""
@@ -86,6 +105,109 @@ _FAST = {"reassoc", "contract", "nsz", "arcp"}
 """fastmath flags that let LLVM vectorize the sums (reassociation), but keep inf/NaN."""
 
 
+# The helpers below read pixels through a frame block's flat view (``fr.reshape(-1)``) at
+# unsigned offsets ``(f H + y) W + x``: an unsigned index has no negative-index wrap-around,
+# so the inner loops compile to plain loads. Short rows (a patch is ~15 px) do not
+# vectorize; the helpers instead take two or three rows per pass, which share the
+# weights' loads and overlap the rows' sums.
+
+
+@njit(fastmath=_FAST)
+def _patch_sum_min(ff: np.ndarray, p0: np.uint64, uW: np.uint64, K: int) -> tuple:
+    """Sum and least value (int32) of the K x K pixels from flat offset ``p0`` (row
+    stride ``uW``)."""
+    uK = np.uint64(K)
+    tot = np.int32(0)
+    m = np.int32(ff[p0])
+    pf = p0
+    a = 0
+    while a + 2 < K:
+        p2 = pf + uW
+        p3 = p2 + uW
+        t1 = np.int32(0)
+        t2 = np.int32(0)
+        t3 = np.int32(0)
+        m1 = m
+        m2 = m
+        m3 = m
+        for b in range(uK):
+            v1 = np.int32(ff[pf + b])
+            v2 = np.int32(ff[p2 + b])
+            v3 = np.int32(ff[p3 + b])
+            t1 += v1
+            t2 += v2
+            t3 += v3
+            m1 = min(m1, v1)
+            m2 = min(m2, v2)
+            m3 = min(m3, v3)
+        tot += t1 + t2 + t3
+        m = min(m, min(m1, min(m2, m3)))
+        pf = p3 + uW
+        a += 3
+    while a < K:
+        t1 = np.int32(0)
+        m1 = m
+        for b in range(uK):
+            v1 = np.int32(ff[pf + b])
+            t1 += v1
+            m1 = min(m1, v1)
+        tot += t1
+        m = min(m, m1)
+        pf += uW
+        a += 1
+    return tot, m
+
+
+@njit(fastmath=_FAST)
+def _least_over_frames(ff: np.ndarray, F: int, H: int, W: int, x: int, y: int, bw: int,
+                       bh: int, out: np.ndarray) -> None:
+    """out[r bw + c] = the least value over the F frames of pixel (x + c, y + r) (int32),
+    for the bw x bh px from (x, y): row by row, rows that vectorize when long."""
+    ubw = np.uint64(bw)
+    for f in range(F):
+        for r in range(bh):
+            pf = np.uint64((f * H + y + r) * W + x)
+            pd = np.uint64(r * bw)
+            if f == 0:
+                for c in range(ubw):
+                    out[pd + c] = np.int32(ff[pf + c])
+            else:
+                for c in range(ubw):
+                    out[pd + c] = min(out[pd + c], np.int32(ff[pf + c]))
+
+
+@njit(fastmath=_FAST)
+def _weighted_patch(buf: np.ndarray, p0: np.uint64, uBW: np.uint64, K: int, wx: np.ndarray,
+                    wy: np.ndarray) -> float:
+    """sum over a, b of wy[a] wx[b] buf[p0 + a BW + b] (float64; three rows a pass)."""
+    uK = np.uint64(K)
+    s = 0.0
+    pd = p0
+    a = 0
+    while a + 2 < K:
+        r1 = 0.0
+        r2 = 0.0
+        r3 = 0.0
+        p2 = pd + uBW
+        p3 = p2 + uBW
+        for b in range(uK):
+            u = wx[b]
+            r1 += buf[pd + b] * u
+            r2 += buf[p2 + b] * u
+            r3 += buf[p3 + b] * u
+        s += wy[a] * r1 + wy[a + 1] * r2 + wy[a + 2] * r3
+        pd = p3 + uBW
+        a += 3
+    while a < K:
+        r1 = 0.0
+        for b in range(uK):
+            r1 += buf[pd + b] * wx[b]
+        s += wy[a] * r1
+        pd += uBW
+        a += 1
+    return s
+
+
 @njit(fastmath=_FAST)
 def _follow_kernel(L, R, starts: np.ndarray, half: int, w: float, iterations: int,
                    sel: np.ndarray, lit_ref: np.ndarray, lit_share: float, max_px: float,
@@ -101,12 +223,20 @@ def _follow_kernel(L, R, starts: np.ndarray, half: int, w: float, iterations: in
     first updated with the block's patches (:class:`~iscd.decode.tracking.luminance.PixelBackground`,
     block number ``blk``, ``rise`` DN) and which LEDs are lit is judged on the light above
     them; with ``bg_lum`` the centroids and luminance use that light too. With ``spot_r`` > 0 out_area (2,) gets the lit spots' mean half-maximum area
-    within spot_r px of their refined centres (:func:`~iscd.decode.tracking.luminance.half_max_area`)."""
+    within spot_r px of their refined centres (:func:`~iscd.decode.tracking.luminance.half_max_area`).
+
+    Pixels are read through flat views with unsigned indices (``(f H + y) W + x``: no
+    negative-index wrap-around in the inner loops, which then compile to plain loads)."""
     F = L.shape[0]
     N = starts.shape[1]
     n = sel.size
     K = 2 * half + 1
+    uK = np.uint64(K)
     FF = 2 * F
+    Lf = L.reshape(-1)
+    Rf = R.reshape(-1)
+    bgl_f = bg_l.reshape(-1)
+    bgr_f = bg_r.reshape(-1)
     x0 = np.empty((FF, N), np.int64)
     y0 = np.empty((FF, N), np.int64)
     for g in range(2):
@@ -125,31 +255,35 @@ def _follow_kernel(L, R, starts: np.ndarray, half: int, w: float, iterations: in
         nb = N if bg_lum else n
         for g in range(2):
             fr = L if g == 0 else R
-            bgi = bg_l if g == 0 else bg_r
-            sti = st_l if g == 0 else st_r
+            ff = Lf if g == 0 else Rf
+            H, W = fr.shape[1], fr.shape[2]
+            bgf = bgl_f if g == 0 else bgr_f
+            stf = (st_l if g == 0 else st_r).reshape(-1)
             for f in range(F):
                 for jb in range(nb):
                     i = jb if bg_lum else sel[jb]
                     xa, ya = x0[g * F + f, i], y0[g * F + f, i]
                     for a in range(K):
-                        row = fr[f, ya + a, xa:xa + K]
-                        brow = bgi[ya + a, xa:xa + K]
-                        srow = sti[ya + a, xa:xa + K]
-                        for b in range(K):
-                            if srow[b] != blk:
-                                srow[b] = blk
-                                brow[b] += np.float32(rise)
-                            v = np.float32(row[b])
-                            if v < brow[b]:
-                                brow[b] = v
+                        pb = np.uint64((ya + a) * W + xa)
+                        pf = np.uint64(f * H * W) + pb
+                        for b in range(uK):
+                            if stf[pb + b] != blk:
+                                stf[pb + b] = blk
+                                bgf[pb + b] += np.float32(rise)
+                            v = np.float32(ff[pf + b])
+                            if v < bgf[pb + b]:
+                                bgf[pb + b] = v
     # ---- per selected LED and frame: patch sum, patch minimum, and (patches that stay
     # put over the block) each pixel's least value over the block's frames
     pmin = np.empty((FF, n))
     shown = np.empty((FF, n))
     lit = np.empty((FF, n), np.bool_)
-    bg = np.empty((K, K), np.int32)
+    least = np.empty(2 * n * K * K, np.int32)
     for g in range(2):
         fr = L if g == 0 else R
+        ff = Lf if g == 0 else Rf
+        H, W = fr.shape[1], fr.shape[2]
+        uW = np.uint64(W)
         fixed = F > 1
         for f in range(F):
             for j in range(n):
@@ -158,35 +292,42 @@ def _follow_kernel(L, R, starts: np.ndarray, half: int, w: float, iterations: in
                     fixed = False
         for j in range(n):
             i = sel[j]
-            if fixed:
-                xa, ya = x0[g * F, i], y0[g * F, i]
-                for a in range(K):
-                    for b in range(K):
-                        bg[a, b] = np.int32(fr[0, ya + a, xa + b])
             for f in range(F):
                 q = g * F + f
-                xa, ya = x0[q, i], y0[q, i]
-                tot = np.int32(0)
-                m = np.int32(fr[f, ya, xa])
-                for a in range(K):
-                    for b in range(K):
-                        v = np.int32(fr[f, ya + a, xa + b])
-                        tot += v
-                        m = min(m, v)
-                        if fixed:
-                            bg[a, b] = min(bg[a, b], v)
+                tot, m = _patch_sum_min(ff, np.uint64((f * H + y0[q, i]) * W + x0[q, i]), uW, K)
                 pmin[q, j] = m
                 shown[q, j] = np.int64(tot) - K * K * np.int64(m)
-            if fixed:
+        if fixed:
+            # each pixel's least value over the block: at once over the selected patches'
+            # bounding box when that is small (an array's), else patch by patch
+            bx0, by0, bx1, by1 = W, H, 0, 0
+            for j in range(n):
+                i = sel[j]
+                bx0 = min(bx0, x0[g * F, i])
+                by0 = min(by0, y0[g * F, i])
+                bx1 = max(bx1, x0[g * F, i] + K)
+                by1 = max(by1, y0[g * F, i] + K)
+            boxed = (bx1 - bx0) * (by1 - by0) <= least.size
+            if boxed:
+                _least_over_frames(ff, F, H, W, bx0, by0, bx1 - bx0, by1 - by0, least)
+            for j in range(n):
+                i = sel[j]
+                xa, ya = x0[g * F, i], y0[g * F, i]
+                if boxed:
+                    BW, p0 = bx1 - bx0, (ya - by0) * (bx1 - bx0) + xa - bx0
+                else:
+                    _least_over_frames(ff, F, H, W, xa, ya, K, K, least)
+                    BW, p0 = K, 0
                 sb = 0
                 for a in range(K):
-                    for b in range(K):
-                        sb += np.int64(bg[a, b])
+                    pd = np.uint64(p0 + a * BW)
+                    for b in range(np.uint64(K)):
+                        sb += np.int64(least[pd + b])
                 for f in range(F):
                     q = g * F + f
                     shown[q, j] += K * K * pmin[q, j] - sb
         if has_bg:  # the light above the held per-pixel background instead
-            bgi = bg_l if g == 0 else bg_r
+            bgf = bgl_f if g == 0 else bgr_f
             for j in range(n):
                 i = sel[j]
                 for f in range(F):
@@ -194,10 +335,10 @@ def _follow_kernel(L, R, starts: np.ndarray, half: int, w: float, iterations: in
                     xa, ya = x0[q, i], y0[q, i]
                     sv = 0.0
                     for a in range(K):
-                        row = fr[f, ya + a, xa:xa + K]
-                        brow = bgi[ya + a, xa:xa + K]
-                        for b in range(K):
-                            sv += float(row[b]) - float(brow[b])
+                        pb = np.uint64((ya + a) * W + xa)
+                        pf = np.uint64(f * H * W) + pb
+                        for b in range(uK):
+                            sv += float(ff[pf + b]) - float(bgf[pb + b])
                     shown[q, j] = sv
         per = _percentile90(shown[g * F:(g + 1) * F].ravel())
         out_light[g] = per
@@ -221,6 +362,13 @@ def _follow_kernel(L, R, starts: np.ndarray, half: int, w: float, iterations: in
     wt = np.empty(n)
     for it in range(iterations):
         for q in range(FF):
+            g = 0 if q < F else 1
+            f = q - g * F
+            fr = L if g == 0 else R
+            ff = Lf if g == 0 else Rf
+            bgf = bgl_f if g == 0 else bgr_f
+            H, W = fr.shape[1], fr.shape[2]
+            uW = np.uint64(W)
             for j in range(n):
                 i = sel[j]
                 cx, cy = cc[q, i, 0], cc[q, i, 1]
@@ -234,6 +382,15 @@ def _follow_kernel(L, R, starts: np.ndarray, half: int, w: float, iterations: in
                     wx[k] = _box_cover(cx, float(xa + k), w)
                 for k in range(a0, a1):
                     wy[k] = _box_cover(cy, float(ya + k), w)
+                # and the end pixels the box only touches add exactly 0: leave them out
+                while b0 < b1 and wx[b0] == 0.0:
+                    b0 += 1
+                while b1 > b0 and wx[b1 - 1] == 0.0:
+                    b1 -= 1
+                while a0 < a1 and wy[a0] == 0.0:
+                    a0 += 1
+                while a1 > a0 and wy[a1 - 1] == 0.0:
+                    a1 -= 1
                 tot = 0.0
                 sx = 0.0
                 sy = 0.0
@@ -243,30 +400,83 @@ def _follow_kernel(L, R, starts: np.ndarray, half: int, w: float, iterations: in
                     xw[k] = wx[k] * (xa + k)
                     swx += wx[k]
                     sxw += xw[k]
-                fr = L if q < F else R
-                bgi = bg_l if q < F else bg_r
-                f = q if q < F else q - F
                 m = pmin[q, j]
-                for a in range(a0, a1):
-                    row = fr[f, ya + a, xa:xa + K]
-                    ra = 0.0
-                    rx = 0.0
-                    if bg_lum:  # light above each pixel's background
-                        brow = bgi[ya + a, xa:xa + K]
-                        for b in range(b0, b1):
-                            v = float(row[b]) - float(brow[b])
+                ub0 = np.uint64(b0)
+                ub1 = np.uint64(b1)
+                pb = np.uint64((ya + a0) * W + xa)
+                pf = np.uint64(f * H * W) + pb
+                uW2 = uW + uW
+                a = a0
+                if bg_lum:  # light above each pixel's background
+                    while a + 1 < a1:  # two rows a pass
+                        pf2 = pf + uW
+                        pb2 = pb + uW
+                        ra = 0.0
+                        rx = 0.0
+                        ra2 = 0.0
+                        rx2 = 0.0
+                        for b in range(ub0, ub1):
+                            u = wx[b]
+                            t = xw[b]
+                            v = float(ff[pf + b]) - float(bgf[pb + b])
+                            v2 = float(ff[pf2 + b]) - float(bgf[pb2 + b])
+                            ra += v * u
+                            rx += v * t
+                            ra2 += v2 * u
+                            rx2 += v2 * t
+                        tot += wy[a] * ra + wy[a + 1] * ra2
+                        sx += wy[a] * rx + wy[a + 1] * rx2
+                        sy += wy[a] * ra * (ya + a) + wy[a + 1] * ra2 * (ya + a + 1)
+                        pf += uW2
+                        pb += uW2
+                        a += 2
+                    if a < a1:
+                        ra = 0.0
+                        rx = 0.0
+                        for b in range(ub0, ub1):
+                            v = float(ff[pf + b]) - float(bgf[pb + b])
                             ra += v * wx[b]
                             rx += v * xw[b]
-                    else:
-                        for b in range(b0, b1):
-                            v = float(row[b])
-                            ra += v * wx[b]
-                            rx += v * xw[b]
+                        tot += wy[a] * ra
+                        sx += wy[a] * rx
+                        sy += wy[a] * ra * (ya + a)
+                else:
+                    while a + 1 < a1:  # two rows a pass
+                        pf2 = pf + uW
+                        ra = 0.0
+                        rx = 0.0
+                        ra2 = 0.0
+                        rx2 = 0.0
+                        for b in range(ub0, ub1):
+                            u = wx[b]
+                            t = xw[b]
+                            v = float(ff[pf + b])
+                            v2 = float(ff[pf2 + b])
+                            ra += v * u
+                            rx += v * t
+                            ra2 += v2 * u
+                            rx2 += v2 * t
                         ra -= m * swx  # light above the patch minimum
                         rx -= m * sxw
-                    tot += wy[a] * ra
-                    sx += wy[a] * rx
-                    sy += wy[a] * ra * (ya + a)
+                        ra2 -= m * swx
+                        rx2 -= m * sxw
+                        tot += wy[a] * ra + wy[a + 1] * ra2
+                        sx += wy[a] * rx + wy[a + 1] * rx2
+                        sy += wy[a] * ra * (ya + a) + wy[a + 1] * ra2 * (ya + a + 1)
+                        pf += uW2
+                        a += 2
+                    if a < a1:
+                        ra = 0.0
+                        rx = 0.0
+                        for b in range(ub0, ub1):
+                            v = float(ff[pf + b])
+                            ra += v * wx[b]
+                            rx += v * xw[b]
+                        ra -= m * swx
+                        rx -= m * sxw
+                        tot += wy[a] * ra
+                        sx += wy[a] * rx
+                        sy += wy[a] * ra * (ya + a)
                 safe = tot if tot > 0 else 1.0
                 off[j, 0] = sx / safe - cx
                 off[j, 1] = sy / safe - cy
@@ -359,31 +569,86 @@ def _follow_kernel(L, R, starts: np.ndarray, half: int, w: float, iterations: in
                     n_a += 1
             if n_a > 0:
                 out_area[g] = tot_a / n_a
-    # ---- Gaussian-weighted luminance of every LED at its refined position
+    # ---- Gaussian-weighted luminance of every LED at its refined position. The pixels
+    # of a frame's patches are first converted to float64 once, into a buffer over their
+    # bounding box when that is no larger than the patches together (an array's patches
+    # overlap: each pixel converted once, in long rows that vectorize), else read in place.
+    buf = np.empty(N * K * K)
+    gx = np.empty((K, N))
+    gy = np.empty((K, N))
+    wvx = np.empty(N)
+    wvy = np.empty(N)
+    wrx = np.empty(N)
+    wry = np.empty(N)
+    wsx = np.empty(N)
+    wsy = np.empty(N)
     for g in range(2):
         fr = L if g == 0 else R
-        bgi = bg_l if g == 0 else bg_r
+        ff = Lf if g == 0 else Rf
+        bgf = bgl_f if g == 0 else bgr_f
+        H, W = fr.shape[1], fr.shape[2]
         a2 = -0.5 / (sigmas[g] * sigmas[g])
+        q2 = math.exp(2.0 * a2)
         for f in range(F):
             q = g * F + f
+            bx0, by0, bx1, by1 = W, H, 0, 0
+            for i in range(N):
+                bx0 = min(bx0, x0[q, i])
+                by0 = min(by0, y0[q, i])
+                bx1 = max(bx1, x0[q, i] + K)
+                by1 = max(by1, y0[q, i] + K)
+            BW = bx1 - bx0
+            uBW = np.uint64(BW)
+            boxed = BW * (by1 - by0) <= N * K * K
+            if boxed:
+                for y in range(by0, by1):
+                    pb = np.uint64(y * W + bx0)
+                    pf = np.uint64(f * H * W) + pb
+                    pd = np.uint64((y - by0) * BW)
+                    if bg_lum:
+                        for x in range(uBW):
+                            buf[pd + x] = float(ff[pf + x]) - float(bgf[pb + x])
+                    else:
+                        for x in range(uBW):
+                            buf[pd + x] = float(ff[pf + x])
+            # the weights (:func:`_gauss_row`'s recurrence) of all the LEDs at once: a
+            # loop over the LEDs that vectorizes
+            for i in range(N):
+                wvx[i], wrx[i] = _gauss_start(x0[q, i] - cc[q, i, 0], a2, K)
+                wvy[i], wry[i] = _gauss_start(y0[q, i] - cc[q, i, 1], a2, K)
+                wsx[i] = 0.0
+                wsy[i] = 0.0
+            for k in range(K):
+                for i in range(N):
+                    gx[k, i] = wvx[i]
+                    wsx[i] += wvx[i]
+                    wvx[i] *= wrx[i]
+                    wrx[i] *= q2
+                    gy[k, i] = wvy[i]
+                    wsy[i] += wvy[i]
+                    wvy[i] *= wry[i]
+                    wry[i] *= q2
             for i in range(N):
                 xa, ya = x0[q, i], y0[q, i]
-                cx, cy = cc[q, i, 0], cc[q, i, 1]
-                swx = _gauss_row(wx, xa - cx, a2, K)
-                swy = _gauss_row(wy, ya - cy, a2, K)
+                for k in range(K):
+                    wx[k] = gx[k, i]
+                    wy[k] = gy[k, i]
                 s = 0.0
-                for a in range(K):
-                    row = fr[f, ya + a, xa:xa + K]
-                    r = 0.0
-                    if bg_lum:
-                        brow = bgi[ya + a, xa:xa + K]
-                        for b in range(K):
-                            r += (float(row[b]) - float(brow[b])) * wx[b]
-                    else:
-                        for b in range(K):
-                            r += float(row[b]) * wx[b]
-                    s += wy[a] * r
-                out_lum[q, i] = s / (swx * swy)
+                if boxed:
+                    s = _weighted_patch(buf, np.uint64((ya - by0) * BW + xa - bx0), uBW, K, wx, wy)
+                else:
+                    for a in range(K):
+                        pb = np.uint64((ya + a) * W + xa)
+                        pf = np.uint64(f * H * W) + pb
+                        r = 0.0
+                        if bg_lum:
+                            for b in range(uK):
+                                r += (float(ff[pf + b]) - float(bgf[pb + b])) * wx[b]
+                        else:
+                            for b in range(uK):
+                                r += float(ff[pf + b]) * wx[b]
+                        s += wy[a] * r
+                out_lum[q, i] = s / (wsx[i] * wsy[i])
     out_c[:] = cc
 
 
