@@ -42,16 +42,58 @@ def _fine_table(table: np.ndarray, fine: int) -> np.ndarray:
     C, N, M = table.shape
     G = (M - 1) * fine + 1
     out = np.empty((C, N * G), np.float32)
+    # the segment and the fraction of each q (the same for every row)
+    js = np.empty(G, np.int64)
+    fs = np.empty(G)
+    for g in range(G):
+        q = g / fine
+        q0 = min(max(np.floor(q), 0.0), M - 2.0) if M >= 2 else 0.0
+        js[g] = int(q0)
+        fs[g] = q - js[g]
     for c in range(C):
         for i in range(N):
+            row = table[c, i]
+            o = out[c, i * G:(i + 1) * G]
             for g in range(G):
-                q = g / fine
-                q0 = min(max(np.floor(q), 0.0), M - 2.0) if M >= 2 else 0.0
-                j = int(q0)
-                f = q - j
-                a = table[c, i, j]
-                b = table[c, i, j + 1] if M >= 2 else a
-                out[c, i * G + g] = np.float32(a + f * (b - a))
+                j = js[g]
+                a = row[j]
+                b = row[j + 1] if M >= 2 else a
+                o[g] = np.float32(a + fs[g] * (b - a))
+    return out
+
+
+@njit(warm=lambda: (np.ones((1, 2, 3)), np.ones((1, 2, 3)), 4), error_model="numpy")
+def _fine_tables(mu: np.ndarray, var: np.ndarray, fine: int) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`_fine_table` of the centroids and of the variances, in one call."""
+    return _fine_table(mu, fine), _fine_table(var, fine)
+
+
+@njit(warm=lambda: (np.ones((1, 2, 3)), 0.02), error_model="numpy")
+def _step_gain(mu: np.ndarray, ts_e: float) -> np.ndarray:
+    """(C, N) float32 ``((mu_M - mu_1) / max(M - 1, 1) * ts_e)`` of mu (C, N, M) float64
+    (:meth:`ChannelModel._straddle_gain`, element by element)."""
+    C, N, M = mu.shape
+    out = np.empty((C, N), np.float32)
+    d = float(max(M - 1, 1))
+    for c in range(C):
+        for i in range(N):
+            out[c, i] = np.float32((mu[c, i, M - 1] - mu[c, i, 0]) / d * ts_e)
+    return out
+
+
+@njit(warm=lambda: (np.ones((1, 2, 4)),), error_model="numpy")
+def _interp_error_kernel(mu: np.ndarray) -> np.ndarray:
+    """:attr:`ChannelModel.interp_error` of centroids mu (C, N, M), M >= 2, element by
+    element: 0.125 max(|slope change| at the segment's two ends (0 beyond the outer knots))."""
+    C, N, M = mu.shape
+    out = np.empty((C, N, M - 1))
+    for c in range(C):
+        for i in range(N):
+            row = mu[c, i]
+            for j in range(M - 1):
+                left = abs((row[j + 1] - row[j]) - (row[j] - row[j - 1])) if j > 0 else 0.0
+                right = abs((row[j + 2] - row[j + 1]) - (row[j + 1] - row[j])) if j < M - 2 else 0.0
+                out[c, i, j] = 0.125 * np.maximum(left, right)
     return out
 
 
@@ -133,12 +175,14 @@ class ChannelModel:
         :meth:`_fine_reference`)."""
         mu = np.ascontiguousarray(self.mu, dtype=np.float64)
         var = np.ascontiguousarray(self.var, dtype=np.float64)
-        return _fine_table(mu, self.FINE), _fine_table(var, self.FINE)
+        return _fine_tables(mu, var, self.FINE)
 
     @cached_property
     def interp_error(self) -> np.ndarray:
         """(C, N, M-1) RMS error bound of the linear interpolation within each level
         segment, from the change of slope at its ends (curvature of the response h)."""
+        if self.mu.ndim == 3 and self.mu.shape[2] >= 2 and self.mu.dtype == np.float64:
+            return _interp_error_kernel(np.ascontiguousarray(self.mu))
         s = np.diff(self.mu, axis=-1)
         ds = np.abs(np.diff(s, axis=-1))  # (C, N, M-2) slope change at inner knots
         pad = np.zeros(ds.shape[:-1] + (1,))
@@ -149,6 +193,25 @@ class ChannelModel:
     @cached_property
     def _interp_error32(self) -> np.ndarray:
         return self.interp_error.reshape(self.n_cams, -1).astype(np.float32)
+
+    @cached_property
+    def _memo(self) -> dict:
+        """Derived arrays keyed by their parameters (:meth:`_straddle_gain`)."""
+        return {}
+
+    def _straddle_gain(self, ts_e: float) -> np.ndarray:
+        """(C, N) float32 ``(mu_M - mu_1) / (M - 1) * ts_e``: the response's change per frame
+        of boundary error (ts_e = timing_sigma / e) per level step (:func:`decide_span`)."""
+        key = ("gain", ts_e)
+        g = self._memo.get(key)
+        if g is None:
+            mu = self.mu
+            if mu.dtype == np.float64 and mu.ndim == 3 and mu.shape[2] >= 1:
+                g = _step_gain(np.ascontiguousarray(mu), float(ts_e))
+            else:
+                g = ((mu[:, :, -1] - mu[:, :, 0]) / max(self.levels - 1, 1) * ts_e).astype(np.float32)
+            self._memo[key] = g
+        return g
 
     @cached_property
     def _tables(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -552,35 +615,55 @@ def _camera_kernel(y: np.ndarray, lev: np.ndarray, M: int, led_prior: float, lev
     return True, mu, var
 
 
+@njit(inline="always")
+def _select_kth(a: np.ndarray, lo: int, hi: int, k: int) -> float:
+    """The k-th smallest value of a[lo:hi] (k absolute, lo <= k < hi; no NaN), moving the
+    smaller ones to a[lo:k] (a quickselect in place: the values are what a sort gives;
+    numba's np.partition, which copies and is NaN-aware, took most of :func:`_iscd_camera`)."""
+    left = lo
+    right = hi - 1
+    while right > left:
+        m = (left + right) >> 1
+        if a[m] < a[left]:
+            a[m], a[left] = a[left], a[m]
+        if a[right] < a[left]:
+            a[right], a[left] = a[left], a[right]
+        if a[right] < a[m]:
+            a[right], a[m] = a[m], a[right]
+        piv = a[m]
+        i = left
+        j = right
+        while i <= j:
+            while a[i] < piv:
+                i += 1
+            while piv < a[j]:
+                j -= 1
+            if i <= j:
+                a[i], a[j] = a[j], a[i]
+                i += 1
+                j -= 1
+        if k <= j:
+            right = j
+        elif k >= i:
+            left = i
+        else:
+            break
+    return a[k]
+
+
 def _warm_iscd() -> tuple:
     y = np.arange(24.0).reshape(12, 2)
     lev = (np.arange(24).reshape(12, 2) % 3).astype(np.int64)
     return (y, lev, 3, 4.0, 3.0, 10.0, 10.0, 0.3, 6.0)
 
 
-@njit(warm=_warm_iscd)
-def _iscd_camera(y: np.ndarray, lev: np.ndarray, M: int, led_prior: float, level_prior: float,
-                 var_prior: float, led_var_prior: float, var_floor_dn: float, outlier_sigma: float
-                 ) -> tuple[bool, np.ndarray, np.ndarray]:
-    """One camera of :func:`estimate_iscd` (compiled): :func:`_camera_kernel`, then with
-    ``outlier_sigma`` > 0 the samples further than outlier_sigma robust RMS (1.4826 x the
-    median |residual| of their level over all LEDs) from their centroid dropped and the
-    model fitted again."""
-    ok_fit, mu, var = _camera_kernel(y, lev, M, led_prior, level_prior, var_prior,
-                                     led_var_prior, var_floor_dn)
-    if not ok_fit or outlier_sigma <= 0:
-        return ok_fit, mu, var
+@njit
+def _outliers_exact(y: np.ndarray, lev: np.ndarray, M: int, r: np.ndarray, cnt: np.ndarray,
+                    var_floor_dn: float, outlier_sigma: float) -> tuple[np.ndarray, bool]:
+    """y with the outliers of :func:`_iscd_camera` set to NaN, and whether there were any:
+    residuals r (n, N) bucketed by level (counting sort, cnt (M,) per level), each level's
+    median by selection, every sample compared with its level's threshold."""
     n_s, N = y.shape
-    r = np.empty((n_s, N))
-    cnt = np.zeros(M, np.int64)
-    for t in range(n_s):
-        for i in range(N):
-            lv = min(max(lev[t, i], 0), M - 1)
-            r[t, i] = abs(y[t, i] - mu[i, lv])
-            if np.isfinite(r[t, i]) and lev[t, i] >= 0:
-                cnt[lv] += 1
-    # residuals bucketed by level in one pass (counting sort), then the median of each
-    # bucket by selection: the same two middle values as a sort gives
     start = np.zeros(M + 1, np.int64)
     for l in range(M):
         start[l + 1] = start[l] + cnt[l]
@@ -599,15 +682,7 @@ def _iscd_camera(y: np.ndarray, lev: np.ndarray, M: int, led_prior: float, level
         c_l = cnt[l]
         if c_l == 0:
             continue
-        part = np.partition(vals[start[l]:start[l + 1]], c_l // 2)
-        hi = part[c_l // 2]
-        if c_l % 2 == 1:
-            lo = hi
-        else:
-            lo = part[0]
-            for q in range(1, c_l // 2):
-                lo = max(lo, part[q])
-        med[l] = 0.5 * (lo + hi)
+        med[l] = _bucket_median(vals, start[l], start[l + 1])
     fin = np.isfinite(med)
     fill = np.nanmedian(med) if fin.any() else 1.0
     any_bad = False
@@ -622,6 +697,134 @@ def _iscd_camera(y: np.ndarray, lev: np.ndarray, M: int, led_prior: float, level
             if r[t, i] > outlier_sigma * sd:
                 yb[t, i] = np.nan
                 any_bad = True
+    return yb, any_bad
+
+
+@njit(inline="always")
+def _bucket_median(vals: np.ndarray, a0: int, a1: int) -> float:
+    """Median of vals[a0:a1] (reordered): the mean of the two middle values, as a sort gives."""
+    c_l = a1 - a0
+    kk = a0 + c_l // 2
+    hi = _select_kth(vals, a0, a1, kk)  # vals[a0:kk] <= hi now
+    if c_l % 2 == 1:
+        lo = hi
+    else:
+        lo = vals[a0]
+        for q in range(a0 + 1, kk):
+            lo = max(lo, vals[q])
+    return 0.5 * (lo + hi)
+
+
+@njit
+def _outliers(y: np.ndarray, lev: np.ndarray, M: int, r: np.ndarray, cnt: np.ndarray,
+              var_floor_dn: float, outlier_sigma: float) -> tuple[np.ndarray, bool]:
+    """:func:`_outliers_exact` without most medians: a level's median only matters through
+    the comparisons ``r > outlier_sigma * max(1.4826 median, floor)``, monotonic in the
+    median, so a bracket of it decides every sample outside the bracket's thresholds. The
+    bracket: the binary exponents of the two middle values (a histogram of the residuals'
+    exponents per level, one pass); a level with a sample between its two thresholds (rare:
+    a residual within a factor 2 of the outlier threshold) gets its exact median by
+    selection (branchy: selecting every median took 3/4 of :func:`_iscd_camera`). The
+    same samples are dropped as :func:`_outliers_exact` drops."""
+    n_s, N = y.shape
+    NB = 2048
+    hist = np.zeros((M, NB), np.int64)
+    emin = np.full(M, NB, np.int64)
+    emax = np.full(M, -1, np.int64)
+    ri = r.reshape(-1).view(np.int64)
+    for t in range(n_s):
+        for i in range(N):
+            lv = lev[t, i]
+            rv = r[t, i]
+            if lv >= 0 and np.isfinite(rv):
+                lv = min(lv, M - 1)
+                ex = (ri[t * N + i] >> 52) & 0x7FF
+                hist[lv, ex] += 1
+                emin[lv] = min(emin[lv], ex)
+                emax[lv] = max(emax[lv], ex)
+    thr_lo = np.zeros(M)
+    thr_hi = np.zeros(M)
+    edge = np.zeros(2, np.int64)
+    edge_f = edge.view(np.float64)
+    for l in range(M):
+        c_l = cnt[l]
+        if c_l == 0:
+            continue
+        if emax[l] >= 2045:  # the two middle values might overflow their sum
+            return _outliers_exact(y, lev, M, r, cnt, var_floor_dn, outlier_sigma)
+        ra = (c_l - 1) // 2  # the two middle order statistics (0-based)
+        rb = c_l // 2
+        ea = -1
+        eb = -1
+        acc = 0
+        for ex in range(emin[l], emax[l] + 1):
+            acc += hist[l, ex]
+            if ea < 0 and acc > ra:
+                ea = ex
+            if acc > rb:
+                eb = ex
+                break
+        edge[0] = ea << 52  # <= every value of exponent ea: <= the lower middle value
+        edge[1] = (eb + 1) << 52  # > every value of exponent eb: > the upper one
+        thr_lo[l] = outlier_sigma * max(1.4826 * edge_f[0], var_floor_dn)
+        thr_hi[l] = outlier_sigma * max(1.4826 * edge_f[1], var_floor_dn)
+    any_bad = False
+    amb = np.zeros(M, np.bool_)
+    yb = y.copy()
+    for t in range(n_s):
+        for i in range(N):
+            lv = lev[t, i]
+            rv = r[t, i]
+            if lv < 0 or not np.isfinite(rv):
+                continue
+            lv = min(lv, M - 1)
+            if rv > thr_hi[lv]:
+                yb[t, i] = np.nan
+                any_bad = True
+            elif rv > thr_lo[lv]:
+                amb[lv] = True
+    for l in range(M):
+        if not amb[l]:
+            continue
+        vals = np.empty(cnt[l])
+        j = 0
+        for t in range(n_s):
+            for i in range(N):
+                if lev[t, i] >= 0 and min(lev[t, i], M - 1) == l and np.isfinite(r[t, i]):
+                    vals[j] = r[t, i]
+                    j += 1
+        md = _bucket_median(vals, 0, j)
+        thr = outlier_sigma * max(1.4826 * md, var_floor_dn)
+        for t in range(n_s):
+            for i in range(N):
+                if lev[t, i] >= 0 and min(lev[t, i], M - 1) == l and r[t, i] > thr:
+                    yb[t, i] = np.nan
+                    any_bad = True
+    return yb, any_bad
+
+
+@njit(warm=_warm_iscd)
+def _iscd_camera(y: np.ndarray, lev: np.ndarray, M: int, led_prior: float, level_prior: float,
+                 var_prior: float, led_var_prior: float, var_floor_dn: float, outlier_sigma: float
+                 ) -> tuple[bool, np.ndarray, np.ndarray]:
+    """One camera of :func:`estimate_iscd` (compiled): :func:`_camera_kernel`, then with
+    ``outlier_sigma`` > 0 the samples further than outlier_sigma robust RMS (1.4826 x the
+    median |residual| of their level over all LEDs) from their centroid dropped
+    (:func:`_outliers`) and the model fitted again."""
+    ok_fit, mu, var = _camera_kernel(y, lev, M, led_prior, level_prior, var_prior,
+                                     led_var_prior, var_floor_dn)
+    if not ok_fit or outlier_sigma <= 0:
+        return ok_fit, mu, var
+    n_s, N = y.shape
+    r = np.empty((n_s, N))
+    cnt = np.zeros(M, np.int64)
+    for t in range(n_s):
+        for i in range(N):
+            lv = min(max(lev[t, i], 0), M - 1)
+            r[t, i] = abs(y[t, i] - mu[i, lv])
+            if np.isfinite(r[t, i]) and lev[t, i] >= 0:
+                cnt[lv] += 1
+    yb, any_bad = _outliers(y, lev, M, r, cnt, var_floor_dn, outlier_sigma)
     if any_bad:
         ok2, mu2, var2 = _camera_kernel(yb, lev, M, led_prior, level_prior, var_prior,
                                         led_var_prior, var_floor_dn)

@@ -27,7 +27,7 @@ import numpy as np
 
 from iscd.core.jit import njit
 from iscd.decode.comms.channel import ChannelModel
-from iscd.decode.comms.timing import SymbolClock, frame_map
+from iscd.decode.comms.timing import SymbolClock, frame_map, frame_map_range
 
 
 @dataclass
@@ -679,6 +679,29 @@ def _straddle_kernel(Lf: np.ndarray, k: np.ndarray, alpha: np.ndarray, valid: np
     return extra, dn, full
 
 
+@njit(inline="always")
+def _finish_row(row: np.ndarray, K: int) -> tuple[int, float]:
+    """Argmin (the first of equal minima) and margin (runner-up minus best, float32 then
+    float64; inf when K = 1) of row[:K] float32."""
+    b = 0
+    bv = row[0]
+    for u in range(1, K):  # selects, not branches (the same comparisons)
+        lt = row[u] < bv
+        b = u if lt else b
+        bv = row[u] if lt else bv
+    mar = np.inf
+    if K > 1:
+        m2 = np.float32(np.inf)
+        first = True
+        for u in range(K):
+            x = row[u]
+            take = (u != b) & (first | (x < m2))
+            m2 = x if take else m2
+            first = first & (u == b)
+        mar = np.float64(m2 - bv)
+    return b, mar
+
+
 @njit(warm=lambda: (np.zeros((2, 2, 3), np.float32),))
 def _finish_kernel(costs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Argmin (first of equal minima) and margin (runner-up minus best, float64) over the
@@ -688,20 +711,150 @@ def _finish_kernel(costs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     mar = np.full((S, N), np.inf)
     for j in range(S):
         for i in range(N):
-            b = 0
-            for u in range(1, T):
-                if costs[j, i, u] < costs[j, i, b]:
-                    b = u
-            lev[j, i] = b
-            if T > 1:
-                m2 = np.float32(np.inf)
-                first = True
-                for u in range(T):
-                    if u != b and (first or costs[j, i, u] < m2):
-                        m2 = costs[j, i, u]
-                        first = False
-                mar[j, i] = np.float64(m2 - costs[j, i, b])
+            lev[j, i], mar[j, i] = _finish_row(costs[j, i], T)
     return lev, mar
+
+
+@njit(warm=lambda: (np.zeros((2, 2, 3), np.float32),))
+def clean_levels(costs: np.ndarray) -> np.ndarray:
+    """The levels (S, N) of least cost (the first of equal minima) of costs (S, N, M)
+    float32: :func:`decide_span`'s decisions without straddling frames, no margins."""
+    S, N, M = costs.shape
+    lev = np.zeros((S, N), np.int64)
+    for j in range(S):
+        for i in range(N):
+            row = costs[j, i]
+            b = 0
+            bv = row[0]
+            for u in range(1, M):  # selects, not branches (the same comparisons)
+                lt = row[u] < bv
+                b = u if lt else b
+                bv = row[u] if lt else bv
+            lev[j, i] = b
+    return lev
+
+
+def _warm_cands() -> tuple:
+    for M, T in ((8, 4), (16, 4), (4, 4)):  # numpy's selection probed ahead of the stream
+        _argpartition_sorts(M, T)
+    return (np.arange(24, dtype=np.float32).reshape(2, 2, 6), 4)
+
+
+@njit(warm=_warm_cands)
+def _candidates_kernel(costs: np.ndarray, T: int) -> tuple[np.ndarray, np.ndarray, int]:
+    """The T levels of least cost (S, N, T), ascending, of each row of costs (S, N, M)
+    float32 whose M costs are distinct (each cost's rank counted, in branch-free loops over
+    the rows that vectorize); rows with equal or NaN costs are flagged (S, N) (and counted)
+    for numpy's selection, whose order among equal costs is its own."""
+    S, N, M = costs.shape
+    R = S * N
+    flat = costs.reshape(R, M)
+    ct = np.empty((M, R), np.float32)  # level-major: the loops below run over rows
+    for r in range(R):
+        for u in range(M):
+            ct[u, r] = flat[r, u]
+    rank = np.zeros((M, R), np.int32)
+    ties = np.zeros(R, np.int32)
+    for u in range(M):
+        x = ct[u]
+        rk = rank[u]
+        for r in range(R):
+            ties[r] += np.int32(M + 1) if np.isnan(x[r]) else np.int32(0)  # a NaN: never M in total
+        for v in range(M):
+            y = ct[v]
+            for r in range(R):
+                rk[r] += np.int32(1) if y[r] < x[r] else np.int32(0)
+                ties[r] += np.int32(1) if y[r] == x[r] else np.int32(0)  # M when all distinct
+    out = np.zeros((R, T + 1), np.int64)  # column T: where the ranks >= T go
+    for u in range(M):
+        rk = rank[u]
+        for r in range(R):
+            out[r, min(rk[r], T)] = u
+    cand = np.ascontiguousarray(out[:, :T]).reshape(S, N, T)
+    tie = np.empty((S, N), np.bool_)
+    tf = tie.reshape(R)
+    n_tie = 0
+    for r in range(R):
+        t = ties[r] != M
+        tf[r] = t
+        n_tie += 1 if t else 0
+    return cand, tie, n_tie
+
+
+_SORTS: dict[tuple[int, int], bool] = {}
+
+
+def _argpartition_sorts(M: int, T: int) -> bool:
+    """Whether ``np.argpartition(costs, T - 1, axis=-1)[..., :T]`` lists the T least of M
+    distinct float32 costs in ascending order (numpy's vectorized selection sorts short
+    rows: x86 with AVX-512 or AVX2); probed once per (M, T) on random rows. Else
+    :func:`select_candidates` always asks numpy."""
+    key = (int(M), int(T))
+    if key not in _SORTS:
+        x = np.random.default_rng(12345).random((4096, M)).astype(np.float32)
+        x = x[(np.diff(np.sort(x, axis=-1), axis=-1) > 0).all(-1)]
+        a = np.argpartition(x, T - 1, axis=-1)[..., :T]
+        _SORTS[key] = bool(np.array_equal(a, np.argsort(x, axis=-1, kind="stable")[..., :T]))
+    return _SORTS[key]
+
+
+def select_candidates(costs: np.ndarray, T: int) -> np.ndarray:
+    """``np.argpartition(costs, T - 1, axis=-1)[..., :T]`` (C-contiguous int64), exactly:
+    compiled for rows of distinct costs where numpy's selection sorts them
+    (:func:`_argpartition_sorts`), numpy's own for the other rows.
+
+    Parameters
+    ----------
+    costs : ndarray
+        (S, N, M) float32 costs.
+    T : int
+        Candidates per row, 1 <= T < M.
+
+    Returns
+    -------
+    ndarray of int64
+        (S, N, T) level indices.
+    """
+    M = costs.shape[-1]
+    if costs.dtype != np.float32 or costs.ndim != 3 or not _argpartition_sorts(M, T):
+        return np.ascontiguousarray(np.argpartition(costs, T - 1, axis=-1)[..., :T], dtype=np.int64)
+    cand, tie, n_tie = _candidates_kernel(costs, int(T))
+    if n_tie:
+        cand[tie] = np.argpartition(costs[tie], T - 1, axis=-1)[..., :T]
+    return cand
+
+
+def _warm_finish_span() -> tuple:
+    c = np.zeros((2, 2, 3), np.float32)
+    i = np.zeros((2, 2), np.int64)
+    return (c, np.zeros((2, 2, 2), np.int64), c[..., :2].copy(), c, i, i, i == 0, True)
+
+
+@njit(warm=_warm_finish_span)
+def _finish_span(costs: np.ndarray, cand: np.ndarray, extra: np.ndarray, full: np.ndarray,
+                 n_obs: np.ndarray, dn: np.ndarray, no_clean: np.ndarray, want_full: bool
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`decide_span`'s last step in one pass: per symbol and LED the candidates'
+    costs ``costs[cand] + extra`` -> the best candidate's level and the margin
+    (:func:`_finish_kernel`'s rule), over all M levels (``costs + full``) for symbols
+    without a clean frame when ``want_full``; the observation counts n_obs + dn."""
+    S, N, T = cand.shape
+    M = costs.shape[2]
+    lev = np.zeros((S, N), np.int64)
+    mar = np.full((S, N), np.inf)
+    tot = np.empty(max(T, M), np.float32)
+    for j in range(S):
+        for i in range(N):
+            if want_full and no_clean[j, i]:
+                for s in range(M):
+                    tot[s] = costs[j, i, s] + full[j, i, s]
+                lev[j, i], mar[j, i] = _finish_row(tot, M)
+            else:
+                for u in range(T):
+                    tot[u] = costs[j, i, cand[j, i, u]] + extra[j, i, u]
+                b, mar[j, i] = _finish_row(tot, T)
+                lev[j, i] = cand[j, i, b]
+    return lev, mar, n_obs + dn
 
 
 def _kind_args(model: ChannelModel) -> tuple[int, np.float32, np.float32]:
@@ -739,8 +892,7 @@ def clean_costs(L: np.ndarray, clock: SymbolClock, e: float, k_a: int, k_b: int,
     C, n, N = L.shape
     lo = int(max(0, np.floor(clock.boundary(k_a)) - 1))
     hi = int(min(n, np.ceil(clock.boundary(k_b)) + 1))
-    frames = np.arange(lo, hi)
-    k, alpha = frame_map(frames, clock, e)
+    k, alpha = frame_map_range(lo, hi, clock, e)
     Lf = np.ascontiguousarray(L[:, lo:max(lo, hi), :], dtype=np.float64)
     mu, ivar, logvar = model._tables
     costs, n_obs, valid = _clean_kernel(Lf, k, alpha, k_a, k_b - k_a, mu, ivar, logvar,
@@ -807,31 +959,34 @@ def decide_span(L: np.ndarray, clock: SymbolClock, e: float, k_a: int, k_b: int,
     M = model.levels
     S, N = cc.n_obs.shape
     T = M if candidates <= 0 or candidates >= M else candidates
-    if T < M:  # numpy's selection, so that equal costs pick the same candidates
-        cand = np.ascontiguousarray(np.argpartition(cc.costs, T - 1, axis=-1)[..., :T])
+    if T < M:  # numpy's selection (equal costs pick the same candidates)
+        cand = select_candidates(cc.costs, T)
     else:
         cand = np.ascontiguousarray(np.broadcast_to(np.arange(M), (S, N, M)))
     no_clean = cc.n_obs == 0
     want_full = bool(T < M and no_clean.any())
     timing = model.kind != "euclid" and timing_sigma > 0
-    gain = ((model.mu[:, :, -1] - model.mu[:, :, 0]) / max(M - 1, 1)
-            * (timing_sigma / e)).astype(np.float32)
+    gain = model._straddle_gain(float(timing_sigma / e))
     mu_t, var_t = model._fine
     Lf = cc.Lf if cc.Lf.dtype == np.float64 and cc.Lf.flags.c_contiguous else \
         np.ascontiguousarray(cc.Lf, dtype=np.float64)
-    valid = np.ascontiguousarray(cc.valid_obs, dtype=np.int64)
-    extra, dn, full = _straddle_kernel(Lf, np.ascontiguousarray(cc.k), np.ascontiguousarray(cc.alpha),
-                                       valid, np.ascontiguousarray(ctx, dtype=np.int64), int(k_first),
-                                       int(k_a), cand, no_clean, want_full,
-                                       np.asarray(edge_levels, dtype=np.int64), mu_t, var_t,
+    valid = cc.valid_obs if cc.valid_obs.dtype == np.int64 and cc.valid_obs.flags.c_contiguous \
+        else np.ascontiguousarray(cc.valid_obs, dtype=np.int64)
+    ctx = ctx if ctx.dtype == np.int64 and ctx.flags.c_contiguous else np.ascontiguousarray(ctx, dtype=np.int64)
+    extra, dn, full = _straddle_kernel(Lf, cc.k, cc.alpha, valid, ctx, int(k_first), int(k_a), cand,
+                                       no_clean, want_full, _edge_array(edge_levels), mu_t, var_t,
                                        model._interp_error32, gain, timing, M, *_kind_args(model))
-    n_obs = cc.n_obs + dn
-    c_cand = np.take_along_axis(cc.costs, cand, axis=-1)
-    lev, mar = _finish_kernel(c_cand + extra)
-    lev = np.take_along_axis(cand, lev[..., None], axis=-1)[..., 0]
-    if want_full:
-        # symbols without a clean frame: decided over all M from the straddle costs
-        lf, mf = _finish_kernel(cc.costs + full)
-        lev = np.where(no_clean, lf, lev)
-        mar = np.where(no_clean, mf, mar)
+    lev, mar, n_obs = _finish_span(cc.costs, cand, extra, full, cc.n_obs, dn, no_clean, want_full)
     return SpanDecision(k_a, lev, mar, n_obs)
+
+
+_EDGES: dict[tuple[int, ...], np.ndarray] = {}
+
+
+def _edge_array(edge_levels: tuple[int, ...]) -> np.ndarray:
+    """``edge_levels`` as an int64 array (cached: a handful of distinct tuples)."""
+    key = tuple(int(v) for v in edge_levels)
+    a = _EDGES.get(key)
+    if a is None:
+        a = _EDGES[key] = np.asarray(key, dtype=np.int64)
+    return a

@@ -24,18 +24,19 @@ training only (3.11 / 4.2) and the clean-frame Euclidean decision (3.12 / 4.3).
 
 from __future__ import annotations
 
+import zlib
 from dataclasses import dataclass, field, replace
 from typing import Callable
 
 import numpy as np
 
-from iscd.core.airinterface import HEADER_SYMBOLS, AirInterface
-from iscd.core.jit import njit
-from iscd.decode.comms.channel import (ChannelModel, ChannelTrack, IscdChannelSettings,
-                                   estimate_dissertation, estimate_iscd)
-from iscd.decode.comms.decide import CleanCosts, SpanDecision, clean_costs, decide_span
+from iscd.core.airinterface import CRC_BYTES, HEADER_SYMBOLS, AirInterface
+from iscd.core.jit import njit, register_warm
+from iscd.decode.comms.channel import (ChannelModel, ChannelTrack, IscdChannelSettings, _iscd_camera,
+                                   _select_kth, estimate_dissertation, estimate_iscd)
+from iscd.decode.comms.decide import CleanCosts, SpanDecision, clean_costs, clean_levels, decide_span
 from iscd.decode.comms.settings import ReceiverConfig
-from iscd.decode.comms.timing import SymbolClock, clean_frame, fine_header, frame_map, refine_clock
+from iscd.decode.comms.timing import SymbolClock, _clip, _map_one, clean_frame, fine_header, refine_clock
 
 
 @dataclass
@@ -67,16 +68,117 @@ class PacketResult:
 
     def quality(self) -> dict[str, float]:
         """Summary metrics (the receiver has no truth): margins and sync quality."""
-        m = self.margins
-        return {"margin_min": float(m.min()) if m.size else 0.0,
-                "margin_p01": float(np.percentile(m, 1)) if m.size else 0.0,
-                "margin_median": float(np.median(m)) if m.size else 0.0,
-                "weak_symbols": int((m < 4.0).sum()),
+        mn, p01, med, weak = margin_summary(self.margins)
+        return {"margin_min": mn, "margin_p01": p01, "margin_median": med, "weak_symbols": weak,
                 "erasures": int(self.erasures), "drift_ppm": float(self.drift_ppm),
                 "channel_tracked": self.channel == "tracked",
                 "header_r2": float(self.header_r2), "training_rho": float(self.training_rho),
                 "contrast": float(self.contrast),
                 **({"reason": self.reason} if not self.crc_ok and self.reason else {})}
+
+
+def margin_summary(m: np.ndarray) -> tuple[float, float, float, int]:
+    """``m.min()``, ``np.percentile(m, 1)``, ``np.median(m)`` (0.0 each when m is empty) and
+    ``(m < 4).sum()`` of decision margins, exactly: for finite non-negative float64 margins
+    the order statistics come from :func:`_order_stats` (a histogram of the values' leading
+    bits, then selection within the few buckets that hold them) and numpy's interpolation
+    rule is applied to them; otherwise numpy's own functions.
+
+    Parameters
+    ----------
+    m : ndarray
+        Decision margins, any shape.
+
+    Returns
+    -------
+    tuple
+        (min, 1st percentile, median, count below 4).
+    """
+    n = m.size
+    if n == 0:
+        return 0.0, 0.0, 0.0, int((m < 4.0).sum())
+    if m.dtype == np.float64:
+        q = np.true_divide(1, 100)
+        v = (n - 1) * q  # numpy's virtual index, method "linear"
+        if v >= n - 1:
+            ip, i_prev, i_next = -1, n - 1, n - 1
+        elif v < 0:
+            ip, i_prev, i_next = 0, 0, 0
+        else:
+            ip = int(np.floor(v))
+            i_prev, i_next = ip, ip + 1
+        gamma = float(v - ip)
+        ks = np.array([i_prev, i_next, (n - 1) // 2, n // 2], dtype=np.int64)
+        vals, ok, mn, weak = _order_stats(np.ascontiguousarray(m).reshape(-1), ks)
+        if ok:
+            a, b = vals[0], vals[1]
+            diff = b - a
+            p01 = b - diff * (1 - gamma) if gamma >= 0.5 else a + diff * gamma
+            med = vals[2] if n % 2 else (vals[2] + vals[3]) / 2
+            return float(mn), float(p01), float(med), int(weak)
+    return (float(m.min()), float(np.percentile(m, 1)), float(np.median(m)), int((m < 4.0).sum()))
+
+
+@njit(warm=lambda: (np.arange(5.0), np.array([0, 1, 2, 2], np.int64)), error_model="numpy")
+def _order_stats(x: np.ndarray, ks: np.ndarray) -> tuple[np.ndarray, bool, float, int]:
+    """The ks-th smallest values of x (1-D float64), its minimum and how many are below 4,
+    when every value is finite and non-negative (else ok = False): a histogram of the
+    values' top 16 bits (monotonic in the value), then selection among the values of the
+    buckets that hold the wanted ranks only."""
+    n = x.size
+    K = ks.size
+    vals = np.zeros(K)
+    bits = x.view(np.int64)
+    NB = 1 << 15
+    hist = np.zeros(NB, np.int64)
+    lo_b = NB
+    hi_b = -1
+    mn = np.inf
+    weak = 0
+    bad = False
+    for j in range(n):
+        b = bits[j]
+        bad = bad or b < 0 or b >= 0x7FF0000000000000  # sign bit (negative, -0), inf, NaN
+        hb = (b >> 48) & (NB - 1)
+        hist[hb] += 1
+        lo_b = min(lo_b, hb)
+        hi_b = max(hi_b, hb)
+        v = x[j]
+        mn = v if v < mn else mn
+        weak += 1 if v < 4.0 else 0
+    if bad:
+        return vals, False, 0.0, 0
+    tb = np.empty(K, np.int64)  # each rank's bucket and its rank within the bucket
+    rk = np.empty(K, np.int64)
+    for s in range(K):
+        acc = 0
+        for hb in range(lo_b, hi_b + 1):
+            if acc + hist[hb] > ks[s]:
+                tb[s] = hb
+                rk[s] = ks[s] - acc
+                break
+            acc += hist[hb]
+    off = np.zeros(K + 1, np.int64)  # buffer of each distinct bucket (first use of it)
+    first = np.empty(K, np.int64)
+    for s in range(K):
+        first[s] = s
+        for t in range(s):
+            if tb[t] == tb[s]:
+                first[s] = first[t]
+                break
+        off[s + 1] = off[s] + (hist[tb[s]] if first[s] == s else 0)
+    buf = np.empty(off[K])
+    fill = off[:K].copy()
+    for j in range(n):
+        hb = bits[j] >> 48
+        for s in range(K):
+            if first[s] == s and hb == tb[s]:
+                buf[fill[s]] = x[j]
+                fill[s] += 1
+    for s in range(K):
+        f = first[s]
+        vals[s] = _select_kth(buf, off[f], off[f] + hist[tb[s]], off[f] + rk[s])
+    return vals, True, mn, weak
 
 
 @dataclass
@@ -206,13 +308,141 @@ def clean_samples(L: np.ndarray, clock: SymbolClock, e: float, lev: np.ndarray, 
     lev : ndarray
         (n_s, N) the level of each of those frames.
     """
-    S = lev.shape[0]
-    lo = int(max(0, np.floor(clock.boundary(k_first))))
-    hi = int(min(L.shape[1], np.ceil(clock.boundary(k_first + S)) + 1))
-    frames = np.arange(lo, hi)
-    k, alpha = frame_map(frames, clock, e)
-    sel = (alpha >= 1.0) & (k >= k_first) & (k < k_first + S)
-    return L[:, frames[sel], :], lev[k[sel] - k_first]
+    frames, kr = _clean_index(L.shape[1], float(clock.u0), float(clock.p), float(e), int(k_first),
+                              int(lev.shape[0]))
+    return L[:, frames, :], lev[kr]
+
+
+@njit(warm=lambda: (10, 0.3, 2.0, 1.0, 0, 3), error_model="numpy")
+def _clean_index(n: int, u0: float, p: float, e: float, k_first: int, S: int
+                 ) -> tuple[np.ndarray, np.ndarray]:
+    """The clean frames (of n buffer frames) of packet symbols k_first .. k_first + S - 1
+    and their symbols relative to k_first, in frame order (:func:`clean_samples`: the same
+    float64 operations as ``clock.boundary`` and :func:`frame_map`)."""
+    lo = int(max(0.0, np.floor(u0 + float(k_first) * p)))
+    hi = int(min(float(n), np.ceil(u0 + float(k_first + S) * p) + 1))
+    m = max(hi - lo, 0)
+    frames = np.empty(m, np.int64)
+    kr = np.empty(m, np.int64)
+    j = 0
+    for fr in range(lo, hi):
+        k, alpha = _map_one(fr, u0, p, e)
+        if alpha >= 1.0 and k >= k_first and k < k_first + S:
+            frames[j] = fr
+            kr[j] = k - k_first
+            j += 1
+    return frames[:j], kr[:j]
+
+
+@njit(inline="always")
+def _gather_y(L: np.ndarray, frames: np.ndarray) -> np.ndarray:
+    """float64 (C, len(frames), N) copy of L[:, frames, :]."""
+    C, _, N = L.shape
+    m = frames.size
+    y = np.empty((C, m, N))
+    for c in range(C):
+        for j in range(m):
+            fr = frames[j]
+            for i in range(N):
+                y[c, j, i] = L[c, fr, i]
+    return y
+
+
+def _warm_fit() -> tuple:
+    L = np.ones((2, 14, 3))[:, :12]
+    return (L, 0.3, 2.0, 1.0, np.zeros((6, 3), np.int64), 0, 3, 4.0, 3.0, 10.0, 10.0, 0.3, 6.0)
+
+
+@njit(warm=_warm_fit, error_model="numpy")
+def _fit_kernel(L: np.ndarray, u0: float, p: float, e: float, lev: np.ndarray, k_first: int, M: int,
+                led_prior: float, level_prior: float, var_prior: float, led_var_prior: float,
+                var_floor_dn: float, outlier_sigma: float) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`_fit` in one call: the clean samples of packet symbols k_first .. k_first + S - 1
+    (lev (S, N) int64, :func:`clean_samples`), then :func:`estimate_iscd` per camera
+    (centroids and variances (C, N, M))."""
+    C, n, N = L.shape
+    frames, kr = _clean_index(n, u0, p, e, k_first, lev.shape[0])
+    y = _gather_y(L, frames)
+    lv = np.empty((frames.size, N), np.int64)
+    for j in range(frames.size):
+        for i in range(N):
+            lv[j, i] = lev[kr[j], i]
+    mu = np.zeros((C, N, M))
+    var = np.full((C, N, M), 1e12)
+    for c in range(C):
+        ok, mu_c, var_c = _iscd_camera(y[c], lv, M, led_prior, level_prior, var_prior,
+                                       led_var_prior, var_floor_dn, outlier_sigma)
+        if ok:
+            mu[c] = mu_c
+            var[c] = var_c
+    return mu, var
+
+
+def _warm_fit_c() -> tuple:
+    """:func:`_warm_fit` with a C-contiguous buffer (one camera, or a full buffer)."""
+    a = _warm_fit()
+    return (np.ascontiguousarray(a[0]),) + a[1:]
+
+
+register_warm(_fit_kernel, _warm_fit_c)
+
+
+def _warm_gain_samples() -> tuple:
+    return (np.ones((2, 14, 3))[:, :12], 0.3, 2.0, 1.0, 0, 3, 1024)
+
+
+@njit(warm=_warm_gain_samples, error_model="numpy")
+def _gain_samples(L: np.ndarray, u0: float, p: float, e: float, k_a: int, S: int, most: int
+                  ) -> tuple[np.ndarray, int, np.ndarray]:
+    """:func:`_match_gain`'s samples: the clean frames of packet symbols k_a .. k_a + S - 1
+    (float64 (C, n, N)), every k-th when there are more than ``most`` per camera; the
+    number before thinning, and per camera whether any is finite."""
+    C, n, N = L.shape
+    frames, _ = _clean_index(n, u0, p, e, k_a, S)
+    m = frames.size
+    if m * N > most:
+        step = int(np.ceil(m * N / most))
+        frames = frames[::step].copy()
+    y = _gather_y(L, frames)
+    has = np.zeros(C, np.bool_)
+    for c in range(C):
+        for j in range(frames.size):
+            for i in range(N):
+                if np.isfinite(y[c, j, i]):
+                    has[c] = True
+                    break
+            if has[c]:
+                break
+    return y, m, has
+
+
+def _warm_gain_samples_c() -> tuple:
+    a = _warm_gain_samples()
+    return (np.ascontiguousarray(a[0]),) + a[1:]
+
+
+register_warm(_gain_samples, _warm_gain_samples_c)
+
+
+@njit(warm=lambda: (np.ones((2, 4, 3)),), error_model="numpy")
+def _camera_tops(L: np.ndarray) -> np.ndarray:
+    """Per camera of L (C, n, N): ``nanmax`` when any value is finite, else NaN."""
+    C, n, N = L.shape
+    out = np.empty(C)
+    for c in range(C):
+        m = -np.inf
+        fin = False
+        for t in range(n):
+            for i in range(N):
+                v = L[c, t, i]
+                if v > m:
+                    m = v
+                fin = fin or (v - v == 0.0)
+        out[c] = m if fin else np.nan
+    return out
+
+
+register_warm(_camera_tops, lambda: (np.ones((2, 6, 3))[:, :4],))
 
 
 def rankdata(a: np.ndarray) -> np.ndarray:
@@ -269,8 +499,13 @@ def training_rank_correlation(y: np.ndarray, lev: np.ndarray) -> float:
         ok = np.isfinite(yc).sum(0) >= 4
         if not ok.any():
             continue
-        med = np.nanmedian(np.where(np.isfinite(yc[:, ok]), yc[:, ok], np.nan), axis=0)
-        yf = np.where(np.isfinite(yc[:, ok]), yc[:, ok], med)
+        yo = yc[:, ok]
+        fin = np.isfinite(yo)
+        if fin.all():  # (the medians only fill gaps)
+            yf = yo
+        else:
+            med = np.nanmedian(np.where(fin, yo, np.nan), axis=0)
+            yf = np.where(fin, yo, med)
         yr = rankdata(yf)
         yr = yr - yr.mean(0)
         lo = lr[:, ok]
@@ -301,6 +536,56 @@ def header_contrast(model: ChannelModel) -> float:
 
 
 
+@njit(warm=lambda: (np.ones((4, 3), np.uint8), 8, 3, 4), error_model="numpy")
+def _pack_levels(levels: np.ndarray, M: int, k: int, n_bytes: int) -> np.ndarray:
+    """The first n_bytes bytes of the Gray-coded bits (k per symbol, most significant
+    first, symbol time major) of levels (F, N) 1..M (clipped): what
+    :meth:`AirInterface.decode_data` packs, in one pass."""
+    flat = levels.reshape(-1)
+    out = np.zeros(n_bytes, np.uint8)
+    acc = np.int64(0)  # pending bits, the oldest highest
+    n_acc = 0
+    o = 0
+    for j in range(flat.size):
+        l = min(max(np.int64(flat[j]), 1), M) - 1
+        acc = ((acc << k) | (l ^ (l >> 1))) & 0xFFFF
+        n_acc += k
+        while n_acc >= 8:
+            if o == n_bytes:
+                return out
+            n_acc -= 8
+            out[o] = np.uint8((acc >> n_acc) & 0xFF)
+            o += 1
+    if o < n_bytes and n_acc > 0:  # the last bits, zero-padded (packbits)
+        out[o] = np.uint8((acc << (8 - n_acc)) & 0xFF)
+    return out
+
+
+def decode_data(air: AirInterface, levels: np.ndarray) -> tuple[bytes, bool]:
+    """:meth:`AirInterface.decode_data` (payload bytes and CRC verdict of decided levels
+    (F, N) 1..M), compiled for the uint8 levels of :func:`demodulate_packet`.
+
+    Parameters
+    ----------
+    air : AirInterface
+        The air interface (M, N, F).
+    levels : ndarray
+        (F, N) decided data levels 1..M.
+
+    Returns
+    -------
+    bytes, bool
+        The payload (untrusted unless the CRC passed) and whether it did.
+    """
+    if levels.dtype != np.uint8 or levels.shape != (air.data_symbols, air.n_leds):
+        return air.decode_data(levels)
+    P = air.payload_bytes
+    framed = _pack_levels(np.ascontiguousarray(levels), int(air.levels), int(air.bits_per_symbol),
+                          P + CRC_BYTES).tobytes()
+    body, crc = framed[:P], framed[P:]
+    return body, zlib.crc32(body) == int.from_bytes(crc, "big")
+
+
 def _segment_symbols(window: int) -> int:
     """Length of the stretches that share one channel model: a third of the window."""
     return max(8, window // 3)
@@ -315,15 +600,20 @@ def _centred(a: int, b: int, W: int, P: int) -> tuple[int, int]:
     """Symbols [lo, hi) of a window of W symbols centred on [a, b), kept inside [0, P)."""
     if W <= 0 or W >= P:
         return 0, P
-    lo = int(np.clip(round((a + b - W) / 2), 0, P - W))
+    lo = int(min(max(round((a + b - W) / 2), 0), P - W))  # (np.clip of Python ints)
     return lo, lo + W
 
 
 def _fit(L: np.ndarray, clock: SymbolClock, e: float, lev: np.ndarray, lo: int, hi: int, M: int,
          st: IscdChannelSettings, cfg: ReceiverConfig) -> ChannelModel:
     """The iscd channel model from the labelled clean frames of packet symbols [lo, hi)."""
-    y, lv = clean_samples(L, clock, e, lev[lo:hi], lo)
-    return estimate_iscd(y, lv, M, st, cfg.noise_model, cfg.t_nu)
+    lv = lev[lo:hi]
+    if lv.dtype != np.int64 or not lv.flags.c_contiguous:
+        lv = np.ascontiguousarray(lv, dtype=np.int64)
+    mu, var = _fit_kernel(L, float(clock.u0), float(clock.p), float(e), lv, int(lo), int(M),
+                          float(st.led_prior), float(st.level_prior), float(st.var_prior),
+                          float(st.led_var_prior), float(st.var_floor_dn), float(st.outlier_sigma))
+    return ChannelModel(mu=mu, var=var, kind=cfg.noise_model, nu=cfg.t_nu)
 
 
 
@@ -401,32 +691,87 @@ def _match_gain(model: ChannelModel, L: np.ndarray, clock: SymbolClock, e: float
     tops: each camera's brightest value in L (DN; computed when not given). The costs come
     from the compiled :func:`_gain_costs`; :func:`_match_gain_reference` is the specification.
     """
-    y, _ = clean_samples(L, clock, e, lev[k_a:k_b], k_a)
-    if y.shape[1] == 0:
+    S = max(0, min(k_b, lev.shape[0]) - k_a)  # the symbols of lev[k_a:k_b]
+    y, n_all, has = _gain_samples(L, float(clock.u0), float(clock.p), float(e), int(k_a), int(S),
+                                  GAIN_SAMPLES)
+    if n_all == 0:
         return model
-    if y.shape[1] * y.shape[2] > GAIN_SAMPLES:  # every k-th frame is enough
-        y = y[:, ::int(np.ceil(y.shape[1] * y.shape[2] / GAIN_SAMPLES))]
-    mu = model.mu.copy()
-    G32 = GAINS.astype(np.float32)
-    for c in range(model.n_cams):
-        yc = np.ascontiguousarray(y[c], dtype=np.float64)  # (n, N)
-        if not np.isfinite(yc).any():
-            continue
-        top = float(np.nanmax(L[c])) if tops is None else tops[c]
-        base = model.mu[c, :, 0].astype(np.float32)  # (N,)
-        span = np.ascontiguousarray((model.mu[c] - model.mu[c, :, :1]).T, dtype=np.float32)  # (M, N)
-        var = np.ascontiguousarray(model.var[c].T, dtype=np.float32)  # (M, N)
-        costs = _gain_costs(yc, base, span, G32, np.float32(top), var, np.log(var))
-        b = int(np.argmin(costs))
-        g = float(GAINS[b])
-        if 0 < b < GAINS.size - 1:  # parabola through the best and its neighbours (log gain)
-            den = costs[b - 1] - 2 * costs[b] + costs[b + 1]
-            if den > 0:
-                step = float(np.log(GAINS[1] / GAINS[0]))
-                g *= float(np.exp(np.clip(0.5 * (costs[b - 1] - costs[b + 1]) / den, -0.5, 0.5) * step))
-        mu[c] = np.minimum(model.mu[c, :, :1] + g * (model.mu[c] - model.mu[c, :, :1]),
-                           max(top, float(model.mu[c].max())))
+    C = model.n_cams
+    gs = np.zeros(C)
+    if has.any():
+        top = _camera_tops(L) if tops is None else np.asarray(tops, dtype=np.float64)
+        var = np.ascontiguousarray(model.var.transpose(0, 2, 1), dtype=np.float32)  # (C, M, N)
+        costs = _gain_costs_cams(y, model.mu, _GAINS32, top, var, np.log(var), has)
+        for c in range(C):
+            if not has[c]:
+                continue
+            cc = costs[c]
+            b = int(np.argmin(cc))
+            g = float(GAINS[b])
+            if 0 < b < GAINS.size - 1:  # parabola through the best and its neighbours (log gain)
+                den = cc[b - 1] - 2 * cc[b] + cc[b + 1]
+                if den > 0:
+                    g *= float(np.exp(_clip(0.5 * (cc[b - 1] - cc[b + 1]) / den, -0.5, 0.5) * _GAIN_STEP))
+            gs[c] = g
+        mu = _scale_light(model.mu, gs, top, has)
+    else:
+        mu = model.mu.copy()
     return ChannelModel(mu=mu, var=model.var, kind=model.kind, nu=model.nu)
+
+
+_GAINS32 = GAINS.astype(np.float32)
+_GAIN_STEP = float(np.log(GAINS[1] / GAINS[0]))
+
+
+def _warm_gain_cams() -> tuple:
+    one = np.ones((2, 3, 4), np.float32)
+    return (np.ones((2, 5, 4)), np.ones((2, 4, 3)), _GAINS32, np.full(2, 5.0), one, one, np.ones(2, np.bool_))
+
+
+@njit(warm=_warm_gain_cams, error_model="numpy")
+def _gain_costs_cams(y: np.ndarray, mu: np.ndarray, gains: np.ndarray, tops: np.ndarray, var: np.ndarray,
+                     logvar: np.ndarray, has: np.ndarray) -> np.ndarray:
+    """:func:`_gain_costs` (G,) of each camera c with ``has[c]`` ((C, G); zeros for the
+    others): samples y (C, n, N), centroids mu (C, N, M) float64 (base ``mu_1`` and span
+    ``mu_s - mu_1`` cast to float32 as :func:`_match_gain_reference`), caps tops (C,),
+    variances and their logs (C, M, N) float32."""
+    C, N, M = mu.shape
+    out = np.zeros((C, gains.size))
+    base = np.empty(N, np.float32)
+    span = np.empty((M, N), np.float32)
+    for c in range(C):
+        if not has[c]:
+            continue
+        for i in range(N):
+            base[i] = np.float32(mu[c, i, 0])
+            for s in range(M):
+                span[s, i] = np.float32(mu[c, i, s] - mu[c, i, 0])
+        out[c] = _gain_costs(y[c], base, span, gains, np.float32(tops[c]), var[c], logvar[c])
+    return out
+
+
+@njit(warm=lambda: (np.ones((2, 4, 3)), np.ones(2), np.full(2, 5.0), np.ones(2, np.bool_)),
+      error_model="numpy")
+def _scale_light(mu: np.ndarray, gs: np.ndarray, tops: np.ndarray, use: np.ndarray) -> np.ndarray:
+    """Centroids (C, N, M) with camera c's light scaled by gs[c] where ``use[c]``:
+    ``min(mu_1 + g (mu_s - mu_1), max(top, max mu))`` (:func:`_match_gain`)."""
+    C, N, M = mu.shape
+    out = mu.copy()
+    for c in range(C):
+        if not use[c]:
+            continue
+        m = mu[c, 0, 0]
+        for i in range(N):
+            for s in range(M):
+                m = max(m, mu[c, i, s])
+        cap = m if m > tops[c] else tops[c]  # Python's max(top, m)
+        g = gs[c]
+        for i in range(N):
+            m0 = mu[c, i, 0]
+            for s in range(M):
+                x = m0 + g * (mu[c, i, s] - m0)
+                out[c, i, s] = np.nan if (np.isnan(x) or np.isnan(cap)) else min(x, cap)
+    return out
 
 
 def _match_gain_reference(model: ChannelModel, L: np.ndarray, clock: SymbolClock, e: float, lev: np.ndarray,
@@ -619,8 +964,7 @@ def _demodulate(L: np.ndarray, u_guess: float, air: AirInterface, e: float,
     lev = np.full((P, N), -1, dtype=np.int64)
     lev[:n_known] = known
     # each camera's brightest value in the buffer (the cap of _match_gain), once per packet
-    tops = [float(np.nanmax(L[c])) if np.isfinite(L[c]).any() else float("nan")  # (an absent
-            for c in range(C)] if tracked else None  # camera: never used, no warning)
+    tops = _camera_tops(L).tolist() if tracked else None  # (NaN: an absent camera, never used)
     starts, models = [0], [model]
     next_clock = n_known + chunk
     for k_a in range(n_known, P, step):
@@ -630,8 +974,8 @@ def _demodulate(L: np.ndarray, u_guess: float, air: AirInterface, e: float,
         elif tracked:
             model = _fit(L, clock, e, lev, max(0, k_a - W // 2), k_a, M, st, cfg)
             model = _match_gain(model, L, clock, e, lev, k_a, k_b, tops)
-        d = decide_span(L, clock, e, k_a, k_b, model, lev, 0, False, ts)
-        lev[k_a:k_b] = d.levels
+        # (decide_span without straddling frames: the levels are all this pass keeps)
+        lev[k_a:k_b] = clean_levels(clean_costs(L, clock, e, k_a, k_b, model).costs)
         if tracked:
             starts.append(k_a)
             models.append(model)
@@ -697,7 +1041,7 @@ def _demodulate(L: np.ndarray, u_guess: float, air: AirInterface, e: float,
         margins = np.concatenate([d.margin for d in parts])
         erasures = int(sum((d.n_obs == 0).sum() for d in parts))
     levels = (lev[n_known:] + 1).astype(np.uint8)
-    raw, ok = air.decode_data(levels)
+    raw, ok = decode_data(air, levels)
     first = int(clean_frame(np.array([0]), clock, e)[0])
     reason = "" if ok else failure_reason([dmodel] if cfg.dissertation else models, margins)
     return PacketResult(u0=clock.u0, p=clock.p, first_frame=first, levels=levels, raw=raw,

@@ -24,12 +24,22 @@ import numpy as np
 
 from iscd.core.airinterface import HEADER_SYMBOLS, AirInterface
 from iscd.core.config import TransmitterConfig
+from iscd.core.jit import njit
 from iscd.core.records import PacketRecord
 from iscd.decode.comms.demod import PacketResult, Rejection, demodulate_packet
 from iscd.decode.comms.settings import ReceiverConfig
 from iscd.decode.comms.timing import coarse_header_search, luminance_range, normalized_mean
 
 log = logging.getLogger(__name__)
+
+
+@njit(warm=lambda: (np.arange(3), np.zeros(3), 0), error_model="numpy")
+def _consecutive(ids: np.ndarray, ts: np.ndarray, first: int) -> bool:
+    """ids == first, first + 1, ... and every timestamp finite."""
+    for j in range(ids.size):
+        if ids[j] != first + j or not np.isfinite(ts[j]):
+            return False
+    return True
 
 
 @dataclass
@@ -111,6 +121,7 @@ class PacketAssembler:
         self.keep = int(np.ceil(2 * self.packet_frames)) + 16
         self._L = np.zeros((len(self.cams), 0, self.N))
         self._t = np.zeros(0)
+        self._Lbuf, self._tbuf = self._L, self._t  # the allocations (_L, _t: views from a row on)
         self._n = 0  # filled rows
         self._base: int | None = None  # frame id of row 0
         self._search = 0.0  # buffer position (frames) from which headers are still searched
@@ -127,24 +138,31 @@ class PacketAssembler:
 
     # ---- buffer ----------------------------------------------------------------------
     def _reserve(self, extra: int) -> None:
+        """Room for ``extra`` more rows after the filled ones: the rows move to the front of
+        the allocation when it has room for twice them, else to one twice as large."""
         need = self._n + extra
         if need > self._L.shape[1]:
-            cap = max(need, 2 * self._L.shape[1], 1024)
-            L = np.full((len(self.cams), cap, self.N), np.nan)
-            t = np.zeros(cap)
+            if 2 * need <= self._Lbuf.shape[1]:
+                L, t = self._Lbuf, self._tbuf  # (numpy copies overlapping ranges correctly)
+            else:
+                cap = max(need, 2 * self._Lbuf.shape[1], 1024)
+                L = np.full((len(self.cams), cap, self.N), np.nan)
+                t = np.zeros(cap)
+                self._Lbuf, self._tbuf = L, t
             L[:, :self._n] = self._L[:, :self._n]
             t[:self._n] = self._t[:self._n]
             self._L, self._t = L, t
 
     def _trim(self) -> None:
-        """Drop rows before max(search position, end) - keep, shifting positions."""
+        """Drop rows before max(search position, end) - keep, shifting positions (the
+        buffer's start moves: no copy until :meth:`_reserve` runs out of room)."""
         cut = int(min(np.floor(self._search), self._n - self.keep)) - 8
         if self._expect is not None:
             cut = min(cut, int(np.floor(self._expect)) - 8)
         if cut < self.TRIM_MIN:
             return
-        self._L[:, :self._n - cut] = self._L[:, cut:self._n]
-        self._t[:self._n - cut] = self._t[cut:self._n]
+        self._L = self._L[:, cut:]
+        self._t = self._t[cut:]
         self._n -= cut
         self._base = (self._base or 0) + cut
         self._search -= cut
@@ -194,6 +212,10 @@ class PacketAssembler:
         ids = np.asarray(frame_ids, dtype=np.int64).reshape(-1)
         ts = np.asarray(t_s, dtype=np.float64).reshape(-1)
         n = ids.size
+        if self._fast_push(ids, ts, L_left, L_right):
+            out = self._process()
+            self._trim()
+            return out
         if ts.size != n:
             raise ValueError(f"{n} frame ids but {ts.size} timestamps")
         if n and not np.isfinite(ts).all():  # missing timestamps: from the ids and the fps
@@ -264,6 +286,29 @@ class PacketAssembler:
         out = self._process()
         self._trim()
         return out
+
+    def _fast_push(self, ids: np.ndarray, ts: np.ndarray, L_left: np.ndarray | None,
+                   L_right: np.ndarray | None) -> bool:
+        """The usual block -- ids following the last one by one, all timestamps, each
+        camera's (n, N) luminance -- appended directly (what :meth:`push` does with it,
+        without its general bookkeeping); False (nothing done) for any other block."""
+        n = ids.size
+        if n == 0 or self._base is None or ts.size != n or self.max_gap < 0:
+            return False
+        srcs = [(L_left, L_right)[c] for c in self.cams]
+        if not all(isinstance(a, np.ndarray) and a.shape == (n, self.N) and a.dtype.kind in "fiub"
+                   for a in srcs):
+            return False
+        if not _consecutive(ids, ts, self._base + self._n):
+            return False
+        self.stats["frames_in"] += n
+        self._reserve(n)
+        a = self._n
+        for j, src in enumerate(srcs):
+            self._L[j, a:a + n] = src
+        self._t[a:a + n] = ts
+        self._n += n
+        return True
 
     # ---- packet search ---------------------------------------------------------------
     def _frame_time(self, u: float) -> float:

@@ -42,6 +42,12 @@ from iscd.decode.comms.channel import ChannelModel, ChannelTrack
 HEADER_BITS = (BARKER13 > 0).astype(np.float64)
 
 
+def _clip(x: float, lo: float, hi: float) -> float:
+    """``np.clip`` of one number (bounds lo <= hi, not zero): x itself when inside (NaN
+    included), else the bound -- without numpy's per-call cost."""
+    return lo if x < lo else hi if x > hi else x
+
+
 @dataclass(frozen=True)
 class SymbolClock:
     """Packet symbol k covers frame-unit time ``[u0 + k p, u0 + (k+1) p)``."""
@@ -120,6 +126,48 @@ def frame_map(frames: np.ndarray, clock: SymbolClock, e: float) -> tuple[np.ndar
     end = clock.u0 + (k + 1) * clock.p
     alpha = np.clip((end - n) / e, 0.0, 1.0)
     return k, alpha
+
+
+@njit(inline="always")
+def _map_one(fr: int, u0: float, p: float, e: float) -> tuple[int, float]:
+    """:func:`frame_map` of one frame (the same float64 operations)."""
+    n = float(fr)
+    k = int(np.floor((n - u0) / p))
+    end = u0 + float(k + 1) * p
+    return k, min(max((end - n) / e, 0.0), 1.0)
+
+
+@njit(warm=lambda: (0, 4, 0.3, 2.0, 1.0), error_model="numpy")
+def _frame_map_range(lo: int, hi: int, u0: float, p: float, e: float) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`frame_map` of frames lo .. hi - 1 (compiled, identical)."""
+    n = max(hi - lo, 0)
+    k = np.empty(n, np.int64)
+    alpha = np.empty(n)
+    for j in range(n):
+        k[j], alpha[j] = _map_one(lo + j, u0, p, e)
+    return k, alpha
+
+
+def frame_map_range(lo: int, hi: int, clock: SymbolClock, e: float) -> tuple[np.ndarray, np.ndarray]:
+    """``frame_map(np.arange(lo, hi), clock, e)`` in one compiled call.
+
+    Parameters
+    ----------
+    lo, hi : int
+        Frames lo .. hi - 1.
+    clock : SymbolClock
+        The packet's symbol clock, frames.
+    e : float
+        Exposure window length, frames.
+
+    Returns
+    -------
+    k : ndarray of int64
+        Packet symbol of each window's start.
+    alpha : ndarray of float64
+        Fraction of each window in symbol k, 0 .. 1.
+    """
+    return _frame_map_range(int(lo), int(hi), float(clock.u0), float(clock.p), float(e))
 
 
 def clean_frame(k: np.ndarray, clock: SymbolClock, e: float) -> np.ndarray:
@@ -477,6 +525,8 @@ def _clock_sums(L: np.ndarray, n_lo: int, n_hi: int, u0: float, p: float, e: flo
     pairwise order (agreement ~1e-13 relative)."""
     C = L.shape[0]
     S, N = lev.shape
+    J = mu_t.shape[0]
+    M = mu_t.shape[3]
     n_sel = 0
     used = 0
     h00 = 0.0
@@ -485,6 +535,34 @@ def _clock_sums(L: np.ndarray, n_lo: int, n_hi: int, u0: float, p: float, e: flo
     b0 = 0.0
     b1 = 0.0
     ts_e = timing_sigma / e
+    # per frame, the terms of every LED and camera first (loops without a carried
+    # dependency: they vectorize), then the sums in the element-by-element order (LED,
+    # camera); _response_at's arithmetic spelled out, its gain once per model
+    gain = np.empty((J, C, N))
+    for sg in range(J):
+        for c in range(C):
+            for i in range(N):
+                gain[sg, c, i] = (mu_t[sg, c, i, M - 1] - mu_t[sg, c, i, 0]) / max(M - 1, 1)
+    mu_f = np.ascontiguousarray(mu_t).reshape(J, C, N * M)  # flat per model and camera
+    var_f = np.ascontiguousarray(var_t).reshape(J, C, N * M)
+    err_f = np.ascontiguousarray(err_t).reshape(J, C, N * (M - 1))
+    t00 = np.empty((C, N))
+    t01 = np.empty((C, N))
+    t11 = np.empty((C, N))
+    tb0 = np.empty((C, N))
+    tb1 = np.empty((C, N))
+    pos = np.empty((C, N), np.bool_)
+    ok = np.empty((C, N), np.bool_)
+    fq = np.empty(N)  # per LED: interpolation fraction, level difference, the gathered
+    dlf = np.empty(N)  # centroid, slope, variances and interpolation error
+    q0s = np.empty(N, np.int64)
+    e0s = np.empty(N, np.int64)
+    vld = np.empty(N, np.bool_)
+    ga = np.empty(N)
+    gs = np.empty(N)
+    gva = np.empty(N)
+    gvb = np.empty(N)
+    gee = np.empty(N)
     for fr in range(n_lo, n_hi):
         n = float(fr)
         k = int(np.floor((n - u0) / p))
@@ -495,31 +573,72 @@ def _clock_sums(L: np.ndarray, n_lo: int, n_hi: int, u0: float, p: float, e: flo
         n_sel += 1
         seg = _segment_of(starts, k)
         dk = float(k + 1) - kc
-        for i in range(N):
-            la = lev[k - k_first, i]
-            lb = lev[k + 1 - k_first, i]
-            if la < 0 or lb < 0 or la == lb:
-                continue
+        lev_a = lev[k - k_first]
+        lev_b = lev[k + 1 - k_first]
+        for i in range(N):  # per LED: q and where it falls (vectorizes)
+            la = lev_a[i]
+            lb = lev_b[i]
+            vld[i] = (la >= 0) & (lb >= 0) & (la != lb)
+            dlf[i] = la - lb
             q = alpha * la + (1 - alpha) * lb
-            dl = la - lb
-            for c in range(C):
-                obs = L[c, fr, i]
-                if not np.isfinite(obs):
-                    continue
-                mu, slope, var = _response_at(mu_t, var_t, err_t, seg, c, i, q, dl, ts_e, True)
-                r = obs - mu
+            q0 = int(min(max(np.floor(q), 0.0), M - 2.0))
+            q0s[i] = q0
+            e0s[i] = int(min(max(q, 0.0), M - 2.0))
+            fq[i] = q - q0
+        for c in range(C):
+            Lc = L[c, fr]
+            mu_c = mu_f[seg, c]
+            var_c = var_f[seg, c]
+            err_c = err_f[seg, c]
+            gain_c = gain[seg, c]
+            okc = ok[c]
+            for i in range(N):  # the lookups (gathers: scalar)
+                j = i * M + q0s[i]
+                a_ = mu_c[j]
+                ga[i] = a_
+                gs[i] = mu_c[j + 1] - a_
+                gva[i] = var_c[j]
+                gvb[i] = var_c[j + 1]
+                gee[i] = err_c[i * (M - 1) + e0s[i]]
+                okc[i] = vld[i] & np.isfinite(Lc[i])
+            c00 = t00[c]
+            c01 = t01[c]
+            c11 = t11[c]
+            cb0 = tb0[c]
+            cb1 = tb1[c]
+            cpos = pos[c]
+            for i in range(N):  # the arithmetic (vectorizes)
+                f = fq[i]
+                va = gva[i]
+                var = va + f * (gvb[i] - va)
+                dl = dlf[i]
+                tv = ts_e * gain_c[i] * dl
+                var = var + tv * tv
+                ee = gee[i]
+                var = var + ee * ee
+                slope = gs[i]
+                r = Lc[i] - (ga[i] + f * slope)
                 g = -slope * (dl / e)
                 w = 1.0 / var
                 z = abs(r) * np.sqrt(w)
                 w = w * min(1.0, huber / max(z, 1e-12))
-                if w > 0:
-                    used += 1
                 wg = w * g
-                h00 += wg * g
-                h01 += wg * g * dk
-                h11 += wg * g * dk * dk
-                b0 += wg * r
-                b1 += wg * r * dk
+                # a skipped observation adds +0.0: exact, a sum from +0.0 is never -0.0
+                use = okc[i]
+                cpos[i] = use & (w > 0)
+                c00[i] = wg * g if use else 0.0
+                c01[i] = wg * g * dk if use else 0.0
+                c11[i] = wg * g * dk * dk if use else 0.0
+                cb0[i] = wg * r if use else 0.0
+                cb1[i] = wg * r * dk if use else 0.0
+        for i in range(N):
+            for c in range(C):
+                used += 1 if pos[c, i] else 0
+                h00 += t00[c, i]
+                h01 += t01[c, i]
+                h11 += t11[c, i]
+                b0 += tb0[c, i]
+                b1 += tb1[c, i]
     return n_sel, h00, h01, h11, b0, b1, used
 
 
@@ -752,8 +871,8 @@ def refine_clock(L: np.ndarray, clock: SymbolClock, e: float, lev: np.ndarray, k
                 break
         else:
             d_u, d_p = -b0 / h00, 0.0
-        d_u = float(np.clip(d_u, -0.25, 0.25))
-        d_p = float(np.clip(d_p, -3 * p_sigma, 3 * p_sigma))
+        d_u = float(_clip(d_u, -0.25, 0.25))
+        d_p = float(_clip(d_p, -3 * p_sigma, 3 * p_sigma))
         uc += d_u
         p += d_p
         if abs(d_u) < 1e-3 and abs(d_p) * S < 1e-3:  # 1 us
