@@ -177,6 +177,98 @@ def _least_over_frames(ff: np.ndarray, F: int, H: int, W: int, x: int, y: int, b
 
 
 @njit(fastmath=_FAST)
+def _lower_background(ff: np.ndarray, F: int, H: int, W: int, x0: np.ndarray, y0: np.ndarray,
+                      ids: np.ndarray, K: int, bgf: np.ndarray, stf: np.ndarray, blk: int,
+                      rise: float, mask: np.ndarray, lb: np.ndarray) -> None:
+    """Fold one camera's block into its per-pixel background (flat ``bgf`` float32, stamps
+    ``stf``): every pixel that the patches (x0, y0 (F, N), LEDs ``ids``) of some frame
+    cover is relaxed by ``rise`` once (stamp != ``blk``), then lowered to its least value
+    over those frames -- the values :class:`~iscd.decode.tracking.luminance.PixelBackground`
+    gives (as the per-patch, per-frame loop did). When the patches stay put over the block and
+    their bounding box is no larger than the patches together (an array's: they overlap),
+    over the box: a coverage mask, one relaxation and the least value over the frames
+    in long rows; else patch by patch. ``mask`` (uint8) and ``lb`` (int32) hold
+    len(ids) K^2 values."""
+    nb = ids.size
+    uK = np.uint64(K)
+    uW = np.uint64(W)
+    urise = np.float32(rise)
+    fixed = True
+    for f in range(1, F):
+        for jb in range(nb):
+            i = ids[jb]
+            if x0[f, i] != x0[0, i] or y0[f, i] != y0[0, i]:
+                fixed = False
+    bx0, by0, bx1, by1 = W, H, 0, 0
+    for jb in range(nb):
+        i = ids[jb]
+        bx0 = min(bx0, x0[0, i])
+        by0 = min(by0, y0[0, i])
+        bx1 = max(bx1, x0[0, i] + K)
+        by1 = max(by1, y0[0, i] + K)
+    BW, BH = bx1 - bx0, by1 - by0
+    if fixed and nb > 0 and BW * BH <= mask.size:
+        uBW = np.uint64(BW)
+        for p in range(BW * BH):
+            mask[p] = 0
+        for jb in range(nb):
+            i = ids[jb]
+            pd = np.uint64((y0[0, i] - by0) * BW + x0[0, i] - bx0)
+            for a in range(K):
+                for b in range(uK):
+                    mask[pd + b] = 1
+                pd += uBW
+        _least_over_frames(ff, F, H, W, bx0, by0, BW, BH, lb)
+        for r in range(BH):
+            pb = np.uint64((by0 + r) * W + bx0)
+            pd = np.uint64(r * BW)
+            for c in range(uBW):  # branch-free (vectorizes): uncovered pixels kept
+                cov = mask[pd + c] != 0
+                st = stf[pb + c]
+                fresh = cov and st != blk
+                stf[pb + c] = blk if fresh else st
+                u = bgf[pb + c] + urise if fresh else bgf[pb + c]
+                v = np.float32(lb[pd + c])
+                bgf[pb + c] = v if cov and v < u else u
+        return
+    # patch by patch: relax every covered pixel once, then lower it
+    for f in range(1 if fixed else F):
+        for jb in range(nb):
+            i = ids[jb]
+            pb = np.uint64(y0[f, i] * W + x0[f, i])
+            for a in range(K):
+                for b in range(uK):
+                    if stf[pb + b] != blk:
+                        stf[pb + b] = blk
+                        bgf[pb + b] += urise
+                pb += uW
+    for jb in range(nb):
+        i = ids[jb]
+        if fixed:
+            _least_over_frames(ff, F, H, W, x0[0, i], y0[0, i], K, K, lb)
+            pb = np.uint64(y0[0, i] * W + x0[0, i])
+            pd = np.uint64(0)
+            for a in range(K):
+                for b in range(uK):
+                    v = np.float32(lb[pd + b])
+                    if v < bgf[pb + b]:
+                        bgf[pb + b] = v
+                pb += uW
+                pd += uK
+        else:
+            for f in range(F):
+                pb = np.uint64(y0[f, i] * W + x0[f, i])
+                pf = np.uint64(f * H * W) + pb
+                for a in range(K):
+                    for b in range(uK):
+                        v = np.float32(ff[pf + b])
+                        if v < bgf[pb + b]:
+                            bgf[pb + b] = v
+                    pb += uW
+                    pf += uW
+
+
+@njit(fastmath=_FAST)
 def _weighted_patch(buf: np.ndarray, p0: np.uint64, uBW: np.uint64, K: int, wx: np.ndarray,
                     wy: np.ndarray) -> float:
     """sum over a, b of wy[a] wx[b] buf[p0 + a BW + b] (float64; three rows a pass)."""
@@ -250,29 +342,23 @@ def _follow_kernel(L, R, starts: np.ndarray, half: int, w: float, iterations: in
                 y0[g * F + f, i] = min(max(ya, 0), H - K)
     # ---- the per-pixel backgrounds: relaxed once per block, then lowered to every pixel
     # the LEDs' patches show in this block (all LEDs when the luminance uses it, else only
-    # the selected ones, whose lit judgement alone needs it)
+    # the selected ones, whose lit judgement alone needs it). The result does not depend
+    # on the order (a pixel is relaxed before its first lowering in the block, and the
+    # least value is order-free): each pixel is relaxed once and lowered once, to its
+    # least value over the frames whose patches cover it (:func:`_lower_background`).
     if has_bg:
         nb = N if bg_lum else n
+        ids = np.empty(nb, np.int64)
+        for jb in range(nb):
+            ids[jb] = jb if bg_lum else sel[jb]
+        mask = np.empty(nb * K * K, np.uint8)
+        lb = np.empty(nb * K * K, np.int32)
         for g in range(2):
             fr = L if g == 0 else R
-            ff = Lf if g == 0 else Rf
-            H, W = fr.shape[1], fr.shape[2]
-            bgf = bgl_f if g == 0 else bgr_f
-            stf = (st_l if g == 0 else st_r).reshape(-1)
-            for f in range(F):
-                for jb in range(nb):
-                    i = jb if bg_lum else sel[jb]
-                    xa, ya = x0[g * F + f, i], y0[g * F + f, i]
-                    for a in range(K):
-                        pb = np.uint64((ya + a) * W + xa)
-                        pf = np.uint64(f * H * W) + pb
-                        for b in range(uK):
-                            if stf[pb + b] != blk:
-                                stf[pb + b] = blk
-                                bgf[pb + b] += np.float32(rise)
-                            v = np.float32(ff[pf + b])
-                            if v < bgf[pb + b]:
-                                bgf[pb + b] = v
+            _lower_background(Lf if g == 0 else Rf, F, fr.shape[1], fr.shape[2],
+                              x0[g * F:(g + 1) * F], y0[g * F:(g + 1) * F], ids, K,
+                              bgl_f if g == 0 else bgr_f, (st_l if g == 0 else st_r).reshape(-1),
+                              blk, rise, mask, lb)
     # ---- per selected LED and frame: patch sum, patch minimum, and (patches that stay
     # put over the block) each pixel's least value over the block's frames
     pmin = np.empty((FF, n))
@@ -284,7 +370,7 @@ def _follow_kernel(L, R, starts: np.ndarray, half: int, w: float, iterations: in
         ff = Lf if g == 0 else Rf
         H, W = fr.shape[1], fr.shape[2]
         uW = np.uint64(W)
-        fixed = F > 1
+        fixed = F > 1 and not has_bg
         for f in range(F):
             for j in range(n):
                 i = sel[j]
@@ -296,7 +382,7 @@ def _follow_kernel(L, R, starts: np.ndarray, half: int, w: float, iterations: in
                 q = g * F + f
                 tot, m = _patch_sum_min(ff, np.uint64((f * H + y0[q, i]) * W + x0[q, i]), uW, K)
                 pmin[q, j] = m
-                shown[q, j] = np.int64(tot) - K * K * np.int64(m)
+                shown[q, j] = np.int64(tot) - (0 if has_bg else K * K * np.int64(m))
         if fixed:
             # each pixel's least value over the block: at once over the selected patches'
             # bounding box when that is small (an array's), else patch by patch
@@ -326,20 +412,28 @@ def _follow_kernel(L, R, starts: np.ndarray, half: int, w: float, iterations: in
                 for f in range(F):
                     q = g * F + f
                     shown[q, j] += K * K * pmin[q, j] - sb
-        if has_bg:  # the light above the held per-pixel background instead
+        if has_bg:
+            # the light above the held per-pixel background instead: the patch sum less
+            # the background's sum under the patch (both exact in float64: the same value
+            # as the sum of the differences), the latter once per place of the patch
             bgf = bgl_f if g == 0 else bgr_f
             for j in range(n):
                 i = sel[j]
+                xp, yp = -1, -1
+                sbg = 0.0
                 for f in range(F):
                     q = g * F + f
                     xa, ya = x0[q, i], y0[q, i]
-                    sv = 0.0
-                    for a in range(K):
-                        pb = np.uint64((ya + a) * W + xa)
-                        pf = np.uint64(f * H * W) + pb
-                        for b in range(uK):
-                            sv += float(ff[pf + b]) - float(bgf[pb + b])
-                    shown[q, j] = sv
+                    if xa != xp or ya != yp:
+                        xp, yp = xa, ya
+                        sbg = 0.0
+                        for a in range(K):
+                            pb = np.uint64((ya + a) * W + xa)
+                            rb = 0.0
+                            for b in range(uK):
+                                rb += float(bgf[pb + b])
+                            sbg += rb
+                    shown[q, j] -= sbg
         per = _percentile90(shown[g * F:(g + 1) * F].ravel())
         out_light[g] = per
         ref = per if lit_ref[g] < 0 else max(per, lit_ref[g])
