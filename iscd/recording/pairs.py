@@ -23,11 +23,16 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from iscd.recording.base import Recording, RecordingError, RecordingWarning, header_number, missing_ids
-from iscd.recording.iscr import MAX_SIDE, _DTYPES, read_header
+from iscd.recording.iscr import _DTYPES, read_header
 from iscd.recording.pairfile import (CRC_SPAN, FLAG_WHOLE, HEADER_DTYPE, INDEX_HEADER, INDEX_SYNC, MODES, NOTE_SYNC,
                                      PAIR_HEADER, PAIR_HEADER_SIZE, SEAL, SEAL_MAGIC, SYNC, VERSION, note_flags,
                                      record_size)
 
+MAX_V2_SIDE = 8192
+"""Largest frame width or height of a stereo file, px (as [camera] allows): a header may
+claim anything, and frames are rebuilt whole from small windows."""
+MAX_EMULATED_BYTES = 2**31
+"""Most memory for the emulated intake buffers; beyond it frames are rebuilt on zeros."""
 CONFIG_NAME = "config.toml"
 CALIBRATION_NAME = "calibration.yml"
 SEGMENT_GLOB = "*.iscr"
@@ -59,8 +64,8 @@ class PairRecording:
         meta, self.data_offset, _ = read_header(self.path, versions=(VERSION,))
         self.metadata = meta
         try:
-            self.width = int(header_number(meta["width"], "width", integer=True, lo=1, hi=MAX_SIDE))
-            self.height = int(header_number(meta["height"], "height", integer=True, lo=1, hi=MAX_SIDE))
+            self.width = int(header_number(meta["width"], "width", integer=True, lo=1, hi=MAX_V2_SIDE))
+            self.height = int(header_number(meta["height"], "height", integer=True, lo=1, hi=MAX_V2_SIDE))
             name = meta["dtype"]
             if not isinstance(name, str) or name not in _DTYPES:
                 raise ValueError(f"unsupported dtype {name!r:.40}")
@@ -415,6 +420,8 @@ class PairSession:
         live decoder was handed, bit for bit, when the recording holds every pair of the run
         from its start. Otherwise zeros outside the windows."""
         nbuf = self.intake_buffers() if emulate_intake else None
+        if nbuf is not None and 2 * nbuf * self.height * self.width * self.dtype.itemsize > MAX_EMULATED_BYTES:
+            nbuf = None
         bufs = None
         if nbuf is not None:
             bufs = (np.zeros((nbuf, self.height, self.width), self.dtype),
