@@ -408,17 +408,80 @@ MIN_FLUX_MODULATION = 0.5
 """Least :func:`flux_modulation` of a transmitter candidate: a PWM LED sending data swings
 its flux by about its light or more (levels 1 .. M within any 64 frames; 1.5-2.4 measured),
 a steady lamp under rig vibration by the shot noise of its disc (0.006 for a 25 cm lamp at
-40 m with 0.5 px of vibration), a fragment of its edge by what slides through the box
-(0.26-0.33)."""
+40 m with 0.5 px of vibration). An active blob on a lamp's edge is measured over the whole
+lamp (:func:`source_box`): a box that cut through the lamp read 0.26-0.33 under smooth
+vibration and 0.43-0.75 under 26-38 Hz engine vibration (its border on the lamp, so the
+background it subtracted was the lamp's own light)."""
+
+SOURCE_WINDOW_PX = 64
+"""How far around an active blob :func:`source_box` looks for the rest of a steady light,
+px (a 25 cm lamp is 22 px across at 40 m, 44 px at 20 m)."""
+
+SOURCE_SPREAD_K = 4.0
+"""A pixel is part of a light source only above the background's median by this many
+robust standard deviations of the mean frame around it (a textured background's own
+bright patches are not a source)."""
 
 
-def flux_modulation(frames: np.ndarray, bbox: tuple[int, int, int, int], pad: int = 4) -> float:
+def source_box(mean: np.ndarray, bbox: tuple[int, int, int, int], *,
+               window: int = SOURCE_WINDOW_PX) -> tuple[int, int, int, int]:
+    """The bounding box of the whole light source that an active blob belongs to.
+
+    Rig vibration moves a steady light without changing its flux, but only its edges show
+    in the temporal gradient: a blob on a lamp's edge is a fragment of a larger source. The
+    source is the connected region of the block's mean frame brighter than half the blob's
+    peak above the background (and than the background's own spread,
+    :data:`SOURCE_SPREAD_K`) that touches the blob, looked for within ``window`` px. An LED's
+    blob covers its whole spot (all of it blinks), so its box stays its own.
+
+    Parameters
+    ----------
+    mean : ndarray
+        (H, W) mean frame of the block, DN.
+    bbox : (int, int, int, int)
+        The blob's (x0, y0, x1, y1), px (x1, y1 exclusive).
+    window : int
+        Search distance around ``bbox``, px.
+
+    Returns
+    -------
+    tuple of int
+        (x0, y0, x1, y1) px: ``bbox`` grown to the source (at most ``window`` px each side).
+    """
+    m = np.asarray(mean)
+    H, W = m.shape
+    x0, y0, x1, y1 = max(0, bbox[0]), max(0, bbox[1]), min(W, bbox[2]), min(H, bbox[3])
+    if x1 <= x0 or y1 <= y0:
+        return bbox
+    wx0, wy0, wx1, wy1 = max(0, x0 - window), max(0, y0 - window), min(W, x1 + window), min(H, y1 + window)
+    win = m[wy0:wy1, wx0:wx1].astype(np.float32)
+    bg = float(np.median(win))
+    spread = 1.4826 * float(np.median(np.abs(win - bg)))
+    inner = win[y0 - wy0:y1 - wy0, x0 - wx0:x1 - wx0]
+    peak = float(inner.max())
+    level = max(bg + 0.5 * (peak - bg), bg + SOURCE_SPREAD_K * spread)
+    if peak <= level:
+        return bbox
+    lab, _ = ndimage.label(win > level)
+    ids = np.unique(lab[y0 - wy0:y1 - wy0, x0 - wx0:x1 - wx0])
+    ids = ids[ids > 0]
+    if ids.size == 0:
+        return bbox
+    ys, xs = np.nonzero(np.isin(lab, ids))
+    return (min(bbox[0], wx0 + int(xs.min())), min(bbox[1], wy0 + int(ys.min())),
+            max(bbox[2], wx0 + int(xs.max()) + 1), max(bbox[3], wy0 + int(ys.max()) + 1))
+
+
+def flux_modulation(frames: np.ndarray, bbox: tuple[int, int, int, int], pad: int = 4,
+                    mean: np.ndarray | None = None) -> float:
     """How much the light of a candidate changes, relative to the light itself (0 for a
     steady light, ~1 for an LED that switches between dark and full).
 
-    The flux is the per-frame sum of the pixels in ``bbox`` grown by ``pad`` px (so the
-    whole spot stays inside while the rig vibrates), minus the box's border pixels' mean
-    per pixel (the background): ``(p95 - p5 of the flux over frames) / max(mean flux, 1 DN)``.
+    The flux is the per-frame sum of the pixels in the candidate's source box
+    (:func:`source_box`: ``bbox`` grown to the whole light it is part of, so a lamp's edge
+    is measured with the rest of the lamp) grown by ``pad`` px (so the whole source stays
+    inside while the rig vibrates), minus the box's border pixels' mean per pixel (the
+    background): ``(p95 - p5 of the flux over frames) / max(mean flux, 1 DN)``.
 
     Parameters
     ----------
@@ -428,6 +491,8 @@ def flux_modulation(frames: np.ndarray, bbox: tuple[int, int, int, int], pad: in
         The candidate's (x0, y0, x1, y1), px.
     pad : int
         Growth of the box on every side, px.
+    mean : ndarray, optional
+        (H, W) mean frame of ``frames`` (computed when not given), DN.
 
     Returns
     -------
@@ -436,6 +501,9 @@ def flux_modulation(frames: np.ndarray, bbox: tuple[int, int, int, int], pad: in
     """
     f = np.asarray(frames)
     H, W = f.shape[1:]
+    if mean is None:
+        mean = f.mean(axis=0, dtype=np.float32)
+    bbox = source_box(mean, bbox)
     x0, y0 = max(0, bbox[0] - pad), max(0, bbox[1] - pad)
     x1, y1 = min(W, bbox[2] + pad), min(H, bbox[3] + pad)
     box = f[:, y0:y1, x0:x1].astype(np.float64)
@@ -479,7 +547,8 @@ def detect_array(frames: np.ndarray, rows: int, cols: int, *, exclude: list[tupl
     if n == 1:
         # the strongest blob whose light really changes: a steady lamp under vibration
         # shows pixel activity at its edges, but its integrated flux stays put
-        cands = [b for b in blobs[:MAX_SINGLE_CANDIDATES] if flux_modulation(frames, b.bbox) >= MIN_FLUX_MODULATION]
+        cands = [b for b in blobs[:MAX_SINGLE_CANDIDATES]
+                 if flux_modulation(frames, b.bbox, mean=mean) >= MIN_FLUX_MODULATION]
         if not cands:
             return None
         b = cands[0]
