@@ -35,7 +35,7 @@ from iscd.core.config import Config, config_section, section
 from iscd.core.records import RangeFilteredRecord, RangeLedsRecord, RangeRecord
 from iscd.decode.pipe import PipeDemodWorker as DemodWorker
 from iscd.decode.tracking.follow_kernel import follow_and_measure_compiled
-from iscd.decode.tracking.luminance import PixelBackground, area_sigma, follow_and_measure, grid_sample
+from iscd.decode.tracking.luminance import PixelBackground, area_sigma, follow_and_measure, grid_sample, patch_half
 from iscd.decode.tracking.detect import GridFit, detect_array, light_map, match_stereo, track_box, track_on_light
 from iscd.decode.tracking.track_kernel import LightAccumulator, track_on_light_compiled
 from iscd.decode.comms.packets import Packet, PacketAssembler
@@ -198,6 +198,7 @@ class StreamDecoder:
         self._acq_ids: deque[tuple[int, float]] = deque(maxlen=keep)
         self._since_fit = 0
         self._last_id: int | None = None
+        self._reach = 0  # px around an LED start that the following read last block (needed_windows)
         self.last_luminance: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = None
         self._deferred: tuple[np.ndarray, ...] | None = None
         """the rest of a block pushed with ``defer=True`` (see :meth:`finish_block`)"""
@@ -604,6 +605,9 @@ class StreamDecoder:
             sigmas = self._spot_window(tr, growth, sigmas)
             # measure within half a pitch of each LED (an array's neighbours stay out)
             spot_r = 0.5 * tr.left.pitch_px * max(growth) if self.rows * self.cols > 1 else 8.0
+        # how far from an LED's start the following reads (its patch half, as the kernel
+        # takes it): needed_windows() covers it for the next block
+        self._reach = max(patch_half(box), int(np.ceil(3.5 * max(sigmas))) + 1) + self.REACH_MARGIN_PX
         (c_l, c_r), (lum_l, lum_r) = follow(
             [left, right], starts, box, sigmas,
             use=self._use, lit_light=self._lit_light, info=info,
@@ -619,6 +623,10 @@ class StreamDecoder:
 
     MAX_SIGMA_PX = 4.0
     """Largest Gaussian luminance window, px (an array seen from close by)."""
+
+    REACH_MARGIN_PX = 2
+    """Added to the following's patch half in :meth:`needed_windows`, px: the rounding of a
+    start to a pixel and one block's growth of the box or window."""
 
     SPOT_SMOOTHING = 0.1
     """Share of a block's measured spot area in the running one (``window_follows_spot``):
@@ -714,6 +722,8 @@ class StreamDecoder:
             return None
         W, H = self.cfg.camera.width, self.cfg.camera.height
         wl, wr = _track_window(tr.left, W, H), _track_window(tr.right, W, H)
+        if self._reach:  # the following's patches around where the LEDs were and are predicted
+            wl, wr = _union(wl, self._reach_window(0, W, H)), _union(wr, self._reach_window(1, W, H))
         if self._acc is not None:
             wl, wr = _union(wl, self._win[0]), _union(wr, self._win[1])
         if self.ranger is not None:
@@ -724,6 +734,24 @@ class StreamDecoder:
             else:  # rectification reads around the patch: be generous
                 return None
         return wl, wr
+
+    def _reach_window(self, side: int, W: int, H: int) -> tuple[int, int, int, int]:
+        """The pixels (x0, y0, x1, y1) the next block's following can read in camera
+        ``side``: its patches (half-size ``_reach`` px) around the LEDs' last followed
+        positions and the grid's prediction a block or two ahead (what it may start from)."""
+        tr = self.track
+        assert tr is not None
+        fit = tr.left if side == 0 else tr.right
+        pts = [fit.centers]
+        if self._followed[side] is not None:
+            pts.append(self._followed[side])
+        if self._last_id is not None:
+            ahead = np.array([self._last_id + 1, self._last_id + 2 * self.settings.track_every_frames])
+            pts.append(self.led_centres(side, ahead).reshape(-1, 2))
+        xy = np.concatenate(pts)
+        r = self._reach
+        return _clip((int(np.floor(xy[:, 0].min())) - r, int(np.floor(xy[:, 1].min())) - r,
+                      int(np.ceil(xy[:, 0].max())) + r + 1, int(np.ceil(xy[:, 1].max())) + r + 1), W, H)
 
     # ------------------------------------------------------------------ acquisition/tracking
     def _acquire(self, frame_ids: np.ndarray, t_s: np.ndarray, left: np.ndarray, right: np.ndarray
