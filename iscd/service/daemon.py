@@ -60,6 +60,7 @@ class DaemonSettings:
     restart_backoff_s: float = field(default=1.0, metadata={"lo": 0, "doc": "wait before restarting a dead acquisition"})
     stop_drain_s: float = field(default=0.3, metadata={"lo": 0, "hi": 60, "doc": "at the end of a run (--duration, SIGTERM), decode what the ring still holds for at most this long; the pairs left then are dropped (counted: stop_dropped, in frames_dropped) rather than overrun the end"})
     stop_demod_s: float = field(default=1.0, metadata={"lo": 0, "hi": 60, "doc": "at the end of a run, wait at most this long for the demodulation steps in flight (then the packets in progress are abandoned, counted: stop_demod_abandoned)"})
+    control: str = field(default="", metadata={"doc": "ZeroMQ REP endpoint for commands from other in-car software (iscd.service.control: blackbox, ping), e.g. tcp://127.0.0.1:5557 ('' = off; --control)"})
     start_timeout_s: float = field(default=30.0, metadata={"lo": 0, "doc": "--duration counts from when the acquisition runs (cameras up); if it has not started within this long, from then"})
 
 
@@ -93,7 +94,8 @@ class Daemon:
 
     def __init__(self, cfg: Config, *, out: str | None = None, duration_s: float | None = None,
                  rerun: dict[str, Any] | None = None, socket: str | None = None,
-                 calibration: str | None = None, install_signals: bool = True) -> None:
+                 calibration: str | None = None, install_signals: bool = True,
+                 control: str | None = None) -> None:
         self.cfg = cfg
         self.settings: DaemonSettings = section(cfg, DaemonSettings)
         from iscd.rig.acquisition import AcquisitionOptions
@@ -116,6 +118,7 @@ class Daemon:
         self.socket_endpoint = socket if socket is not None else (self.settings.socket or None)
         self.calibration_path = calibration or self.settings.calibration or None
         self.install_signals = install_signals
+        self.control_endpoint = control if control is not None else (self.settings.control or None)
         self._stop = False
         self.final_stats: dict[str, Any] | None = None
         self.records_written = 0
@@ -227,6 +230,8 @@ class Daemon:
             if now >= run.next_stats:
                 run.periodic_stats(now)
             run.notifier.watchdog()
+            if run.control is not None:
+                run.control.poll()  # one command at most, never waits
             if not draining and not run.acq.is_alive():
                 run.restart_acquisition()
                 continue
@@ -259,6 +264,7 @@ class _Run:
         self.outputs: Any = None
         self.notifier: Any = None
         self.recorder: Any = None
+        self.control: Any = None
         try:
             self._build()
         except BaseException:
@@ -319,6 +325,23 @@ class _Run:
         self.recorder = live_recording(cfg, daemon.calibration_path, lambda: self.decoder.counters.get("losses", 0),
                                        st.block_max)
         self.blocks.tap = self.recorder  # [record]: every pair taken, before its slot goes back
+        if daemon.control_endpoint:
+            from iscd.outputs import output_config
+            from iscd.service.control import ControlSocket
+
+            self.control = ControlSocket(daemon.control_endpoint, {b"blackbox": self._blackbox_command},
+                                         allow_remote=output_config(cfg).zmq_allow_remote)
+            log.info("control socket on %s (commands: blackbox, ping)", self.control.endpoint)
+
+    def _blackbox_command(self) -> str:
+        """The control socket's ``blackbox``: trigger the blackbox recording."""
+        if self.recorder is None:
+            raise RuntimeError("no recording in this run (iscd run --record DIR --record-mode blackbox)")
+        mode = self.recorder.recorder.mode
+        if mode != "blackbox":
+            raise RuntimeError(f"the recording is in {mode} mode, not blackbox (--record-mode blackbox)")
+        self.recorder.trigger("control command")
+        return "ok"
 
     # ------------------------------------------------------------------ start and end
     def warm_up(self) -> None:
@@ -379,6 +402,8 @@ class _Run:
             self.outputs.close()
         if self.recorder is not None:
             self.recorder.close()
+        if self.control is not None:
+            self.control.close()
         if self.ring is not None:
             self.ring.close()
         if self.notifier is not None:
@@ -589,6 +614,8 @@ class _Run:
                "device_fps_mismatch": self.fps_mismatch,
                "demod_worker_restarts": decoder.counters.get("demod_worker_restarts", 0)}
         rec.update(self.outputs.counters())  # output_errors and each output's own counters
+        if self.control is not None:
+            rec.update(self.control.counters())  # control_commands, control_refused
         if self.recorder is not None:
             rec.update(self.recorder.counters())  # record_written, record_dropped, record_mb_per_s...
         spec = {k: rec.pop(k) for k in StatsRecord.spec_fields()}

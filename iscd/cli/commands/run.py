@@ -49,6 +49,10 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "transmitter, with post_s seconds after")
     p.add_argument("--socket", metavar="ENDPOINT",
                    help="also publish records on a ZeroMQ PUB socket, e.g. tcp://127.0.0.1:5556")
+    p.add_argument("--control", metavar="ENDPOINT",
+                   help="take commands on a ZeroMQ REP socket, e.g. tcp://127.0.0.1:5557: 'blackbox' "
+                        "writes the blackbox recording (--record-mode blackbox), 'ping' answers 'pong' "
+                        "([daemon] control)")
     g = p.add_argument_group("Rerun live view (optional)")
     g.add_argument("--connect", nargs="?", const="", metavar="URL",
                    help="stream to a running Rerun viewer (default URL: the local viewer)")
@@ -193,7 +197,7 @@ def run(args: argparse.Namespace) -> int:
         rerun = {"connect": args.connect, "serve": args.serve, "save": args.save}
     try:
         d = Daemon(cfg, out=out, duration_s=args.duration, rerun=rerun, socket=args.socket,
-                   calibration=cal_path)
+                   calibration=cal_path, control=args.control)
         if not getattr(args, "quiet", False):
             d.extra_outputs = [_Console()]
         final = d.run()
