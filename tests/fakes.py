@@ -237,6 +237,18 @@ def fake_rig(n: int, period_ns: int, left_script: dict[int, str] | None = None,
 
 
 # ---------------------------------------------------------------------- the daemon
+def render_pairs(cfg: Any, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """(left, right) (n, H, W) frames 0 .. n - 1 of ``cfg``'s simulated scene."""
+    from iscd.sim.scene import Scene
+
+    sc = Scene(cfg)
+    left = np.empty((n, sc.height, sc.width), np.uint8)
+    right = np.empty_like(left)
+    for i in range(n):
+        sc.render_pair_into(i, left[i], right[i])
+    return left, right
+
+
 LIGHT = """
 [transmitter]
 rows = 1

@@ -10,6 +10,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from fakes import render_pairs
 from iscd.core.config import default_config
 from iscd.decode.tracking.detect import GridFit, detect_array, light_map, track_on_light
 from iscd.decode.tracking.follow_kernel import follow_and_measure_compiled
@@ -17,15 +18,6 @@ from iscd.decode.tracking.luminance import follow_and_measure, grid_sample
 from iscd.decode.tracking.track_kernel import LightAccumulator, track_on_light_compiled
 
 
-def _render(cfg, n: int) -> tuple[np.ndarray, np.ndarray]:
-    from iscd.sim.scene import Scene
-
-    sc = Scene(cfg)
-    L = np.empty((n, sc.height, sc.width), np.uint8)
-    R = np.empty_like(L)
-    for i in range(n):
-        sc.render_pair_into(i, L[i], R[i])
-    return L, R
 
 
 @pytest.fixture(scope="module")
@@ -154,7 +146,7 @@ def test_the_decoder_gives_the_same_records_compiled_or_not(scene, rendered_defa
         L, R = rendered_default
     else:
         cfg = override(cfg, transmitter={"levels": 16}, scene={"distance_m": 50.0})
-        L, R = _render(cfg, 192)
+        L, R = render_pairs(cfg, 192)
     ids = np.arange(L.shape[0])
     out = {}
     for compiled in (False, True):

@@ -7,6 +7,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from fakes import render_pairs
 from iscd.core.config import default_config
 from iscd.decode.stream import StreamDecoder
 from iscd.sim.presets import single_led
@@ -36,22 +37,13 @@ def _decode(cfg, frames, garbage: bool) -> list[dict]:
     return out + dec.finish()
 
 
-def _render(cfg, n: int):
-    from iscd.sim.scene import Scene
-
-    sc = Scene(cfg)
-    L = np.empty((n, sc.height, sc.width), np.uint8)
-    R = np.empty_like(L)
-    for i in range(n):
-        sc.render_pair_into(i, L[i], R[i])
-    return L, R
 
 
 @pytest.mark.parametrize("which", ["one LED at 40 m", "8x8 array at 30 m"])
 def test_pixels_outside_the_needed_windows_change_nothing(which: str) -> None:
     cfg = default_config()
     cfg = single_led(cfg, 40.0) if which.startswith("one") else cfg
-    frames = _render(cfg, 1500)
+    frames = render_pairs(cfg, 1500)
     clean = _decode(cfg, frames, garbage=False)
     noisy = _decode(cfg, frames, garbage=True)
     assert any(r["type"] == "packet" for r in clean)

@@ -61,6 +61,44 @@ def is_local_endpoint(endpoint: str) -> bool:
         return False
 
 
+def bind_local(kind: int, endpoint: str, *, name: str, purpose: str, allow_remote: bool = False,
+               options: dict[int, int] | None = None, context: zmq.Context | None = None) -> zmq.Socket:
+    """A ZeroMQ socket of ``kind`` bound to ``endpoint``, refused beyond this machine.
+
+    Parameters
+    ----------
+    kind : int
+        The socket type (``zmq.XPUB``, ``zmq.REP``).
+    endpoint : str
+        Where to bind (port ``*`` picks one: read it back with ``LAST_ENDPOINT``).
+    name, purpose : str
+        For the messages: ``"{name} {endpoint!r} is not loopback: refusing to {purpose} beyond
+        this machine"``.
+    allow_remote : bool
+        Bind to an address that is not loopback (``output.zmq_allow_remote``).
+    options : dict, optional
+        Socket options set before binding (``LINGER`` is always 0).
+
+    Raises
+    ------
+    OutputError
+        One line: the endpoint malformed, not loopback, or not bindable.
+    """
+    if not is_local_endpoint(endpoint) and not allow_remote:
+        raise OutputError(f"{name} {endpoint!r} is not loopback: refusing to {purpose} beyond this "
+                          f"machine (set output.zmq_allow_remote = true to allow it)")
+    sock = (context or zmq.Context.instance()).socket(kind)
+    sock.setsockopt(zmq.LINGER, 0)
+    for opt, value in (options or {}).items():
+        sock.setsockopt(opt, value)
+    try:
+        sock.bind(endpoint)
+    except zmq.ZMQError as e:
+        sock.close(0)
+        raise OutputError(f"cannot bind {name} {endpoint!r}: {e}") from None
+    return sock
+
+
 class ZmqPublisher(Output):
     """Publishes records as ``[type, json]`` on ``endpoint`` (bound; subscribers connect).
 
@@ -72,21 +110,9 @@ class ZmqPublisher(Output):
 
     def __init__(self, endpoint: str = DEFAULT_ENDPOINT, *, allow_remote: bool = False,
                  hwm: int = 10_000, nodrop: bool = True, context: zmq.Context | None = None) -> None:
-        if not is_local_endpoint(endpoint) and not allow_remote:
-            raise OutputError(
-                f"ZeroMQ endpoint {endpoint!r} is not loopback: refusing to publish decoded data "
-                f"beyond this machine (set output.zmq_allow_remote = true to allow it)")
-        self._ctx = context or zmq.Context.instance()
-        self._sock = self._ctx.socket(zmq.XPUB)
-        self._sock.setsockopt(zmq.LINGER, 0)
-        self._sock.setsockopt(zmq.SNDHWM, int(hwm))
-        if nodrop:
-            self._sock.setsockopt(zmq.XPUB_NODROP, 1)
-        try:
-            self._sock.bind(endpoint)
-        except zmq.ZMQError as e:
-            self._sock.close(0)
-            raise OutputError(f"cannot bind ZeroMQ endpoint {endpoint!r}: {e}") from None
+        self._sock = bind_local(zmq.XPUB, endpoint, name="ZeroMQ endpoint", purpose="publish decoded data",
+                                allow_remote=allow_remote, context=context,
+                                options={zmq.SNDHWM: int(hwm), **({zmq.XPUB_NODROP: 1} if nodrop else {})})
         self.endpoint: str = self._sock.getsockopt_string(zmq.LAST_ENDPOINT)
         self.sent = 0
         """Messages handed to ZeroMQ."""

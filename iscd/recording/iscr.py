@@ -288,6 +288,33 @@ def read_header(path: str | Path, versions: tuple[int, ...] = (VERSION,)) -> tup
     return meta, int(doff), int(rsize)
 
 
+def frame_fields(meta: dict[str, Any], max_side: int
+                 ) -> tuple[int, int, np.dtype, int, float | None, float | None]:
+    """The frame description of an ``.iscr`` header's metadata (either version): width and
+    height (px, 1 .. ``max_side``), pixel dtype, bit depth (bits, at most the dtype's), frame
+    rate (frames/s, or None) and exposure (s, or None).
+
+    Raises
+    ------
+    KeyError
+        A required field (width, height, dtype) missing.
+    ValueError
+        A field of the wrong type or out of range (the message names it).
+    """
+    width = int(header_number(meta["width"], "width", integer=True, lo=1, hi=max_side))
+    height = int(header_number(meta["height"], "height", integer=True, lo=1, hi=max_side))
+    name = meta["dtype"]
+    if not isinstance(name, str) or name not in _DTYPES:
+        raise ValueError(f"unsupported dtype {name!r:.40}")
+    dtype = np.dtype(name)
+    nbits = 8 * dtype.itemsize
+    bd = meta.get("bit_depth")
+    bit_depth = nbits if bd is None else int(header_number(bd, "bit_depth", integer=True, lo=1, hi=nbits))
+    fps, exp = meta.get("fps"), meta.get("exposure_s")
+    return (width, height, dtype, bit_depth, None if fps is None else float(header_number(fps, "fps", lo=1e-9)),
+            None if exp is None else float(header_number(exp, "exposure_s", lo=0)))
+
+
 class IscrRecording(Recording):
     """Reader of an ``.iscr`` file (numpy memmap over the records; reads copy a block)."""
 
@@ -298,18 +325,8 @@ class IscrRecording(Recording):
         meta, self.data_offset, self.record_size = read_header(self.path)
         self.metadata = meta
         try:
-            self.width = int(header_number(meta["width"], "width", integer=True, lo=1, hi=MAX_SIDE))
-            self.height = int(header_number(meta["height"], "height", integer=True, lo=1, hi=MAX_SIDE))
-            dtype_name = meta["dtype"]
-            if not isinstance(dtype_name, str) or dtype_name not in _DTYPES:
-                raise ValueError(f"unsupported dtype {dtype_name!r:.40}")
-            self.dtype = np.dtype(dtype_name)
-            nbits = 8 * self.dtype.itemsize
-            bd = meta.get("bit_depth")
-            self.bit_depth = nbits if bd is None else int(header_number(bd, "bit_depth", integer=True, lo=1, hi=nbits))
-            fps, exp = meta.get("fps"), meta.get("exposure_s")
-            self.fps = None if fps is None else float(header_number(fps, "fps", lo=1e-9))
-            self.exposure_s = None if exp is None else float(header_number(exp, "exposure_s", lo=0))
+            (self.width, self.height, self.dtype, self.bit_depth, self.fps,
+             self.exposure_s) = frame_fields(meta, MAX_SIDE)
             self.camera = None if meta.get("camera") is None else str(meta["camera"])[:200]
         except KeyError as e:
             raise RecordingError(self.path, f"corrupt .iscr metadata: missing {e}") from None

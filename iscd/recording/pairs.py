@@ -22,8 +22,8 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-from iscd.recording.base import Recording, RecordingError, RecordingWarning, header_number, missing_ids
-from iscd.recording.iscr import _DTYPES, read_header
+from iscd.recording.base import Recording, RecordingError, RecordingWarning, missing_ids
+from iscd.recording.iscr import frame_fields, read_header
 from iscd.recording.pairfile import (CRC_SPAN, FLAG_WHOLE, HEADER_DTYPE, INDEX_HEADER, INDEX_SYNC, MODES, NOTE_SYNC,
                                      PAIR_HEADER, PAIR_HEADER_SIZE, SEAL, SEAL_MAGIC, SYNC, VERSION, note_flags,
                                      record_size)
@@ -64,18 +64,8 @@ class PairRecording:
         meta, self.data_offset, _ = read_header(self.path, versions=(VERSION,))
         self.metadata = meta
         try:
-            self.width = int(header_number(meta["width"], "width", integer=True, lo=1, hi=MAX_V2_SIDE))
-            self.height = int(header_number(meta["height"], "height", integer=True, lo=1, hi=MAX_V2_SIDE))
-            name = meta["dtype"]
-            if not isinstance(name, str) or name not in _DTYPES:
-                raise ValueError(f"unsupported dtype {name!r:.40}")
-            self.dtype = np.dtype(name)
-            nbits = 8 * self.dtype.itemsize
-            bd = meta.get("bit_depth")
-            self.bit_depth = nbits if bd is None else int(header_number(bd, "bit_depth", integer=True, lo=1, hi=nbits))
-            fps, exp = meta.get("fps"), meta.get("exposure_s")
-            self.fps = None if fps is None else float(header_number(fps, "fps", lo=1e-9))
-            self.exposure_s = None if exp is None else float(header_number(exp, "exposure_s", lo=0))
+            (self.width, self.height, self.dtype, self.bit_depth, self.fps,
+             self.exposure_s) = frame_fields(meta, MAX_V2_SIDE)
             mode = meta.get("mode")
             if mode not in MODES:
                 raise ValueError(f"mode must be one of {list(MODES)}, got {mode!r:.40}")

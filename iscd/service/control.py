@@ -24,8 +24,7 @@ from collections.abc import Callable
 
 import zmq
 
-from iscd.outputs.base import OutputError
-from iscd.outputs.socket import is_local_endpoint
+from iscd.outputs.socket import bind_local
 
 log = logging.getLogger(__name__)
 
@@ -57,19 +56,10 @@ class ControlSocket:
 
     def __init__(self, endpoint: str, handlers: dict[bytes, Handler], *, allow_remote: bool = False,
                  context: zmq.Context | None = None) -> None:
-        if not is_local_endpoint(endpoint) and not allow_remote:
-            raise OutputError(f"control socket {endpoint!r} is not loopback: refusing to take commands "
-                              f"from beyond this machine (set output.zmq_allow_remote = true to allow it)")
         self.handlers = {b"ping": lambda: "pong", **handlers}
-        self._ctx = context or zmq.Context.instance()
-        self._sock = self._ctx.socket(zmq.REP)
-        self._sock.setsockopt(zmq.LINGER, 0)
-        self._sock.setsockopt(zmq.MAXMSGSIZE, MAX_COMMAND_BYTES)
-        try:
-            self._sock.bind(endpoint)
-        except zmq.ZMQError as e:
-            self._sock.close(0)
-            raise OutputError(f"cannot bind the control socket {endpoint!r}: {e}") from None
+        self._sock = bind_local(zmq.REP, endpoint, name="control socket", purpose="take commands from",
+                                allow_remote=allow_remote, context=context,
+                                options={zmq.MAXMSGSIZE: MAX_COMMAND_BYTES})
         self.endpoint: str = self._sock.getsockopt_string(zmq.LAST_ENDPOINT)
         self.commands = 0
         """Commands answered (known or not)."""

@@ -71,31 +71,22 @@ def run(args: argparse.Namespace) -> int:
     from iscd.recording.pairs import is_pair_file
 
     p = Path(args.recording)
-    if (p.is_file() and is_pair_file(p)) or (p.is_dir() and any(is_pair_file(f) for f in p.glob("*.iscr"))
-                                             and not (p / "left.iscr").exists()):
-        with warnings.catch_warnings(record=True) as caught:
-            warnings.simplefilter("always")
-            try:
-                info = stereo_info(args.recording, args.check)
-            except RecordingError as e:
-                raise UserError(str(e)) from None
-            except (OSError, ValueError) as e:
-                raise UserError(f"{args.recording}: {e}") from None
-        notes = [str(w.message) for w in caught if issubclass(w.category, UserWarning)]
-        for msg in notes:
-            print(f"iscd info: warning: {msg}", file=sys.stderr)
-        if notes:
-            info["warnings"] = notes
-        print(json.dumps(info, indent=None if args.compact else 2, default=_jsonable))
-        return 0
+    stereo = (p.is_file() and is_pair_file(p)) or (p.is_dir() and any(is_pair_file(f) for f in p.glob("*.iscr"))
+                                                   and not (p / "left.iscr").exists())
+
+    def read() -> dict[str, Any]:
+        if stereo:
+            return stereo_info(args.recording, args.check)
+        with open_recording(args.recording) as rec:
+            info = rec.info()
+            if args.check:
+                info.update(check_pixels(rec))
+            return info
 
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         try:
-            with open_recording(args.recording) as rec:
-                info = rec.info()
-                if args.check:
-                    info.update(check_pixels(rec))
+            info = read()
         except RecordingError as e:
             raise UserError(str(e)) from None
         except (OSError, ValueError) as e:
