@@ -50,7 +50,7 @@ log = logging.getLogger(__name__)
 @config_section("tracking")
 @dataclass(frozen=True)
 class PipelineSettings:
-    """``[tracking]`` section: acquisition, tracking and luminance ROI of the pipeline."""
+    """Finding, following and measuring the LEDs: detection, tracking, the luminance window (docs/receiver.md)."""
 
     acquire_frames: int = field(default=64, metadata={"lo": 8, "hi": 1024, "doc": "frames per detection attempt"})
     track_every_frames: int = field(default=32, metadata={"lo": 4, "hi": 4096, "doc": "re-fit the LED grid this often"})

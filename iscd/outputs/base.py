@@ -47,7 +47,7 @@ class Output:
 @config_section("output")
 @dataclass(frozen=True)
 class OutputConfig:
-    """``[output]``: how the JSON Lines files and the ZeroMQ socket behave (docs/outputs.md).
+    """How the JSON Lines files and the ZeroMQ socket behave (docs/outputs.md).
 
     Where they go is ``[daemon]``'s business (``out``, ``rotate_mb``, ``socket``) and the
     command line's (``--out``, ``--socket``).
@@ -64,7 +64,7 @@ class OutputConfig:
 @config_section("rerun")
 @dataclass(frozen=True)
 class RerunConfig:
-    """``[rerun]``: the Rerun live view (the command-line flags override these)."""
+    """The Rerun live view (the command-line flags override these)."""
 
     connect: str = _f("", doc="stream to a running viewer at this URL "
                               "(rerun+http://127.0.0.1:9876/proxy); empty = off")

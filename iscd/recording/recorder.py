@@ -43,7 +43,7 @@ MiB = 2**20
 @config_section("record")
 @dataclass(frozen=True)
 class RecordSettings:
-    """``[record]``: recording the stereo pairs of a live run (docs/recording.md)."""
+    """Recording the stereo pairs of a live run: full, roi or blackbox (docs/recording.md)."""
 
     dir: str = field(default="", metadata={"doc": "record into this folder (a sub-folder per run); '' = off (--record)"})
     mode: str = field(default="roi", metadata={"choices": MODES, "doc": "full: every pair whole; roi: the windows the decoder reads (whole frames while acquiring); blackbox: the last pre_s seconds in memory, written on a trigger with post_s after (--record-mode)"})

@@ -73,8 +73,9 @@ def _opt(default: Any, doc: str, lo: float | None = None, lo_open: bool = False)
 @config_section("acquisition")
 @dataclass(frozen=True)
 class AcquisitionOptions:
-    """``[acquisition]`` section: tuning of the acquisition worker (camera reads, pairing,
-    reopening); the daemon hands it to :class:`AcquisitionProcess`."""
+    """Camera reads, pairing and reopening in the acquisition process.
+
+    The daemon hands it to :class:`AcquisitionProcess`."""
 
     read_timeout_s: float = _opt(0.1, "longest wait in one camera read, s (also the stop latency)",
                                  lo=0, lo_open=True)

@@ -43,7 +43,7 @@ log = logging.getLogger(__name__)
 @config_section("daemon")
 @dataclass(frozen=True)
 class DaemonSettings:
-    """``[daemon]`` section."""
+    """The daemon: ring, blocks, outputs, control socket, overload shedding, the end of a run (docs/realtime.md)."""
 
     ring_ms: float = field(default=500.0, metadata={"lo": 10, "hi": 60_000, "doc": "ring buffer length, ms of frames"})
     block_max: int = field(default=16, metadata={"lo": 1, "hi": 1024, "doc": "most pairs decoded in one step (a block's first pair waits for the rest: 15 ms at 16 and 1000 fps, most of the p99 latency; 8 halves that for ~0.14 cores more)"})
