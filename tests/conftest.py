@@ -15,7 +15,7 @@ from pathlib import Path
 
 import pytest
 
-from fakes import FakeClock
+from fakes import FakeClock, NoDaemon
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED = REPO.parent / "shared"
@@ -80,3 +80,11 @@ def rendered_default():
     L.setflags(write=False)
     R.setflags(write=False)
     return L, R
+
+
+@pytest.fixture
+def no_daemon(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Any attempt to build the daemon fails the test (bad input must stop before it)."""
+    import iscd.service.daemon
+
+    monkeypatch.setattr(iscd.service.daemon, "Daemon", NoDaemon)

@@ -15,11 +15,14 @@ factories here can be handed to :class:`iscd.rig.acquisition.AcquisitionProcess`
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
+import shutil
+import subprocess
 import time
 import types
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path
 from typing import Any, TypeVar
 
@@ -317,3 +320,52 @@ def run_daemon_until(text: str, tmp_path: Path, done: Callable[[list[dict]], boo
     d.extra_outputs.append(stop)
     d.run()
     return d, read_records(out), stop
+
+
+# ---------------------------------------------------------------- command line and disks
+class NoDaemon:
+    """Stands in for iscd.service.daemon.Daemon: constructing it means a bad input got through."""
+
+    def __init__(self, *a: object, **k: object) -> None:
+        raise AssertionError("the daemon was started despite a bad input")
+
+
+def cli(capsys: Any, *argv: str) -> tuple[int, str, str]:
+    """``iscd ARGV`` in this process: (exit status, stdout, stderr); argparse's exits too."""
+    from iscd.cli.main import main
+
+    try:
+        rc = main(list(argv))
+    except SystemExit as e:  # argparse errors
+        rc = int(e.code or 0)
+    out, err = capsys.readouterr()
+    return rc, out, err
+
+
+def one_error_line(err: str, command: str) -> str:
+    """The one ``iscd COMMAND: error: ...`` line of ``err`` (asserted: one line, no traceback)."""
+    lines = [ln for ln in err.splitlines() if ln.strip()]
+    assert len(lines) == 1, f"expected one line on stderr, got {len(lines)}:\n{err}"
+    assert lines[0].startswith(f"iscd {command}: error: "), lines[0]
+    assert "Traceback" not in err
+    return lines[0]
+
+
+@contextlib.contextmanager
+def tmpfs(mnt: Path, size: str) -> Iterator[Path]:
+    """A tmpfs of ``size`` (mount's ``size=``, e.g. ``64k``) mounted at ``mnt`` (made here) for
+    the ``with`` block; the test is skipped where mounting is not permitted."""
+    import pytest
+
+    mnt.mkdir()
+    if shutil.which("mount") is None:
+        pytest.skip("no mount command")
+    p = subprocess.run(["mount", "-t", "tmpfs", "-o", f"size={size}", "tmpfs", str(mnt)],
+                       capture_output=True, text=True)
+    if p.returncode != 0:
+        pytest.skip(f"cannot mount a tmpfs here: {p.stderr.strip() or p.returncode}")
+    try:
+        yield mnt
+    finally:
+        if subprocess.run(["umount", str(mnt)], capture_output=True).returncode != 0:
+            subprocess.run(["umount", "-l", str(mnt)], capture_output=True)

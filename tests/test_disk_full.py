@@ -13,14 +13,13 @@ import errno
 import json
 import logging
 import os
-import shutil
-import subprocess
 import threading
 import time
 from pathlib import Path
 
 import pytest
 
+from fakes import tmpfs
 from iscd.outputs import jsonl as J
 from iscd.outputs.jsonl import JsonlWriter
 
@@ -53,19 +52,8 @@ def _lines(path: Path) -> list[dict]:
 @pytest.fixture
 def small_tmpfs(tmp_path: Path):
     """A 64 KiB tmpfs mounted at tmp_path/mnt (skipped where mounting is not permitted)."""
-    mnt = tmp_path / "mnt"
-    mnt.mkdir()
-    if shutil.which("mount") is None:
-        pytest.skip("no mount command")
-    p = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=64k", "tmpfs", str(mnt)],
-                       capture_output=True, text=True)
-    if p.returncode != 0:
-        pytest.skip(f"cannot mount a tmpfs here: {p.stderr.strip() or p.returncode}")
-    try:
+    with tmpfs(tmp_path / "mnt", "64k") as mnt:
         yield mnt
-    finally:
-        if subprocess.run(["umount", str(mnt)], capture_output=True).returncode != 0:
-            subprocess.run(["umount", "-l", str(mnt)], capture_output=True)
 
 
 def _fill(mnt: Path, name: str = "filler") -> Path:

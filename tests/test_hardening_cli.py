@@ -18,43 +18,12 @@ import cv2
 import numpy as np
 import pytest
 
+from fakes import cli, one_error_line
 from iscd.calibration.io import StereoCalibration, save_calibration
 from iscd.cli.main import main
-from iscd.core.config import default_config
 from iscd.recording import IscrWriter
 
 REPO = Path(__file__).resolve().parents[1]
-
-
-class _NoDaemon:
-    """Stands in for iscd.service.daemon.Daemon: constructing it means a bad input got through."""
-
-    def __init__(self, *a: object, **k: object) -> None:
-        raise AssertionError("the daemon was started despite a bad input")
-
-
-@pytest.fixture
-def no_daemon(monkeypatch: pytest.MonkeyPatch) -> None:
-    import iscd.service.daemon
-
-    monkeypatch.setattr(iscd.service.daemon, "Daemon", _NoDaemon)
-
-
-def _cli(capsys: pytest.CaptureFixture[str], *argv: str) -> tuple[int, str, str]:
-    try:
-        rc = main(list(argv))
-    except SystemExit as e:  # argparse errors
-        rc = int(e.code or 0)
-    out, err = capsys.readouterr()
-    return rc, out, err
-
-
-def _one_error_line(err: str, command: str) -> str:
-    lines = [ln for ln in err.splitlines() if ln.strip()]
-    assert len(lines) == 1, f"expected one line on stderr, got {len(lines)}:\n{err}"
-    assert lines[0].startswith(f"iscd {command}: error: "), lines[0]
-    assert "Traceback" not in err
-    return lines[0]
 
 
 def _ideal_cal(width: int = 512, height: int = 512) -> StereoCalibration:
@@ -80,9 +49,9 @@ def _bad_calibrations(tmp: Path) -> dict[str, Path]:
 def test_run_bad_calibration_is_one_line_exit_2(kind: str, tmp_path: Path, no_daemon: None,
                                                 capsys: pytest.CaptureFixture[str]) -> None:
     path = _bad_calibrations(tmp_path)[kind]
-    rc, _, err = _cli(capsys, "run", "--duration", "1", "--calibration", str(path))
+    rc, _, err = cli(capsys, "run", "--duration", "1", "--calibration", str(path))
     assert rc == 2
-    assert str(path) in _one_error_line(err, "run")
+    assert str(path) in one_error_line(err, "run")
 
 
 def test_run_bad_calibration_from_config(tmp_path: Path, no_daemon: None,
@@ -90,9 +59,9 @@ def test_run_bad_calibration_from_config(tmp_path: Path, no_daemon: None,
     path = _bad_calibrations(tmp_path)["garbage"]
     cfg = tmp_path / "c.toml"
     cfg.write_text(f'[daemon]\ncalibration = "{path}"\n')
-    rc, _, err = _cli(capsys, "run", "--duration", "1", "--config", str(cfg))
+    rc, _, err = cli(capsys, "run", "--duration", "1", "--config", str(cfg))
     assert rc == 2
-    assert str(path) in _one_error_line(err, "run")
+    assert str(path) in one_error_line(err, "run")
 
 
 def test_run_bad_calibration_subprocess_no_traceback(tmp_path: Path) -> None:
@@ -111,18 +80,18 @@ def test_run_unwritable_out_is_one_line_exit_2(kind: str, tmp_path: Path, no_dae
     (tmp_path / "f").write_text("x")
     out = {"proc": "/proc/nope/run.jsonl", "under_a_file": str(tmp_path / "f" / "run.jsonl"),
            "a_folder": str(tmp_path)}[kind]
-    rc, _, err = _cli(capsys, "run", "--duration", "1", "--out", out)
+    rc, _, err = cli(capsys, "run", "--duration", "1", "--out", out)
     assert rc == 2
-    assert out in _one_error_line(err, "run")
+    assert out in one_error_line(err, "run")
 
 
 def test_run_unwritable_out_from_config(tmp_path: Path, no_daemon: None,
                                         capsys: pytest.CaptureFixture[str]) -> None:
     cfg = tmp_path / "c.toml"
     cfg.write_text('[daemon]\nout = "/proc/nope/run.jsonl"\n')
-    rc, _, err = _cli(capsys, "run", "--duration", "1", "--config", str(cfg))
+    rc, _, err = cli(capsys, "run", "--duration", "1", "--config", str(cfg))
     assert rc == 2
-    assert "/proc/nope/run.jsonl" in _one_error_line(err, "run")
+    assert "/proc/nope/run.jsonl" in one_error_line(err, "run")
 
 
 def test_run_writable_out_passes_the_check(tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
@@ -151,7 +120,7 @@ def test_run_writable_out_passes_the_check(tmp_path: Path, monkeypatch: pytest.M
 @pytest.mark.parametrize("value", ["nan", "inf", "-inf", "-1", "0", "abc"])
 def test_run_duration_rejected_by_argparse(value: str, no_daemon: None,
                                            capsys: pytest.CaptureFixture[str]) -> None:
-    rc, _, err = _cli(capsys, "run", f"--duration={value}")
+    rc, _, err = cli(capsys, "run", f"--duration={value}")
     assert rc == 2
     assert "--duration" in err and "Traceback" not in err
 
@@ -186,7 +155,7 @@ def test_replay_corrupt_png_one_line_no_opencv_noise(tmp_path: Path, capfd: pyte
         pytest.fail(f"{type(e).__name__} escaped: {e}")
     _, err = capfd.readouterr()
     assert rc == 2
-    assert "f_0004.png" in _one_error_line(err, "replay")
+    assert "f_0004.png" in one_error_line(err, "replay")
 
 
 def test_image_reader_is_silent_on_corrupt_files(tmp_path: Path, capfd: pytest.CaptureFixture[str]) -> None:
@@ -207,10 +176,10 @@ def test_replay_calibration_for_another_size_refused(tmp_path: Path, capsys: pyt
     d = _png_folder(tmp_path / "frames", 4)
     cal = tmp_path / "rig640.yml"
     save_calibration(_ideal_cal(640, 480), cal)
-    rc, _, err = _cli(capsys, "replay", str(d), str(d), "--config", str(_config(tmp_path)),
+    rc, _, err = cli(capsys, "replay", str(d), str(d), "--config", str(_config(tmp_path)),
                       "--calibration", str(cal), "--out", str(tmp_path / "t.jsonl"), "--no-progress")
     assert rc == 2
-    line = _one_error_line(err, "replay")
+    line = one_error_line(err, "replay")
     assert "640x480" in line and "32x32" in line and "--scale-calibration" in line
 
 
@@ -219,7 +188,7 @@ def test_replay_calibration_scaled_explicitly(tmp_path: Path, capsys: pytest.Cap
     cal = tmp_path / "rig64.yml"
     save_calibration(_ideal_cal(64, 64), cal)
     out = tmp_path / "t.jsonl"
-    rc, _, err = _cli(capsys, "replay", str(d), str(d), "--config", str(_config(tmp_path)),
+    rc, _, err = cli(capsys, "replay", str(d), str(d), "--config", str(_config(tmp_path)),
                       "--calibration", str(cal), "--scale-calibration", "--out", str(out), "--no-progress")
     assert rc == 0, err
     assert "scaled" in err and "64x64" in err
@@ -244,9 +213,9 @@ def test_run_calibration_for_another_size_refused(tmp_path: Path, no_daemon: Non
                                                   capsys: pytest.CaptureFixture[str]) -> None:
     cal = tmp_path / "rig640.yml"
     save_calibration(_ideal_cal(640, 480), cal)
-    rc, _, err = _cli(capsys, "run", "--duration", "1", "--calibration", str(cal))
+    rc, _, err = cli(capsys, "run", "--duration", "1", "--calibration", str(cal))
     assert rc == 2
-    line = _one_error_line(err, "run")
+    line = one_error_line(err, "run")
     assert "640x480" in line and "512x512" in line
 
 
@@ -287,10 +256,10 @@ def _iscr(path: Path, w: int, h: int, fps: float, n: int = 4, dtype: str = "uint
 def test_replay_mismatch_says_what_differs(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     left = _iscr(tmp_path / "l.iscr", 48, 40, 30000.0, dtype="uint16", bit_depth=12)
     right = _iscr(tmp_path / "r.iscr", 48, 40, 30000.0, dtype="uint16", bit_depth=12)
-    rc, _, err = _cli(capsys, "replay", str(left), str(right), "--config", str(_config(tmp_path)),
+    rc, _, err = cli(capsys, "replay", str(left), str(right), "--config", str(_config(tmp_path)),
                       "--out", str(tmp_path / "t.jsonl"), "--no-progress")
     assert rc == 2
-    line = _one_error_line(err, "replay")
+    line = one_error_line(err, "replay")
     for part in ("48x40", "32x32", "30000", "1000", "12-bit", "8-bit", "--allow-mismatch"):
         assert part in line, part
 
@@ -298,7 +267,7 @@ def test_replay_mismatch_says_what_differs(tmp_path: Path, capsys: pytest.Captur
 def test_replay_mismatch_allowed_warns(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     left = _iscr(tmp_path / "l.iscr", 32, 32, 2000.0)
     right = _iscr(tmp_path / "r.iscr", 32, 32, 2000.0)
-    rc, _, err = _cli(capsys, "replay", str(left), str(right), "--config", str(_config(tmp_path)),
+    rc, _, err = cli(capsys, "replay", str(left), str(right), "--config", str(_config(tmp_path)),
                       "--out", str(tmp_path / "t.jsonl"), "--no-progress", "--allow-mismatch")
     assert rc == 0, err
     warn = [ln for ln in err.splitlines() if "warning" in ln]
@@ -308,7 +277,7 @@ def test_replay_mismatch_allowed_warns(tmp_path: Path, capsys: pytest.CaptureFix
 def test_replay_bit_depth_only_is_a_warning(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     left = _iscr(tmp_path / "l.iscr", 32, 32, 1000.0, dtype="uint16", bit_depth=12)
     right = _iscr(tmp_path / "r.iscr", 32, 32, 1000.0, dtype="uint16", bit_depth=12)
-    rc, _, err = _cli(capsys, "replay", str(left), str(right), "--config", str(_config(tmp_path)),
+    rc, _, err = cli(capsys, "replay", str(left), str(right), "--config", str(_config(tmp_path)),
                       "--out", str(tmp_path / "t.jsonl"), "--no-progress")
     assert rc == 0, err
     assert any("12-bit" in ln and "warning" in ln for ln in err.splitlines())
@@ -317,7 +286,7 @@ def test_replay_bit_depth_only_is_a_warning(tmp_path: Path, capsys: pytest.Captu
 def test_replay_matching_recording_has_no_warning(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     left = _iscr(tmp_path / "l.iscr", 32, 32, 1000.0)
     right = _iscr(tmp_path / "r.iscr", 32, 32, 1000.0)
-    rc, _, err = _cli(capsys, "replay", str(left), str(right), "--config", str(_config(tmp_path)),
+    rc, _, err = cli(capsys, "replay", str(left), str(right), "--config", str(_config(tmp_path)),
                       "--out", str(tmp_path / "t.jsonl"), "--no-progress")
     assert rc == 0, err
     assert "warning" not in err
@@ -340,9 +309,9 @@ def test_rerun_view_stats_record_with_null_time(tmp_path: Path) -> None:
 def test_devices_producer_not_a_cti(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     bogus = tmp_path / "NOT_A_CTI_FILE"
     bogus.write_text("hello\n")
-    rc, _, err = _cli(capsys, "devices", "--producer", str(bogus), "--backend", "genicam", "--no-boards")
+    rc, _, err = cli(capsys, "devices", "--producer", str(bogus), "--backend", "genicam", "--no-boards")
     assert rc == 2
-    line = _one_error_line(err, "devices")
+    line = one_error_line(err, "devices")
     assert str(bogus) in line and "GenTL" in line
 
 
@@ -365,9 +334,9 @@ def test_devices_producer_shared_library_without_gentl(capsys: pytest.CaptureFix
         libm = None
     if libm is None:
         pytest.skip("no libm on disk to stand for a shared library that is not a GenTL producer")
-    rc, _, err = _cli(capsys, "devices", "--producer", libm, "--backend", "genicam", "--no-boards")
+    rc, _, err = cli(capsys, "devices", "--producer", libm, "--backend", "genicam", "--no-boards")
     assert rc == 2
-    assert "GCInitLib" in _one_error_line(err, "devices")
+    assert "GCInitLib" in one_error_line(err, "devices")
 
 
 def test_devices_simulated_producer_still_lists(capsys: pytest.CaptureFixture[str]) -> None:
@@ -375,7 +344,7 @@ def test_devices_simulated_producer_still_lists(capsys: pytest.CaptureFixture[st
 
     if genicam.simulated_producer() is None:
         pytest.skip("genicam wheel (viky.cti) not installed")
-    rc, out, err = _cli(capsys, "devices", "--producer", "simulated", "--backend", "genicam", "--no-boards", "--json")
+    rc, out, err = cli(capsys, "devices", "--producer", "simulated", "--backend", "genicam", "--no-boards", "--json")
     assert rc == 0, err
     assert len(json.loads(out)["genicam"]["cameras"]) >= 1
 
@@ -396,7 +365,7 @@ def test_bench_check_fails_on_a_missed_target(monkeypatch: pytest.MonkeyPatch,
                                               capsys: pytest.CaptureFixture[str]) -> None:
     _fake_bench(monkeypatch, "decode_loop", "decode loop, scene default: 300 pairs, 900 pairs/s = "
                 "0.90 x the 1000 fps camera rate (target >= 3); ")
-    rc, out, err = _cli(capsys, "bench", "decode_loop", "--check")
+    rc, out, err = cli(capsys, "bench", "decode_loop", "--check")
     assert rc == 1
     assert "0.9" in err and "target" in err and "MISSED" in err
 
@@ -404,7 +373,7 @@ def test_bench_check_fails_on_a_missed_target(monkeypatch: pytest.MonkeyPatch,
 def test_bench_check_passes_on_a_met_target(monkeypatch: pytest.MonkeyPatch,
                                             capsys: pytest.CaptureFixture[str]) -> None:
     _fake_bench(monkeypatch, "mock_rig", "mock rig cost at 1000 fps: 0.150 cores (target <= 0.2; by CPU ...")
-    rc, out, err = _cli(capsys, "bench", "mock_rig", "--check")
+    rc, out, err = cli(capsys, "bench", "mock_rig", "--check")
     assert rc == 0, err
     assert "0.150 cores (target <= 0.2" in out
 
@@ -412,14 +381,14 @@ def test_bench_check_passes_on_a_met_target(monkeypatch: pytest.MonkeyPatch,
 def test_bench_check_fails_when_the_target_line_is_missing(monkeypatch: pytest.MonkeyPatch,
                                                            capsys: pytest.CaptureFixture[str]) -> None:
     _fake_bench(monkeypatch, "mock_rig", "something else entirely")
-    rc, _, err = _cli(capsys, "bench", "mock_rig", "--check")
+    rc, _, err = cli(capsys, "bench", "mock_rig", "--check")
     assert rc == 1 and "no target line" in err
 
 
 def test_bench_without_check_keeps_exit_0(monkeypatch: pytest.MonkeyPatch,
                                           capsys: pytest.CaptureFixture[str]) -> None:
     _fake_bench(monkeypatch, "decode_loop", "0.90 x the 1000 fps camera rate (target >= 3)")
-    rc, _, _ = _cli(capsys, "bench", "decode_loop")
+    rc, _, _ = cli(capsys, "bench", "decode_loop")
     assert rc == 0
 
 
@@ -478,10 +447,10 @@ def test_replay_real_photron_with_the_default_config_says_what_differs(
     if not ball.is_file():
         pytest.skip(f"needs {ball} (the project's shared data beside the checkout), which is absent")
     cfg = REPO / "iscd" / "data" / "default.toml"
-    rc, _, err = _cli(capsys, "replay", str(ball), str(ball), "--config", str(cfg), "--out", "/dev/null",
+    rc, _, err = cli(capsys, "replay", str(ball), str(ball), "--config", str(cfg), "--out", "/dev/null",
                       "--no-progress")
     assert rc == 2
-    line = _one_error_line(err, "replay")
+    line = one_error_line(err, "replay")
     assert "384x384" in line and "512x512" in line and "30000 fps" in line and "12-bit" in line
 
 

@@ -12,35 +12,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from iscd.cli.main import main
+from fakes import cli, one_error_line
 from iscd.recording.pairfile import PairFileWriter
-
-
-class _NoDaemon:
-    def __init__(self, *a: object, **k: object) -> None:
-        raise AssertionError("the daemon was started despite a bad input")
-
-
-@pytest.fixture
-def no_daemon(monkeypatch: pytest.MonkeyPatch) -> None:
-    import iscd.service.daemon
-
-    monkeypatch.setattr(iscd.service.daemon, "Daemon", _NoDaemon)
-
-
-def _cli(capsys: pytest.CaptureFixture[str], *argv: str) -> tuple[int, str, str]:
-    try:
-        rc = main(list(argv))
-    except SystemExit as e:  # argparse errors
-        rc = int(e.code or 0)
-    out, err = capsys.readouterr()
-    return rc, out, err
-
-
-def _one_line(err: str, command: str) -> str:
-    lines = [ln for ln in err.splitlines() if ln.strip()]
-    assert len(lines) == 1 and lines[0].startswith(f"iscd {command}: error: "), err
-    return lines[0]
 
 
 @pytest.mark.parametrize("case", ["a_file", "mode_alone", "bad_mode", "config_mode"])
@@ -53,12 +26,12 @@ def test_bad_record_options_are_one_line_exit_2(case: str, tmp_path: Path, no_da
     argv = {"a_file": ["--record", str(f)], "mode_alone": ["--record-mode", "full"],
             "bad_mode": ["--record", str(tmp_path), "--record-mode", "often"],
             "config_mode": ["--config", str(cfg), "--record", str(tmp_path)]}[case]
-    rc, _, err = _cli(capsys, "run", "--duration", "1", *argv)
+    rc, _, err = cli(capsys, "run", "--duration", "1", *argv)
     assert rc == 2
     if case == "bad_mode":
         assert "invalid choice" in err
         return
-    line = _one_line(err, "run")
+    line = one_error_line(err, "run")
     assert {"a_file": "is a file", "mode_alone": "needs --record", "config_mode": "record.mode"}[case] in line
 
 
@@ -69,7 +42,7 @@ def test_info_shows_mode_windows_ranges_and_recovery(tmp_path: Path, capsys: pyt
     with PairFileWriter(run / "000000-roi.iscr", width=64, height=48, mode="roi", fps=1000.0) as w:
         for i in list(range(10)) + list(range(20, 25)):
             w.append(i, i, i, img, img, *(((3, 4, 13, 12), (5, 6, 17, 14)) if i >= 3 else (None, None)), block=i // 4)
-    rc, out, _ = _cli(capsys, "info", "--compact", str(run))
+    rc, out, _ = cli(capsys, "info", "--compact", str(run))
     info = json.loads(out)
     assert rc == 0 and info["mode"] == "roi" and info["pairs"] == 15 and info["files"] == 1
     assert info["frame_ranges"] == [[0, 9], [20, 24]] and info["missing_frame_ids"] == 10
@@ -77,15 +50,15 @@ def test_info_shows_mode_windows_ranges_and_recovery(tmp_path: Path, capsys: pyt
     data = (run / "000000-roi.iscr").read_bytes()
     cut = tmp_path / "cut.iscr"
     cut.write_bytes(data[:len(data) // 2])
-    rc, out, err = _cli(capsys, "info", "--check", "--compact", str(cut))
+    rc, out, err = cli(capsys, "info", "--check", "--compact", str(cut))
     info = json.loads(out)
     c = info["check"][0]
     assert rc == 0 and not c["sealed"] and c["pairs"] == info["recovered_pairs"] > 0
     assert 0 < c["recovered_share"] < 1 and c["trailing_bytes_ignored"] > 0 and "not sealed" in err
 
 
-def test_replay_of_a_stereo_file_without_pairs_is_one_line(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+def test_replay_of_a_stereo_file_without_pairs_isone_error_line(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     p = tmp_path / "x.iscr"
     PairFileWriter(p, width=64, height=48, mode="full", fps=1000.0).close()
-    rc, _, err = _cli(capsys, "replay", str(p), "--out", str(tmp_path / "o.jsonl"))
-    assert rc == 2 and "no whole pair" in _one_line(err, "replay")
+    rc, _, err = cli(capsys, "replay", str(p), "--out", str(tmp_path / "o.jsonl"))
+    assert rc == 2 and "no whole pair" in one_error_line(err, "replay")

@@ -11,14 +11,12 @@ from __future__ import annotations
 import errno
 import logging
 import os
-import shutil
-import subprocess
 from pathlib import Path
 from typing import Any
 
 import pytest
 
-from fakes import LIGHT, run_daemon_until, stats_records
+from fakes import tmpfs, LIGHT, run_daemon_until, stats_records
 from iscd.recording import pairfile
 from iscd.recording.pairs import PairSession
 
@@ -26,18 +24,8 @@ from iscd.recording.pairs import PairSession
 @pytest.fixture
 def tmpfs_1m(tmp_path: Path):
     """A 1 MiB tmpfs at tmp_path/mnt (skipped where mounting is not permitted)."""
-    mnt = tmp_path / "mnt"
-    mnt.mkdir()
-    if shutil.which("mount") is None:
-        pytest.skip("no mount command")
-    p = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=1m", "tmpfs", str(mnt)], capture_output=True, text=True)
-    if p.returncode != 0:
-        pytest.skip(f"cannot mount a tmpfs here: {p.stderr.strip() or p.returncode}")
-    try:
+    with tmpfs(tmp_path / "mnt", "1m") as mnt:
         yield mnt
-    finally:
-        if subprocess.run(["umount", str(mnt)], capture_output=True).returncode != 0:
-            subprocess.run(["umount", "-l", str(mnt)], capture_output=True)
 
 
 def _run_until_packets(text: str, tmp_path: Path, caplog: pytest.LogCaptureFixture) -> tuple[dict, list[str]]:
