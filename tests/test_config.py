@@ -17,6 +17,8 @@ def test_empty_config_is_chapter_4_defaults() -> None:
 
 
 def test_embedded_default_is_the_mock_rig() -> None:
+    import iscd.drivers.urls  # noqa: F401  (installs the [rig] resolver, as the command line does)
+
     cfg = C.default_config()
     assert cfg.rig.scheme == "mock" and cfg.rig.stereo_url == "mock://default"
     assert cfg.scene.distance_m == 30
