@@ -132,15 +132,8 @@ class AirInterface:
                 f"(M={self.levels}, N={self.n_leds}, F={self.data_symbols})")
         body = bytes(payload).ljust(self.payload_bytes, b"\0")
         framed = body + zlib.crc32(body).to_bytes(CRC_BYTES, "big")
-        bits = np.unpackbits(np.frombuffer(framed, dtype=np.uint8))
-        k = self.bits_per_symbol
-        n_sym = self.data_symbols * self.n_leds
-        padded = np.zeros(n_sym * k, dtype=np.uint8)
-        padded[: bits.size] = bits
-        weights = (1 << np.arange(k - 1, -1, -1)).astype(np.uint16)
-        values = padded.reshape(n_sym, k).astype(np.uint16) @ weights
-        levels = gray_decode(values, k) + 1
-        return levels.astype(np.uint8).reshape(self.data_symbols, self.n_leds)
+        return bytes_to_levels(framed, self.levels, self.data_symbols * self.n_leds).reshape(
+            self.data_symbols, self.n_leds)
 
     def decode_data(self, levels: np.ndarray) -> tuple[bytes, bool]:
         """Payload and CRC verdict from (F, N) decided levels (1..M).
@@ -152,18 +145,7 @@ class AirInterface:
         if lv.shape != (self.data_symbols, self.n_leds):
             raise AirInterfaceError(
                 f"expected ({self.data_symbols}, {self.n_leds}) data levels, got {lv.shape}")
-        k = self.bits_per_symbol
-        if lv.dtype.kind not in "iub":  # floats (NaN, inf) or objects: clip before the cast
-            try:
-                lv = np.nan_to_num(np.asarray(lv, dtype=np.float64), nan=1.0, posinf=self.levels, neginf=1.0)
-            except (TypeError, ValueError):
-                raise AirInterfaceError(f"data levels must be numbers, got dtype {lv.dtype}") from None
-            lv = np.clip(lv, 1, self.levels)
-        l = np.clip(lv.astype(np.int64), 1, self.levels).reshape(-1) - 1
-        values = gray_encode(l)
-        bits = ((values[:, None] >> np.arange(k - 1, -1, -1)[None, :]) & 1).astype(np.uint8).reshape(-1)
-        n_bytes = self.payload_bytes + CRC_BYTES
-        framed = np.packbits(bits[: n_bytes * 8]).tobytes()
+        framed = levels_to_bytes(lv, self.levels, self.payload_bytes + CRC_BYTES)
         body, crc = framed[: self.payload_bytes], framed[self.payload_bytes:]
         return body, zlib.crc32(body) == int.from_bytes(crc, "big")
 
@@ -177,6 +159,64 @@ class AirInterface:
         if not payloads:
             return np.zeros((0, self.n_leds), dtype=np.uint8)
         return np.concatenate([self.packet(p) for p in payloads])
+
+
+def bytes_to_levels(data: bytes, levels: int, n_symbols: int) -> np.ndarray:
+    """Levels 1..M of ``data``: bits MSB first, log2(M) at a time as Gray values, zero-padded
+    to ``n_symbols`` symbols (SPEC section 3, shared by v1 and v2).
+
+    Parameters
+    ----------
+    data : bytes
+        At most ``n_symbols * log2(M) / 8`` bytes.
+    levels : int
+        M, a power of two.
+    n_symbols : int
+        Symbols to fill.
+
+    Returns
+    -------
+    ndarray
+        (n_symbols,) uint8 levels.
+    """
+    k = _check_levels(levels)
+    bits = np.unpackbits(np.frombuffer(bytes(data), dtype=np.uint8))
+    if bits.size > n_symbols * k:
+        raise AirInterfaceError(f"{len(data)} bytes do not fit in {n_symbols} symbols of M={levels}")
+    padded = np.zeros(n_symbols * k, dtype=np.uint8)
+    padded[: bits.size] = bits
+    weights = (1 << np.arange(k - 1, -1, -1)).astype(np.uint16)
+    values = padded.reshape(n_symbols, k).astype(np.uint16) @ weights
+    return (gray_decode(values, k) + 1).astype(np.uint8)
+
+
+def level_indices(levels_in: np.ndarray, levels: int) -> np.ndarray:
+    """0-based level indices (int64, flat) of decided levels, clipped to 1..M; NaN and
+    infinities are clipped too (they can only come from a broken decision stage and must
+    not crash the decoder).
+
+    Raises
+    ------
+    AirInterfaceError
+        If the levels are not numbers.
+    """
+    lv = np.asarray(levels_in)
+    if lv.dtype.kind not in "iub":  # floats (NaN, inf) or objects: clip before the cast
+        try:
+            lv = np.nan_to_num(np.asarray(lv, dtype=np.float64), nan=1.0, posinf=levels, neginf=1.0)
+        except (TypeError, ValueError):
+            raise AirInterfaceError(f"data levels must be numbers, got dtype {lv.dtype}") from None
+        lv = np.clip(lv, 1, levels)
+    return np.clip(lv.astype(np.int64), 1, levels).reshape(-1) - 1
+
+
+def levels_to_bytes(levels_in: np.ndarray, levels: int, n_bytes: int) -> bytes:
+    """The first ``n_bytes`` bytes that decided levels 1..M carry (inverse of
+    :func:`bytes_to_levels`; out-of-range levels clipped, :func:`level_indices`)."""
+    k = _check_levels(levels)
+    values = gray_encode(level_indices(levels_in, levels))
+    bits = ((values[:, None] >> np.arange(k - 1, -1, -1)[None, :]) & 1).astype(np.uint8).reshape(-1)
+    return np.packbits(bits[: n_bytes * 8]).tobytes()
 
 
 def payload_capacity(data_symbols: int, n_leds: int, levels: int) -> int:
