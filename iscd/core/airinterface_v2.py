@@ -390,6 +390,11 @@ class AirInterfaceV2:
         return self.rows * self.cols
 
     @property
+    def payload_bytes(self) -> int:
+        """The payload length (v1's name for it: code that sends payloads takes either)."""
+        return self.payload_len
+
+    @property
     def bits_per_symbol(self) -> int:
         return _check_levels(self.levels)
 
@@ -558,3 +563,23 @@ class AirInterfaceV2:
         return DataResult(payload=body if ok else None, crc_ok=ok, corrected=corrected,
                           failed_codewords=failed, erased=erased, raw=body)
 
+
+
+def from_config(tx: object) -> AirInterface | AirInterfaceV2:
+    """The air interface of a :class:`iscd.core.config.TransmitterConfig`: v1
+    (:meth:`AirInterface.from_config`) or v2 (``fec``; ``payload_len`` bytes, or with 0 as
+    many as ``data_symbols`` hold).
+
+    Raises
+    ------
+    AirInterfaceError
+        If the geometry cannot carry a packet.
+    """
+    if getattr(tx, "air_interface", "v1") != "v2":
+        return AirInterface.from_config(tx)
+    kw = dict(levels=tx.levels, rows=tx.rows, cols=tx.cols,  # type: ignore[attr-defined]
+              training_symbols=tx.training_symbols, fec=tx.fec,  # type: ignore[attr-defined]
+              idle_symbols=tx.idle_symbols)  # type: ignore[attr-defined]
+    if tx.payload_len:  # type: ignore[attr-defined]
+        return AirInterfaceV2(payload_len=tx.payload_len, **kw)  # type: ignore[attr-defined, arg-type]
+    return AirInterfaceV2.for_capacity(tx.data_symbols, **kw)  # type: ignore[attr-defined, arg-type]

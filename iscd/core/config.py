@@ -37,6 +37,10 @@ def _f(default: Any, **kw: Any) -> Any:
     return field(default=default, metadata=_check(**kw))
 
 
+FEC_NAMES = ("none", "rs255_239", "rs255_223", "rs255_191")
+"""v2's code modes (:data:`iscd.core.airinterface_v2.FEC_MODES`; a test keeps them equal)."""
+
+
 @dataclass(frozen=True)
 class TransmitterConfig:
     """The LED transmitter and its air interface (SPEC section 3, table 4.1)."""
@@ -54,6 +58,31 @@ class TransmitterConfig:
                                doc="apparent emitting diameter of one LED (with its glow), m")
     radiance_dn: float = _f(600.0, lo=0, lo_open=True,
                             doc="grey level of a fully-on, resolved LED at f/4 and 1 ms")
+    air_interface: str = _f("v1", choices=("v1", "v2"),
+                            doc="v1 (SPEC section 3) or v2: PHY header + Reed-Solomon FEC "
+                                "(docs/air-interface.md)")
+    fec: str = _f("rs255_223", choices=FEC_NAMES,
+                  doc="v2 only: code mode (none; rs255_239 high rate, t=8; rs255_223, t=16; "
+                      "rs255_191 strong, t=32)")
+    payload_len: int = _f(0, lo=0, hi=0xFFFFFF,
+                          doc="v2 only: payload bytes per packet; 0 = as many as data_symbols hold "
+                              "(else F is the fewest symbol times that hold it)")
+
+    def __post_init__(self) -> None:
+        if self.air_interface != "v2":
+            return
+        for key in ("training_symbols", "data_symbols", "idle_symbols"):
+            if getattr(self, key) > 0xFFFF:
+                raise ConfigError(f"transmitter.{key}: v2's PHY header holds at most 65535, "
+                                  f"got {getattr(self, key)}")
+        from iscd.core.airinterface_v2 import from_config  # (numba: only for v2)
+        from iscd.core.airinterface import AirInterfaceError
+
+        try:
+            from_config(self)
+        except AirInterfaceError as e:
+            key = "payload_len" if self.payload_len else "data_symbols"
+            raise ConfigError(f"transmitter.{key}: {e}") from None
 
     @property
     def n_leds(self) -> int:

@@ -32,6 +32,7 @@ import cv2
 import numpy as np
 
 from iscd.core.airinterface import AirInterface, duty
+from iscd.core.airinterface_v2 import AirInterfaceV2
 from iscd.core.config import Config, OpticsConfig, to_dict
 from iscd.sim import kernels
 from iscd.sim.background import background_pair, flicker_gain
@@ -661,8 +662,10 @@ class Scene:
             "symbol_rate_hz": tx.symbol_rate_hz, "pwm_hz": tx.pwm_hz,
             "led_phase_s": self.clock.phase_s, "led_drift_ppm": self.clock.drift_ppm,
             "seed": self.cfg.scene.seed, "noise": self.noise,
-            "packet_symbols": air.period_symbols if isinstance(air, AirInterface) else None,
-            "payload_bytes": air.payload_bytes if isinstance(air, AirInterface) else None,
+            "packet_symbols": air.period_symbols if isinstance(air, (AirInterface, AirInterfaceV2)) else None,
+            "payload_bytes": air.payload_bytes if isinstance(air, (AirInterface, AirInterfaceV2)) else None,
+            "air_interface": "v2" if isinstance(air, AirInterfaceV2) else "v1" if isinstance(air, AirInterface) else None,
+            **({"fec": air.fec} if isinstance(air, AirInterfaceV2) else {}),
             "distractors": ds, "config": to_dict(self.cfg),
         }
 

@@ -7,7 +7,9 @@ level 1 (dark). The simulator only ever asks for short ranges, so sources can be
 infinite (generated on demand) and random-access (the same k always gives the same level).
 
 :class:`PacketSource` sends back-to-back packets of :class:`iscd.core.airinterface.AirInterface`
-(SPEC section 3) with payloads per ``[payload]``; :class:`ArraySource` replays a fixed
+(SPEC section 3) or, with ``[transmitter] air_interface = "v2"``,
+:class:`iscd.core.airinterface_v2.AirInterfaceV2` (docs/air-interface.md), with payloads per
+``[payload]``; :class:`ArraySource` replays a fixed
 level array (e.g. from the LED-board emulator).
 """
 
@@ -20,6 +22,7 @@ from typing import Protocol, runtime_checkable
 import numpy as np
 
 from iscd.core.airinterface import AirInterface, random_payload
+from iscd.core.airinterface_v2 import AirInterfaceV2, from_config
 from iscd.core.config import ConfigError, PayloadConfig
 
 
@@ -89,7 +92,7 @@ class PacketSource:
     drawn from ``default_rng([seed, 0x9A7, p])`` (random access, reproducible).
     """
 
-    def __init__(self, air: AirInterface, payload: bytes | None = None, seed: int = 1,
+    def __init__(self, air: AirInterface | AirInterfaceV2, payload: bytes | None = None, seed: int = 1,
                  cache_packets: int = 8) -> None:
         self.air = air
         self.n_leds = air.n_leds
@@ -119,7 +122,7 @@ class PacketSource:
         ----------
         SPEC section 3.
         """
-        air = AirInterface.from_config(cfg.transmitter)  # type: ignore[attr-defined]
+        air = from_config(cfg.transmitter)  # type: ignore[attr-defined]
         return cls(air, fixed_payload(cfg.payload, air.payload_bytes),  # type: ignore[attr-defined]
                    seed=cfg.scene.seed)  # type: ignore[attr-defined]
 

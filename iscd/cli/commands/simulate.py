@@ -50,9 +50,9 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def default_frames(cfg: object, scene: object, packets: int = 2) -> int:
     """Frames that cover ``packets`` whole packets after the LED phase offset."""
-    from iscd.core.airinterface import AirInterface
+    from iscd.core.airinterface_v2 import from_config
 
-    air = AirInterface.from_config(cfg.transmitter)  # type: ignore[attr-defined]
+    air = from_config(cfg.transmitter)  # type: ignore[attr-defined]
     clock = scene.clock  # type: ignore[attr-defined]
     t_end = float(clock.symbol_start_cam(packets * air.period_symbols))
     return int(math.ceil((t_end + cfg.camera.exposure_s) * cfg.camera.fps)) + 1  # type: ignore[attr-defined]
