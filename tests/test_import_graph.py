@@ -108,7 +108,7 @@ def test_no_import_cycles() -> None:
 DECODE = ("iscd.decode",)
 RIG = ("iscd.rig",)
 SERVICE = ("iscd.service",)
-TOP = ("iscd.cli", "iscd.eval")
+TOP = ("iscd.cli", "iscd.eval", "iscd.campaign")
 CONTRACT: list[tuple[tuple[str, ...], tuple[str, ...], str]] = [
     (("iscd.core",), ("iscd.decode", "iscd.rig", "iscd.service", "iscd.outputs", "iscd.drivers",
                       "iscd.sim", "iscd.recording", "iscd.calibration", *TOP),
@@ -124,6 +124,9 @@ CONTRACT: list[tuple[tuple[str, ...], tuple[str, ...], str]] = [
     (("iscd.outputs",), ("iscd.drivers", *RIG, *SERVICE, *TOP), "outputs take records"),
     (("iscd.calibration",), (*DECODE, "iscd.outputs", *SERVICE, *TOP),
      "calibration is a tool over the rig model and the cameras"),
+    (("iscd.eval",), ("iscd.campaign",), "the campaign runs the evaluation's code, not the other way round"),
+    (("iscd.campaign",), ("iscd.drivers", *RIG, *SERVICE),
+     "a campaign decodes recordings where they lie: no cameras, rig or daemon"),
 ]
 """(importers, what they must not import, why): the layers, one folder each."""
 

@@ -4,4 +4,4 @@ Each module here defines ``register(sub)``, which adds its parser to the argpars
 subparsers object ``sub`` and sets ``func`` (``args -> int`` exit status) as default.
 """
 
-COMMANDS = ("run", "replay", "simulate", "calibrate", "info", "tx", "devices", "bench", "eval", "config")
+COMMANDS = ("run", "replay", "simulate", "calibrate", "info", "tx", "devices", "bench", "eval", "campaign", "config")

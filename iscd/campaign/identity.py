@@ -1,0 +1,71 @@
+"""A task's identity: what makes its output valid.
+
+The identity is the SHA-256 of the iscd version, the task's parameters (canonical JSON) and
+the SHA-256 of every input file's content. A re-run skips a task whose finished output
+records the same identity. Hashing a large recording reads it whole, so the digests are
+kept with the output together with each file's *stamp* (size in bytes, modification time
+in ns): when every stamp is unchanged the client trusts the stored digests and submits
+nothing; when a stamp changed the worker hashes the file again (a file touched but equal
+is then still skipped, without decoding).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+from pathlib import Path
+from typing import Any
+
+CHUNK = 4 * 2**20
+"""Bytes read at a time when hashing, B."""
+
+
+def file_digest(path: str | Path) -> str:
+    """SHA-256 (hex) of a file's content, read in :data:`CHUNK` pieces."""
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        while True:
+            b = f.read(CHUNK)
+            if not b:
+                break
+            h.update(b)
+    return h.hexdigest()
+
+
+def stamp(path: str | Path) -> list[int]:
+    """[size in bytes, modification time in ns] of a file (OSError when it is missing)."""
+    st = os.stat(path)
+    return [int(st.st_size), int(st.st_mtime_ns)]
+
+
+def describe_inputs(files: dict[str, Path], known: dict[str, Any] | None = None) -> dict[str, dict[str, Any]]:
+    """{role: {"path", "stamp", "sha256"}} of a task's input files ({role: path}); a file
+    whose path and stamp equal those in ``known`` (a former description) keeps its digest
+    unread, the others are hashed."""
+    known = known or {}
+    out: dict[str, dict[str, Any]] = {}
+    for role, f in files.items():
+        st = stamp(f)
+        k = known.get(role) or {}
+        same = k.get("path") == str(f) and k.get("stamp") == st and k.get("sha256")
+        out[role] = {"path": str(f), "stamp": st, "sha256": k["sha256"] if same else file_digest(f)}
+    return out
+
+
+def task_identity(params: dict[str, Any], inputs: dict[str, dict[str, Any]], version: str) -> str:
+    """SHA-256 (hex) of the iscd version, the task's parameters and its inputs' content
+    digests by role (not their paths: a moved recording with the same content is the same)."""
+    doc = {"iscd": version, "params": params, "inputs": sorted((r, d["sha256"]) for r, d in inputs.items())}
+    return hashlib.sha256(json.dumps(doc, sort_keys=True, default=str).encode()).hexdigest()
+
+
+def stamps_unchanged(known: dict[str, Any], files: dict[str, Path]) -> bool:
+    """Whether ``files`` ({role: path}) are exactly the described ``known`` inputs, each at
+    the same path with the same stamp (a missing, extra or touched file is a change)."""
+    if set(known) != set(files):
+        return False
+    try:
+        return all(known[r].get("path") == str(f) and known[r].get("stamp") == stamp(f) for r, f in files.items())
+    except OSError:
+        return False
