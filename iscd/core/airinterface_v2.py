@@ -451,6 +451,11 @@ class AirInterfaceV2:
         col = np.where(BARKER13 > 0, self.levels, 1).astype(np.uint8)
         return np.repeat(col[:, None], self.n_leds, axis=1)
 
+    def header(self) -> np.ndarray:
+        """(13 + H, N) levels of Barker-13 and PHY header: what precedes the training, all
+        known to a receiver that has read the header (v1's ``header()`` is the Barker)."""
+        return np.concatenate([self.barker(), header_levels(self.phy_header)])
+
     def training(self) -> np.ndarray:
         """(K, N) training levels ((k + i) mod M) + 1 (as v1)."""
         k = np.arange(self.training_symbols)[:, None]
@@ -482,8 +487,7 @@ class AirInterfaceV2:
     def packet(self, payload: bytes) -> np.ndarray:
         """(13 + H + K + F + G, N) levels of one packet, idle symbols included."""
         idle = np.ones((self.idle_symbols, self.n_leds), dtype=np.uint8)
-        return np.concatenate([self.barker(), header_levels(self.phy_header), self.training(),
-                               self.encode_data(payload), idle])
+        return np.concatenate([self.header(), self.training(), self.encode_data(payload), idle])
 
     def packets(self, payloads: list[bytes]) -> np.ndarray:
         """Back-to-back packets, ``(len(payloads) * period_symbols, N)`` levels."""
@@ -517,7 +521,9 @@ class AirInterfaceV2:
             (F, N) decided data levels 1..M (out of range: clipped).
         erasures : ndarray, optional
             (F, N) bool, symbols the receiver marks as uncertain (erasures: with them the
-            code corrects 2e + f <= nsym per codeword).
+            code corrects 2e + f <= nsym per codeword); or (T, F, N), T candidate sets tried
+            in order, each codeword taking the first under which it decodes (the receiver's
+            confidence thresholds, mildest first).
 
         Returns
         -------
@@ -533,37 +539,46 @@ class AirInterfaceV2:
         lv = np.asarray(levels)
         if lv.shape != shape:
             raise AirInterfaceError(f"expected {shape} data levels, got {lv.shape}")
-        er_sym = None
+        masks: list[np.ndarray | None] = [None]
         if erasures is not None:
             try:
                 er_sym = np.asarray(erasures, dtype=bool)
             except (TypeError, ValueError):
                 raise AirInterfaceError("erasures must be booleans") from None
-            if er_sym.shape != shape:
-                raise AirInterfaceError(f"expected {shape} erasure flags, got {er_sym.shape}")
+            if er_sym.shape[-2:] != shape or er_sym.ndim not in (2, 3) or er_sym.shape[0] == 0:
+                raise AirInterfaceError(f"expected {shape} erasure flags (or a stack of them), got {er_sym.shape}")
+            masks = list(er_sym) if er_sym.ndim == 3 else [er_sym]
         lay = self._layout
         stream = np.frombuffer(levels_to_bytes(level_indices(lv, self.levels) + 1, self.levels,
                                                lay.coded_bytes), np.uint8)
         words = np.zeros((lay.k.size, int(lay.lengths.max())), np.uint8)
         words[lay.cw, lay.pos] = stream
-        erased = 0
-        corrected, failed = 0, 0
+        erased = corrected = 0
+        done = np.ones(lay.k.size, bool)
         if self.mode.nsym:
-            er = np.zeros(words.shape, bool)
-            if er_sym is not None:
-                eb = self.byte_erasures(er_sym)
-                er[lay.cw, lay.pos] = eb
-                erased = int(eb.sum())
-            res = _code(self.mode.nsym).decode(words, lay.lengths, er)
-            failed = int((res < 0).sum())
-            corrected = int(res[res > 0].sum())
+            done[:] = False
+            received = words.copy()
+            for mask in masks:
+                todo = np.flatnonzero(~done)
+                w = np.ascontiguousarray(received[todo])
+                er = np.zeros(words.shape, bool)
+                if mask is not None:
+                    er[lay.cw, lay.pos] = self.byte_erasures(mask)
+                er = er[todo]
+                res = _code(self.mode.nsym).decode(w, lay.lengths[todo], er)
+                ok = res >= 0
+                words[todo[ok]] = w[ok]
+                done[todo[ok]] = True
+                corrected += int(res[ok].sum())
+                erased += int(er[ok].sum())
+                if done.all():
+                    break
+        failed = int((~done).sum())
         data = b"".join(words[c, :lay.k[c]].tobytes() for c in range(lay.k.size))
         body, crc = data[: self.payload_len], data[self.payload_len:]
         ok = failed == 0 and zlib.crc32(body) == int.from_bytes(crc, "big")
         return DataResult(payload=body if ok else None, crc_ok=ok, corrected=corrected,
                           failed_codewords=failed, erased=erased, raw=body)
-
-
 
 def from_config(tx: object) -> AirInterface | AirInterfaceV2:
     """The air interface of a :class:`iscd.core.config.TransmitterConfig`: v1

@@ -28,6 +28,7 @@ import numpy as np
 
 from iscd.calibration.io import StereoCalibration
 from iscd.core.airinterface import AirInterface
+from iscd.core.airinterface_v2 import AirInterfaceV2, from_config as air_from_config
 from iscd.core.config import Config, section
 from iscd.eval.metrics import (ErrorStats, bit_errors, error_stats, goodput_kbps, match_packets,
                                symbol_errors, throughput_kbps)
@@ -151,7 +152,7 @@ def _decoder_cfg(cfg: Config, mode: ReceiverMode | None, ranging: bool = False) 
     return out
 
 
-def frames_for_packets(scene: Scene, air: AirInterface, packets: int, tail_frames: int = 8) -> int:
+def frames_for_packets(scene: Scene, air: AirInterface | AirInterfaceV2, packets: int, tail_frames: int = 8) -> int:
     """Frames (from 0) that hold the first ``packets`` whole packets, plus ``tail_frames``."""
     t_end = float(scene.clock.symbol_start_cam(packets * air.period_symbols))
     return int(math.ceil((t_end + scene.exposure_s) * scene.fps)) + tail_frames
@@ -172,7 +173,7 @@ def run_comms(cfg: Config, modes: Sequence[ReceiverMode], packets: int = 2, *, b
     if not modes:
         raise ValueError("modes: at least one receiver mode is needed")
     scene = Scene(cfg)
-    air = AirInterface.from_config(cfg.transmitter)
+    air = air_from_config(cfg.transmitter)  # v1, or v2 (the receiver reads v2's header itself)
     n_frames = frames_for_packets(scene, air, packets)
     decoders = [StreamDecoder(_decoder_cfg(cfg, m)) for m in modes]
     records: list[list[dict]] = [[] for _ in modes]
@@ -198,7 +199,7 @@ def run_comms(cfg: Config, modes: Sequence[ReceiverMode], packets: int = 2, *, b
     packet_s = air.period_symbols / tx.symbol_rate_hz
     out = []
     for mode, recs, sec in zip(modes, records, seconds):
-        res = CommsResult(mode=mode, levels=tx.levels, n_leds=tx.n_leds, data_symbols=tx.data_symbols,
+        res = CommsResult(mode=mode, levels=tx.levels, n_leds=tx.n_leds, data_symbols=air.data_symbols,
                           packet_s=packet_s, payload_bytes=air.payload_bytes, packets_sent=packets,
                           seconds=sec)
         _score(res, recs, truth, air, packets, 0.5 / tx.symbol_rate_hz)
@@ -206,7 +207,7 @@ def run_comms(cfg: Config, modes: Sequence[ReceiverMode], packets: int = 2, *, b
     return out
 
 
-def _score(res: CommsResult, recs: list[dict], truth: Any, air: AirInterface, packets: int,
+def _score(res: CommsResult, recs: list[dict], truth: Any, air: AirInterface | AirInterfaceV2, packets: int,
            tolerance_s: float) -> None:
     """Fill ``res`` from decoded packet records and the truth (see :class:`CommsResult`)."""
     match = match_packets([r["t_s"] for r in recs], truth.packet_t_s, tolerance_s)

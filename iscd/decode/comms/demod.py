@@ -31,10 +31,12 @@ from typing import Callable
 import numpy as np
 
 from iscd.core.airinterface import CRC_BYTES, HEADER_SYMBOLS, AirInterface
+from iscd.core.airinterface_v2 import AirInterfaceV2
 from iscd.core.jit import njit, register_warm
 from iscd.decode.comms.channel import (ChannelModel, ChannelTrack, IscdChannelSettings, _iscd_camera,
                                    _select_kth, estimate_dissertation, estimate_iscd)
 from iscd.decode.comms.decide import CleanCosts, SpanDecision, clean_costs, clean_levels, decide_span
+from iscd.decode.comms.phy import INCOMPLETE, erasure_masks, read_phy_header
 from iscd.decode.comms.settings import ReceiverConfig
 from iscd.decode.comms.timing import SymbolClock, _clip, _map_one, clean_frame, fine_header, refine_clock
 
@@ -65,11 +67,34 @@ class PacketResult:
     reason: str = ""
     """why a packet that failed its CRC could not be decoded (:func:`failure_reason`);
     empty when the CRC passed"""
+    air: AirInterface | AirInterfaceV2 | None = field(default=None, repr=False)
+    """the packet's geometry: the receiver's v1, or the v2 one its PHY header described"""
+    corrected: int = 0
+    """v2: bytes the Reed-Solomon code corrected"""
+    failed_codewords: int = 0
+    """v2: codewords beyond the code's reach (the packet is then failed)"""
+    erased: int = 0
+    """v2: bytes decoded as erasures (low-confidence symbols)"""
+
+    @property
+    def version(self) -> int:
+        """Air interface version: 2 when a PHY header was read, else 1."""
+        return 2 if isinstance(self.air, AirInterfaceV2) else 1
+
+    def v2_fields(self) -> dict[str, int | str]:
+        """``version``, ``fec``, ``corrected``, ``payload_len``, ``erased_bytes``,
+        ``failed_codewords`` of a v2 packet (empty for v1: its records stay as they were)."""
+        if not isinstance(self.air, AirInterfaceV2):
+            return {}
+        return {"version": 2, "fec": self.air.fec, "corrected": int(self.corrected),
+                "payload_len": int(self.air.payload_len), "erased_bytes": int(self.erased),
+                "failed_codewords": int(self.failed_codewords)}
 
     def quality(self) -> dict[str, float]:
-        """Summary metrics (the receiver has no truth): margins and sync quality."""
+        """Summary metrics (the receiver has no truth): margins and sync quality (and the
+        v2 fields, :meth:`v2_fields`)."""
         mn, p01, med, weak = margin_summary(self.margins)
-        return {"margin_min": mn, "margin_p01": p01, "margin_median": med, "weak_symbols": weak,
+        return {**self.v2_fields(), "margin_min": mn, "margin_p01": p01, "margin_median": med, "weak_symbols": weak,
                 "erasures": int(self.erasures), "drift_ppm": float(self.drift_ppm),
                 "channel_tracked": self.channel == "tracked",
                 "header_r2": float(self.header_r2), "training_rho": float(self.training_rho),
@@ -187,6 +212,9 @@ class Rejection:
 
     u0: float
     reason: str
+    need_frames: float | None = None
+    """with ``incomplete``: the buffer rows the packet needs when its PHY header told its
+    length (None: not known)"""
 
     @property
     def incomplete(self) -> bool:
@@ -268,12 +296,13 @@ def failure_reason(models: list[ChannelModel], margins: np.ndarray) -> str:
     return f"few symbol errors: {detail}"
 
 
-def known_levels(air: AirInterface) -> np.ndarray:
-    """0-based levels (13 + K, N) of header and training.
+def known_levels(air: AirInterface | AirInterfaceV2) -> np.ndarray:
+    """0-based levels (13 + K, N) of header and training (v2: (13 + H + K, N), the PHY
+    header included).
 
     Parameters
     ----------
-    air : AirInterface
+    air : AirInterface or AirInterfaceV2
         The air interface (M, N, K).
 
     Returns
@@ -916,10 +945,6 @@ def _demodulate(L: np.ndarray, u_guess: float, air: AirInterface, e: float,
                 ) -> PacketResult | Rejection:
     """One demodulation attempt (:func:`demodulate_packet`), channel as ``cfg`` says."""
     C, n, N = L.shape
-    M = air.levels
-    known = known_levels(air)
-    n_known = known.shape[0]
-    P = air.packet_symbols
     st = IscdChannelSettings(var_floor_dn=cfg.var_floor_dn)
     kind = cfg.noise_model
     ts = cfg.timing_sigma_frames
@@ -929,8 +954,23 @@ def _demodulate(L: np.ndarray, u_guess: float, air: AirInterface, e: float,
         clock = SymbolClock(u0, p_prior)
     else:
         clock, u0, r2 = fixed_clock, fixed_clock.u0, float("nan")
-    if clean_frame(np.array([P - 1]), clock, e)[0] + 1 > n:  # the last symbol's clean frame
-        return Rejection(u0, "incomplete")
+    if not isinstance(air, AirInterfaceV2) and cfg.air_v2:  # v2 says what it is after the Barker
+        hdr = read_phy_header(L, clock, e)
+        if hdr == INCOMPLETE:
+            # the frames of a v2 header are not all in, yet the caller has those of a whole v1
+            # packet (few LEDs: H > 13 + K + F): decoded as v1, as a v1 receiver always did
+            # (a v2 packet is then seen only by a receiver whose v1 packet is not shorter)
+            return _demodulate(L, u_guess, air, e, p_nominal, p_prior, p_sigma, replace(cfg, air_v2=False),
+                               fixed_clock, channel)
+        if hdr is not None:
+            air = AirInterfaceV2.from_header(hdr)  # type: ignore[arg-type]
+    M = air.levels
+    known = known_levels(air)
+    n_known = known.shape[0]
+    P = air.packet_symbols
+    last = clean_frame(np.array([P - 1]), clock, e)[0]  # the last symbol's clean frame
+    if last + 1 > n:
+        return Rejection(u0, "incomplete", last + 4 if isinstance(air, AirInterfaceV2) else None)
     y, lv = clean_samples(L, clock, e, known, 0)
     model = estimate_iscd(y, lv, M, st, kind, cfg.t_nu) if channel is None else channel(clock, 0, n_known)
     rho_t = float("nan")
@@ -1041,12 +1081,21 @@ def _demodulate(L: np.ndarray, u_guess: float, air: AirInterface, e: float,
         margins = np.concatenate([d.margin for d in parts])
         erasures = int(sum((d.n_obs == 0).sum() for d in parts))
     levels = (lev[n_known:] + 1).astype(np.uint8)
-    raw, ok = decode_data(air, levels)
+    v2 = {}
+    if isinstance(air, AirInterfaceV2):  # de-interleave, Reed-Solomon (erasures from the margins), CRC-32
+        unobserved = np.concatenate([d.n_obs for d in parts]) == 0 if not cfg.dissertation else d.n_obs == 0
+        dres = air.decode_data(levels, erasure_masks(margins.reshape(levels.shape), unobserved.reshape(levels.shape)))
+        raw, ok = dres.raw, dres.crc_ok
+        v2 = dict(corrected=dres.corrected, failed_codewords=dres.failed_codewords, erased=dres.erased)
+    else:
+        raw, ok = decode_data(air, levels)
     first = int(clean_frame(np.array([0]), clock, e)[0])
     reason = "" if ok else failure_reason([dmodel] if cfg.dissertation else models, margins)
+    if not ok and v2.get("failed_codewords"):
+        reason = f"code failed: {v2['failed_codewords']} codewords; {reason}"
     return PacketResult(u0=clock.u0, p=clock.p, first_frame=first, levels=levels, raw=raw,
                         crc_ok=bool(ok), drift_ppm=clock.drift_ppm(p_nominal),
                         header_r2=r2, training_rho=rho_t, contrast=contrast,
                         margins=margins, erasures=erasures,
-                        channel="tracked" if tracked else "static", reason=reason)
+                        channel="tracked" if tracked else "static", reason=reason, air=air, **v2)
 

@@ -23,6 +23,7 @@ from typing import Any
 import numpy as np
 
 from iscd.core.airinterface import HEADER_SYMBOLS, AirInterface
+from iscd.core.airinterface_v2 import AirInterfaceV2, header_symbols
 from iscd.core.config import TransmitterConfig
 from iscd.core.jit import njit
 from iscd.core.records import PacketRecord
@@ -62,6 +63,8 @@ class Packet:
     raw: bytes = field(repr=False)
     quality: dict[str, float] = field(default_factory=dict)
     margins: np.ndarray | None = field(default=None, repr=False)
+    version: int = 1
+    """air interface version (2: a PHY header was read; its fields are in :attr:`quality`)"""
 
     def record(self, tx: int = 0) -> dict[str, Any]:
         """The SPEC section 7 JSON record (``payload_hex`` is empty when the CRC failed).
@@ -133,6 +136,8 @@ class PacketAssembler:
         self._range: tuple[np.ndarray, np.ndarray] | None = None  # luminance 2..98 % per LED
         self._range_at = -1  # buffer rows when _range was computed
         self._flushing = False
+        self._geom: AirInterface | AirInterfaceV2 = self.air  # the last packet's geometry
+        self._expect_wait = 0.0  # the expected packet is longer: not before this many rows
         self.stats = {"frames_in": 0, "frames_missing": 0, "frames_rejected": 0,
                       "packets_ok": 0, "packets_bad": 0, "false_headers": 0, "resyncs": 0}
 
@@ -167,6 +172,7 @@ class PacketAssembler:
         self._base = (self._base or 0) + cut
         self._search -= cut
         self._wait_until -= cut
+        self._expect_wait -= cut
         self._range_at -= cut
         if self._expect is not None:
             self._expect -= cut
@@ -179,6 +185,7 @@ class PacketAssembler:
         self._search = 0.0
         self._expect = None
         self._wait_until = 0.0
+        self._expect_wait = 0.0
         self._range = None
 
     def push(self, frame_ids: np.ndarray, t_s: np.ndarray, L_left: np.ndarray | None,
@@ -331,7 +338,7 @@ class PacketAssembler:
         pkt = Packet(frame=base + res.first_frame, t_s=self._frame_time(res.u0),
                      u0_frames=base + res.u0, crc_ok=res.crc_ok,
                      payload=res.raw if res.crc_ok else None, levels=res.levels, raw=res.raw,
-                     quality=q, margins=res.margins)
+                     quality=q, margins=res.margins, version=res.version)
         self.stats["packets_ok" if res.crc_ok else "packets_bad"] += 1
         return pkt
 
@@ -342,20 +349,28 @@ class PacketAssembler:
         # +-2000 ppm of nominal and the next header is always ahead of this one
         p = float(np.clip(res.p, self.p_nom * (1 - 2e-3), self.p_nom * (1 + 2e-3))) if np.isfinite(res.p) else self.p_nom
         if real:
+            air = res.air or self.air  # (a v2 packet: the geometry its header said)
+            self._geom = air
             self._p = p
             self._p_sigma = max(20e-6 * self.p_nom, 0.0)
-            self._expect = res.u0 + self.air.period_symbols * p
-            self._search = res.u0 + self.air.packet_symbols * p - 2 * p
+            self._expect = res.u0 + air.period_symbols * p
+            self._search = res.u0 + air.packet_symbols * p - 2 * p
         else:  # possibly a false header: search again right after it (a real header
             # may start within its span)
             self._expect = None
             self._search = res.u0 + 2.0
 
-    def _need(self, u: float) -> float:
-        """Buffer rows needed to demodulate a packet starting at u."""
+    def _need(self, u: float, expected: bool = False) -> float:
+        """Buffer rows needed to demodulate a packet starting at u: one of the receiver's
+        v1 geometry, or for the ``expected`` next packet one like the last (a v2 packet's
+        length is its header's); at the end of the stream just its PHY header (a shorter
+        v2 packet may end there: the demodulator says if it is incomplete)."""
+        symbols = (self._geom if expected else self.air).packet_symbols
         if self._flushing:  # up to the clean frame of the last symbol (timing.clean_frame)
-            return u + (self.air.packet_symbols - 0.5) * self._p - self.e / 2 + 0.5
-        return u + self.air.packet_symbols * self._p + 3
+            if self.cfg.air_v2:
+                symbols = min(symbols, HEADER_SYMBOLS + header_symbols(self.N))
+            return u + (symbols - 0.5) * self._p - self.e / 2 + 0.5
+        return u + symbols * self._p + 3
 
     def flush(self) -> list[Packet]:
         """End of stream: decode a packet whose last frames arrived just now (normally
@@ -379,11 +394,14 @@ class PacketAssembler:
         out: list[Packet] = []
         for _ in range(self.MAX_STEPS):
             if self._expect is not None:
-                if self._need(self._expect) > self._n:
+                if self._need(self._expect, expected=True) > self._n or self._n < self._expect_wait:
                     return out
                 res = self._demod(self._expect)
                 if isinstance(res, Rejection) and res.incomplete:
+                    if res.need_frames is not None:  # a longer v2 packet than the last
+                        self._expect_wait = res.need_frames
                     return out
+                self._expect_wait = 0.0
                 if isinstance(res, PacketResult):
                     self._emit_once(res, out)
                     self._accept(res)
@@ -421,7 +439,7 @@ class PacketAssembler:
                 res = self._demod(u)
                 if isinstance(res, Rejection) and res.incomplete:
                     self._search = max(self._search, u - 2)
-                    self._wait_until = self._n + 2
+                    self._wait_until = self._n + 2 if res.need_frames is None else res.need_frames
                     return out
                 if isinstance(res, PacketResult):
                     self._emit_once(res, out)

@@ -52,6 +52,8 @@ class ReceiverConfig:
     min_contrast: float = _f(6.0, lo=0,
                              doc="least header contrast (level M - level 1) in noise RMS units")
     header_phases: int = _f(8, lo=1, hi=64, doc="sub-frame phases of the coarse header search")
+    air_v2: bool = _f(True, doc="read air interface v2's PHY header after each Barker-13 and decode "
+                                "v2 packets as it describes them (v1 packets decode as before)")
 
     @property
     def camera_indices(self) -> tuple[int, ...]:

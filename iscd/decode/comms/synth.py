@@ -221,7 +221,7 @@ def synth_recording(air: object, cams: list[SynthCamera], n_packets: int = 2, *,
 
     Parameters
     ----------
-    air : AirInterface
+    air : AirInterface or AirInterfaceV2
         The air interface (M, N, packet geometry).
     cams : list of SynthCamera
         The cameras (C of them).
@@ -256,8 +256,9 @@ def synth_recording(air: object, cams: list[SynthCamera], n_packets: int = 2, *,
         Luminance (C, n, N), DN, frame times, s, and the truth.
     """
     from iscd.core.airinterface import AirInterface, random_payload
+    from iscd.core.airinterface_v2 import AirInterfaceV2
 
-    assert isinstance(air, AirInterface)
+    assert isinstance(air, (AirInterface, AirInterfaceV2))
     rng = np.random.default_rng(seed)
     if payloads is None:
         payloads = [random_payload(air, rng) for _ in range(n_packets)]
