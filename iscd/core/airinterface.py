@@ -64,8 +64,42 @@ def gray_decode(v: np.ndarray, bits: int) -> np.ndarray:
     return l
 
 
+class PacketFraming:
+    """What v1 and v2 packets share: the training, and a packet as header, training, data
+    and idle (subclasses give ``levels``, ``n_leds``, ``training_symbols``,
+    ``idle_symbols``, ``header()`` and ``encode_data()``)."""
+
+    levels: int
+    n_leds: int
+    training_symbols: int
+    idle_symbols: int
+
+    def header(self) -> np.ndarray:  # pragma: no cover - each version has its own
+        raise NotImplementedError
+
+    def encode_data(self, payload: bytes) -> np.ndarray:  # pragma: no cover
+        raise NotImplementedError
+
+    def training(self) -> np.ndarray:
+        """(K, N) training levels: ((k + i) mod M) + 1."""
+        k = np.arange(self.training_symbols)[:, None]
+        i = np.arange(self.n_leds)[None, :]
+        return (((k + i) % self.levels) + 1).astype(np.uint8)
+
+    def packet(self, payload: bytes) -> np.ndarray:
+        """(header + K + F + G, N) levels of one packet, idle symbols included."""
+        idle = np.ones((self.idle_symbols, self.n_leds), dtype=np.uint8)
+        return np.concatenate([self.header(), self.training(), self.encode_data(payload), idle])
+
+    def packets(self, payloads: list[bytes]) -> np.ndarray:
+        """Back-to-back packets, ``(len(payloads) * period_symbols, N)`` levels."""
+        if not payloads:
+            return np.zeros((0, self.n_leds), dtype=np.uint8)
+        return np.concatenate([self.packet(p) for p in payloads])
+
+
 @dataclass(frozen=True)
-class AirInterface:
+class AirInterface(PacketFraming):
     """Packet geometry: M levels, N LEDs, K training, F data, G idle symbol times."""
 
     levels: int = 8
@@ -115,14 +149,7 @@ class AirInterface:
 
     def header(self) -> np.ndarray:
         """(13, N) header levels."""
-        col = np.where(BARKER13 > 0, self.levels, 1).astype(np.uint8)
-        return np.repeat(col[:, None], self.n_leds, axis=1)
-
-    def training(self) -> np.ndarray:
-        """(K, N) training levels: ((k + i) mod M) + 1."""
-        k = np.arange(self.training_symbols)[:, None]
-        i = np.arange(self.n_leds)[None, :]
-        return (((k + i) % self.levels) + 1).astype(np.uint8)
+        return barker_levels(self.levels, self.n_leds)
 
     def encode_data(self, payload: bytes) -> np.ndarray:
         """(F, N) data levels for ``payload`` (shorter payloads are zero-padded)."""
@@ -149,16 +176,12 @@ class AirInterface:
         body, crc = framed[: self.payload_bytes], framed[self.payload_bytes:]
         return body, zlib.crc32(body) == int.from_bytes(crc, "big")
 
-    def packet(self, payload: bytes) -> np.ndarray:
-        """(13 + K + F + G, N) levels of one packet, idle symbols included."""
-        idle = np.ones((self.idle_symbols, self.n_leds), dtype=np.uint8)
-        return np.concatenate([self.header(), self.training(), self.encode_data(payload), idle])
 
-    def packets(self, payloads: list[bytes]) -> np.ndarray:
-        """Back-to-back packets, ``(len(payloads) * period_symbols, N)`` levels."""
-        if not payloads:
-            return np.zeros((0, self.n_leds), dtype=np.uint8)
-        return np.concatenate([self.packet(p) for p in payloads])
+
+def barker_levels(levels: int, n_leds: int) -> np.ndarray:
+    """(13, N) levels of the Barker-13: ``+`` = M, ``-`` = 1 on every LED."""
+    col = np.where(BARKER13 > 0, levels, 1).astype(np.uint8)
+    return np.repeat(col[:, None], n_leds, axis=1)
 
 
 def bytes_to_levels(data: bytes, levels: int, n_symbols: int) -> np.ndarray:

@@ -38,8 +38,9 @@ from functools import lru_cache
 
 import numpy as np
 
-from iscd.core.airinterface import (BARKER13, CRC_BYTES, HEADER_SYMBOLS, AirInterface, AirInterfaceError,
-                                    _check_levels, bytes_to_levels, level_indices, levels_to_bytes)
+from iscd.core.airinterface import (CRC_BYTES, HEADER_SYMBOLS, AirInterface, AirInterfaceError, PacketFraming,
+                                    _check_levels, barker_levels, bytes_to_levels, level_indices,
+                                    levels_to_bytes)
 from iscd.core.fec import N_MAX, RSCode, codeword_count, interleave_order, split_lengths
 
 VERSION = 2
@@ -335,7 +336,7 @@ class DataResult:
 
 
 @dataclass(frozen=True)
-class AirInterfaceV2:
+class AirInterfaceV2(PacketFraming):
     """Packet geometry and code of v2: M levels, rows x cols LEDs, K training symbol
     times, FEC mode, payload length (bytes), G idle symbol times, and F data symbol times
     (0: the fewest that hold the coded payload)."""
@@ -445,22 +446,11 @@ class AirInterfaceV2:
     def _layout(self) -> _Layout:
         return _layout(self.payload_len, self.fec, self.levels, self.n_leds)
 
-    # ---- transmitter
-    def barker(self) -> np.ndarray:
-        """(13, N) Barker-13 levels (as v1)."""
-        col = np.where(BARKER13 > 0, self.levels, 1).astype(np.uint8)
-        return np.repeat(col[:, None], self.n_leds, axis=1)
-
+    # ---- transmitter (training, packet, packets: as v1, PacketFraming)
     def header(self) -> np.ndarray:
         """(13 + H, N) levels of Barker-13 and PHY header: what precedes the training, all
         known to a receiver that has read the header (v1's ``header()`` is the Barker)."""
-        return np.concatenate([self.barker(), header_levels(self.phy_header)])
-
-    def training(self) -> np.ndarray:
-        """(K, N) training levels ((k + i) mod M) + 1 (as v1)."""
-        k = np.arange(self.training_symbols)[:, None]
-        i = np.arange(self.n_leds)[None, :]
-        return (((k + i) % self.levels) + 1).astype(np.uint8)
+        return np.concatenate([barker_levels(self.levels, self.n_leds), header_levels(self.phy_header)])
 
     def coded_stream(self, payload: bytes) -> bytes:
         """The interleaved coded bytes of ``payload`` (its length must be payload_len)."""
@@ -483,17 +473,6 @@ class AirInterfaceV2:
         """(F, N) data levels of ``payload``."""
         return bytes_to_levels(self.coded_stream(payload), self.levels,
                                self.data_symbols * self.n_leds).reshape(self.data_symbols, self.n_leds)
-
-    def packet(self, payload: bytes) -> np.ndarray:
-        """(13 + H + K + F + G, N) levels of one packet, idle symbols included."""
-        idle = np.ones((self.idle_symbols, self.n_leds), dtype=np.uint8)
-        return np.concatenate([self.header(), self.training(), self.encode_data(payload), idle])
-
-    def packets(self, payloads: list[bytes]) -> np.ndarray:
-        """Back-to-back packets, ``(len(payloads) * period_symbols, N)`` levels."""
-        if not payloads:
-            return np.zeros((0, self.n_leds), dtype=np.uint8)
-        return np.concatenate([self.packet(p) for p in payloads])
 
     # ---- receiver
     def byte_erasures(self, symbol_erasures: np.ndarray) -> np.ndarray:
