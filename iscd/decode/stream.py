@@ -38,6 +38,8 @@ from iscd.decode.tracking.follow_kernel import follow_and_measure_compiled
 from iscd.decode.tracking.luminance import PixelBackground, area_sigma, follow_and_measure, grid_sample, patch_half
 from iscd.decode.tracking.detect import GridFit, detect_array, light_map, match_stereo, track_box, track_on_light
 from iscd.decode.tracking.track_kernel import LightAccumulator, track_on_light_compiled
+from iscd.decode.tracking import path_kernel  # noqa: F401  (its kernels warm up with the others)
+from iscd.decode.tracking.trajectory import PATH_REACH_PX, follow_path
 from iscd.decode.comms.packets import Packet, PacketAssembler
 from iscd.decode.comms.settings import receiver_config
 from iscd.decode.ranging.kalman import RangeKalman
@@ -67,6 +69,8 @@ class PipelineSettings:
     window_scale: float = field(default=1.0, metadata={"lo": 0.5, "hi": 4.0, "doc": "luminance window relative to the spot-matched Gaussian (roi_sigma_px = -1): wider reaches the unsaturated wings of a spot whose core clips"})
     window_follows_spot: bool = field(default=False, metadata={"doc": "the luminance window follows the spot's measured size (its half-maximum area, smoothed over ~10 blocks) times window_scale, instead of the size at acquisition grown with the array"})
     background_rise_dn: float = field(default=0.25, metadata={"lo": 0, "doc": "how fast the per-pixel background follows a background that brightens, DN per block"})
+    follow_passes: int = field(default=3, metadata={"lo": 0, "hi": 8, "doc": "further following passes per block along the LEDs' path (their lit frames' centres smoothed in time), while the path moves more than path_settle_px; dark and dimly lit frames are measured on the path; 0 = one pass from the last block's end (before issue 12)"})
+    path_settle_px: float = field(default=0.5, metadata={"lo": 0.05, "hi": 5.0, "doc": "no further following pass once the path is within this of where the last pass started, px"})
 
 
 def _jsonable(rec: dict[str, Any]) -> dict[str, Any]:
@@ -211,6 +215,10 @@ class StreamDecoder:
         self._followed: list[np.ndarray | None] = [None, None]
         """per camera, the LED centres (N, 2) px refined in the last decoded frame"""
         self._lit_light: np.ndarray | None = None
+        self._lum_floor: list[np.ndarray | None] = [None, None]
+        self._path_end: list[np.ndarray | None] = [None, None]
+        self.follow_passes_run = 0
+        """following passes run after the first, over the decoder's life (follow_passes)"""
         self._backgrounds: list[PixelBackground] | None = None
         self._spot_area: np.ndarray | None = None
         """per camera, the box light of a lit LED (following ignores LEDs far below it)"""
@@ -522,6 +530,8 @@ class StreamDecoder:
         self._ids_sum = 0.0
         self._followed = [None, None]
         self._lit_light = None
+        self._lum_floor = [None, None]
+        self._path_end = [None, None]
         self._backgrounds = None
         self._spot_area = None
         self._since_fit = 0
@@ -607,11 +617,27 @@ class StreamDecoder:
             spot_r = 0.5 * tr.left.pitch_px * max(growth) if self.rows * self.cols > 1 else 8.0
         # how far from an LED's start the following reads (its patch half, as the kernel
         # takes it): needed_windows() covers it for the next block
-        self._reach = max(patch_half(box), int(np.ceil(3.5 * max(sigmas))) + 1) + self.REACH_MARGIN_PX
-        (c_l, c_r), (lum_l, lum_r) = follow(
-            [left, right], starts, box, sigmas,
-            use=self._use, lit_light=self._lit_light, info=info,
-            backgrounds=self._backgrounds, spot_radius_px=spot_r, subtract=self.settings.background)
+        self._reach = max(patch_half(box), int(np.ceil(3.5 * max(sigmas))) + 1) + self.REACH_MARGIN_PX \
+            + int(np.ceil(PATH_REACH_PX * self.settings.follow_passes))
+        backgrounds = self._backgrounds
+        if self.settings.follow_passes > 0:
+            # followed along the LEDs' path through the block (docs/receiver.md, "Following
+            # along the path"): a road bump carries the spots pixels within a block
+            res = follow_path(follow, [left, right], starts, box, sigmas, self._lum_floor,
+                              self._path_end, use=self._use, lit_light=self._lit_light,
+                              backgrounds=backgrounds, spot_radius_px=spot_r,
+                              subtract=self.settings.background, passes=self.settings.follow_passes,
+                              settle_px=self.settings.path_settle_px, compiled=self.compiled)
+            (c_l, c_r), (lum_l, lum_r) = res.centres, res.luminance
+            info = res.info
+            self._lum_floor = res.floors
+            self._path_end = res.path_end
+            self.follow_passes_run += res.passes
+        else:
+            (c_l, c_r), (lum_l, lum_r) = follow(
+                [left, right], starts, box, sigmas,
+                use=self._use, lit_light=self._lit_light, info=info,
+                backgrounds=backgrounds, spot_radius_px=spot_r, subtract=self.settings.background)
         if spot_r is not None:
             self._fold_spot_area(info["spot_area"])
         # the light of a lit LED, held over dark stretches (halves in ~5 s of darkness)

@@ -26,6 +26,7 @@ import numpy as np
 
 VARIANTS: dict[str, dict[str, Any]] = {
     "default": {},
+    "one_pass": {"follow_passes": 0},
     "background": {"background": True},
     "background_w15": {"background": True, "window_scale": 1.5},
     "spot": {"background": True, "window_follows_spot": True},

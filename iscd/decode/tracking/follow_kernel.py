@@ -779,8 +779,8 @@ def follow_and_measure_compiled(frames: list[np.ndarray], starts: list[np.ndarra
                                 info: dict | None = None, backgrounds: list | None = None,
                                 spot_radius_px: float | None = None, subtract: bool = True, *,
                                 lit_share: float | None = None, max_px: float = 1.5,
-                                scale: bool = True, accelerate: bool = True
-                                ) -> tuple[list[np.ndarray], list[np.ndarray]]:
+                                scale: bool = True, accelerate: bool = True,
+                                new_block: bool = True) -> tuple[list[np.ndarray], list[np.ndarray]]:
     """The compiled :func:`iscd.decode.tracking.luminance.follow_and_measure` (same arguments,
     same results to float tolerance) for two cameras.
 
@@ -822,6 +822,8 @@ def follow_and_measure_compiled(frames: list[np.ndarray], starts: list[np.ndarra
         Also fit a scale of the array.
     accelerate : bool
         Extrapolate the rounds' geometric series in the second round.
+    new_block : bool
+        These frames are a new block for the backgrounds (as the reference takes it).
 
     Returns
     -------
@@ -856,7 +858,7 @@ def follow_and_measure_compiled(frames: list[np.ndarray], starts: list[np.ndarra
         from iscd.decode.tracking.luminance import follow_and_measure  # repeats its edge pixels
 
         return follow_and_measure([L, R], starts, size, sigmas, use, iterations, lit_light, info,
-                                  backgrounds, spot_radius_px, subtract)
+                                  backgrounds, spot_radius_px, subtract, new_block)
     st = np.empty((2 * F,) + np.shape(starts[0])[-2:], np.float64)
     st[:F] = np.asarray(starts[0], dtype=np.float64)
     st[F:] = np.asarray(starts[1], dtype=np.float64)
@@ -876,7 +878,7 @@ def follow_and_measure_compiled(frames: list[np.ndarray], starts: list[np.ndarra
         for b, fr in zip(backgrounds, (L, R)):
             if b.bg.shape != fr.shape[1:]:
                 raise ValueError(f"background of {b.bg.shape} px for frames of {fr.shape[1:]} px")
-            b.block += 1
+            b.block += int(new_block)
         if backgrounds[0].block != backgrounds[1].block:
             raise ValueError("backgrounds: the two cameras' maps are at different blocks")
         has_bg = True

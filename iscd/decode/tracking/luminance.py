@@ -558,8 +558,8 @@ def follow_and_measure(frames: list[np.ndarray], starts: list[np.ndarray], size:
                        sigmas: list[float], use: np.ndarray | None = None, iterations: int = 3,
                        lit_light: np.ndarray | None = None, info: dict | None = None,
                        backgrounds: list["PixelBackground"] | None = None,
-                       spot_radius_px: float | None = None, subtract: bool = True
-                       ) -> tuple[list[np.ndarray], list[np.ndarray]]:
+                       spot_radius_px: float | None = None, subtract: bool = True,
+                       new_block: bool = True) -> tuple[list[np.ndarray], list[np.ndarray]]:
     """Follow the LEDs and measure their luminance in each camera, in one vectorized pass.
 
     One patch gather per camera serves both steps: :func:`refine_in_patches` (shift and
@@ -598,6 +598,10 @@ def follow_and_measure(frames: list[np.ndarray], starts: list[np.ndarray], size:
         :func:`half_max_area`) within this radius (at most the patch's half-size), px.
     subtract : bool
         With ``backgrounds``: centroids and luminance of the light above the background.
+    new_block : bool
+        These frames are a new block for the backgrounds (False: the same block again, from
+        other starts -- :func:`iscd.decode.tracking.trajectory.follow_path`'s later passes;
+        the backgrounds are not relaxed a second time).
 
     Returns
     -------
@@ -625,12 +629,12 @@ def follow_and_measure(frames: list[np.ndarray], starts: list[np.ndarray], size:
         if len(backgrounds) != len(frames):
             raise ValueError(f"backgrounds: one per camera ({len(frames)}), got {len(backgrounds)}")
         if subtract:
-            bg_pix = np.concatenate([b.update(q) for b, q in zip(backgrounds, ps)])
+            bg_pix = np.concatenate([b.update(q, new_block) for b, q in zip(backgrounds, ps)])
         else:  # only the LEDs whose lit judgement needs it (the kernel does the same)
             sel = np.arange(N) if use is None else np.asarray(use, dtype=np.intp)
             bg_pix = np.full(pix.shape, np.nan, np.float32)
             for k, (b, q) in enumerate(zip(backgrounds, ps)):
-                part = b.update(Patches(pix=q.pix[:, sel], x0=q.x0[:, sel], y0=q.y0[:, sel]))
+                part = b.update(Patches(pix=q.pix[:, sel], x0=q.x0[:, sel], y0=q.y0[:, sel]), new_block)
                 bg_pix[k * F:(k + 1) * F, sel] = part
     c = refine_in_patches(p, np.concatenate(st), size, iterations, groups=len(frames), use=use,
                           lit_light=lit_light, info=info, bg_pix=bg_pix,
@@ -671,7 +675,7 @@ class PixelBackground:
         self.block = 0
         self.rise_dn = float(rise_dn)
 
-    def update(self, p: Patches) -> np.ndarray:
+    def update(self, p: Patches, new_block: bool = True) -> np.ndarray:
         """Fold one block's patches (one camera, :func:`gather_patches`) in; returns the
         background under each patch pixel (F, N, K, K) float32 DN after the update.
 
@@ -679,13 +683,17 @@ class PixelBackground:
         ----------
         p : Patches
             (F, N, K, K) patches of one camera, DN.
+        new_block : bool
+            A new block (False: patches of the block folded in last, taken again from other
+            places: a pixel already relaxed in it is not relaxed again).
 
         Returns
         -------
         ndarray of float32
             (F, N, K, K) background under each patch pixel, DN.
         """
-        self.block += 1
+        if new_block:
+            self.block += 1
         K = p.pix.shape[-1]
         ys = (p.y0[..., None] + np.arange(K))[..., :, None]  # (F, N, K, 1)
         xs = (p.x0[..., None] + np.arange(K))[..., None, :]  # (F, N, 1, K)
