@@ -174,7 +174,7 @@ def test_wrong_state_and_busy(emu: PtyEmulator, client: BoardClient) -> None:
 
 @pytest.mark.parametrize("field,value,index", [
     ("levels", 3, 0), ("levels", 64, 0), ("rows", 0, 1), ("cols", 0, 2), ("cols", 255, 2),
-    ("flags", 1, 3), ("symbol_rate_mhz", 999, 4), ("symbol_rate_mhz", 200_000_000, 4),
+    ("flags", 8, 3), ("symbol_rate_mhz", 999, 4), ("symbol_rate_mhz", 200_000_000, 4),
     ("pwm_hz", 499, 5), ("pwm_hz", 3_000_000, 5), ("data_symbols", 0, 7),
     ("training_symbols", 65535, 6), ("data_symbols", 65535, 7),
 ])

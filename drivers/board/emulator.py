@@ -33,6 +33,7 @@ import threading
 import time
 import tty
 from collections.abc import Callable
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -40,6 +41,8 @@ import numpy as np
 from iscd.drivers.board.protocol import (
     CRITICAL_FAULTS,
     FAULT_MASK,
+    FLAG_AIR_V2,
+    FLAG_FEC_MASK,
     LOAD_PROGRESS,
     MAX_CHUNK,
     PROTOCOL_VERSION,
@@ -62,7 +65,8 @@ from iscd.drivers.board.protocol import (
     encode_frame,
     parse_body,
 )
-from iscd.core.airinterface import AirInterface
+from iscd.core.airinterface import AirInterface, AirInterfaceError
+from iscd.core.airinterface_v2 import AirInterfaceV2, header_symbols
 
 log = logging.getLogger(__name__)
 
@@ -106,7 +110,7 @@ class Board:
         self._lock = threading.RLock()
         self._deframer = Deframer()
         self.config: BoardConfig | None = None
-        self._air: AirInterface | None = None
+        self._air: AirInterface | AirInterfaceV2 | None = None
         self._content = Content.NONE
         self._total = 0
         self._buffer = bytearray()
@@ -217,23 +221,36 @@ class Board:
             raise _Refuse(NakCode.BUSY, int(State.RUNNING), "SET_CONFIG while running: STOP first")
         i = self.info
         m = c.levels
+        v2 = bool(c.flags & FLAG_AIR_V2)
+        hdr = header_symbols(max(c.n_leds, 1)) if v2 else 0  # v2's PHY header after the Barker
         checks = (
             (2 <= m <= i.max_levels and m & (m - 1) == 0, 0),
             (c.rows >= 1, 1),
             (c.cols >= 1 and c.rows * c.cols <= i.max_leds, 2),
-            (c.flags == 0, 3),
+            (c.flags & ~(FLAG_AIR_V2 | FLAG_FEC_MASK) == 0 and (v2 or c.flags == 0), 3),
             (1000 <= c.symbol_rate_mhz <= i.max_symbol_rate_mhz, 4),
             (c.symbol_rate_mhz <= 1000 * c.pwm_hz and c.pwm_hz <= i.max_pwm_hz, 5),
             ((13 + c.training_symbols) * c.n_leds <= MAX_PERIOD_LEVELS, 6),
             (c.data_symbols >= 1 and c.data_symbols * c.n_leds * (m.bit_length() - 1) >= 32
-             and (13 + c.training_symbols + c.data_symbols + c.idle_symbols) * c.n_leds <= MAX_PERIOD_LEVELS, 7),
+             and (13 + hdr + c.training_symbols + c.data_symbols + c.idle_symbols) * c.n_leds
+             <= MAX_PERIOD_LEVELS, 7),
         )
         for ok, index in checks:
             if not ok:
                 raise _Refuse(NakCode.BAD_PARAMETER, index, "SET_CONFIG parameter out of range")
+        air: AirInterface | AirInterfaceV2
+        if v2:
+            try:  # the largest payload F data symbol times carry with this code
+                air = AirInterfaceV2.for_capacity(c.data_symbols, levels=m, rows=c.rows, cols=c.cols,
+                                                  training_symbols=c.training_symbols, fec=c.fec,
+                                                  idle_symbols=c.idle_symbols)
+            except AirInterfaceError:
+                raise _Refuse(NakCode.BAD_PARAMETER, 7, "F too small for a v2 packet") from None
+        else:
+            air = AirInterface(levels=m, n_leds=c.n_leds, training_symbols=c.training_symbols,
+                               data_symbols=c.data_symbols, idle_symbols=c.idle_symbols)
         self.config = c
-        self._air = AirInterface(levels=m, n_leds=c.n_leds, training_symbols=c.training_symbols,
-                                 data_symbols=c.data_symbols, idle_symbols=c.idle_symbols)
+        self._air = air
         self._clear_content()
         return b""
 
@@ -274,7 +291,10 @@ class Board:
             self._content, self._total = kind, ch.total
         self._buffer += ch.data
         if len(self._buffer) == self._total:
-            if kind is Content.PAYLOAD:
+            if kind is Content.PAYLOAD and isinstance(self._air, AirInterfaceV2):
+                # v2: the header says the payload's own length (F stays the configured one)
+                self._sequence = replace(self._air, payload_len=self._total).packet(bytes(self._buffer))
+            elif kind is Content.PAYLOAD:
                 self._sequence = self._air.packet(bytes(self._buffer))
             else:
                 self._sequence = np.frombuffer(bytes(self._buffer), dtype=np.uint8).reshape(-1, n).copy()

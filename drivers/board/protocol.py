@@ -397,6 +397,14 @@ class BoardInfo:
 
 _CONFIG = struct.Struct("<BBBBIIHHH")
 
+FLAG_AIR_V2 = 0x01
+"""CONFIG ``flags`` bit 0: payloads are sent as air interface v2 (docs/air-interface.md)."""
+FLAG_FEC_SHIFT = 1
+FLAG_FEC_MASK = 0x06
+"""CONFIG ``flags`` bits 1-2 with FLAG_AIR_V2: the code (the PHY header's fec id: 0 none,
+1 rs255_239, 2 rs255_223, 3 rs255_191). Every other bit must be 0."""
+FEC_IDS = ("none", "rs255_239", "rs255_223", "rs255_191")
+
 
 @dataclass(frozen=True)
 class BoardConfig:
@@ -405,7 +413,7 @@ class BoardConfig:
     levels: int = 8  # M
     rows: int = 8
     cols: int = 8
-    flags: int = 0  # reserved, must be 0 in v1
+    flags: int = 0  # 0: air interface v1; FLAG_AIR_V2 | fec id << 1: v2 (boards that speak it)
     symbol_rate_mhz: int = 500_000  # f_sym in millihertz
     pwm_hz: int = 50_000  # f_pwm, Hz
     training_symbols: int = 40  # K
@@ -420,6 +428,16 @@ class BoardConfig:
     def symbol_rate_hz(self) -> float:
         return self.symbol_rate_mhz / 1000.0
 
+    @property
+    def air_interface(self) -> str:
+        """``v1``, or ``v2`` when ``flags`` has :data:`FLAG_AIR_V2`."""
+        return "v2" if self.flags & FLAG_AIR_V2 else "v1"
+
+    @property
+    def fec(self) -> str:
+        """v2's code (``flags`` bits 1-2)."""
+        return FEC_IDS[(self.flags & FLAG_FEC_MASK) >> FLAG_FEC_SHIFT]
+
     def pack(self) -> bytes:
         try:
             return _CONFIG.pack(self.levels, self.rows, self.cols, self.flags, self.symbol_rate_mhz,
@@ -433,18 +451,26 @@ class BoardConfig:
 
     @classmethod
     def from_transmitter(cls, tx: object) -> "BoardConfig":
-        """From a :class:`iscd.core.config.TransmitterConfig` (rates rounded to mHz / Hz)."""
-        return cls(levels=tx.levels, rows=tx.rows, cols=tx.cols,  # type: ignore[attr-defined]
+        """From a :class:`iscd.core.config.TransmitterConfig` (rates rounded to mHz / Hz;
+        with ``air_interface = "v2"`` the v2 flags and the F that v2's geometry gives)."""
+        flags, data = 0, tx.data_symbols  # type: ignore[attr-defined]
+        if getattr(tx, "air_interface", "v1") == "v2":
+            from iscd.core.airinterface_v2 import from_config
+
+            flags = FLAG_AIR_V2 | (FEC_IDS.index(tx.fec) << FLAG_FEC_SHIFT)  # type: ignore[attr-defined]
+            data = from_config(tx).data_symbols
+        return cls(levels=tx.levels, rows=tx.rows, cols=tx.cols, flags=flags,  # type: ignore[attr-defined]
                    symbol_rate_mhz=round(tx.symbol_rate_hz * 1000),  # type: ignore[attr-defined]
                    pwm_hz=round(tx.pwm_hz),  # type: ignore[attr-defined]
                    training_symbols=tx.training_symbols,  # type: ignore[attr-defined]
-                   data_symbols=tx.data_symbols, idle_symbols=tx.idle_symbols)  # type: ignore[attr-defined]
+                   data_symbols=data, idle_symbols=tx.idle_symbols)  # type: ignore[attr-defined]
 
     def as_dict(self) -> dict[str, object]:
         return {"levels": self.levels, "rows": self.rows, "cols": self.cols,
                 "symbol_rate_hz": self.symbol_rate_hz, "pwm_hz": self.pwm_hz,
                 "training_symbols": self.training_symbols, "data_symbols": self.data_symbols,
-                "idle_symbols": self.idle_symbols}
+                "idle_symbols": self.idle_symbols, "air_interface": self.air_interface,
+                **({"fec": self.fec} if self.flags & FLAG_AIR_V2 else {})}
 
 
 @dataclass(frozen=True)

@@ -377,6 +377,53 @@ def plot_comms(rows: list[CommsRow], path: Path) -> None:
     plt.close(fig)
 
 
+def fec_table(rows: list[CommsRow]) -> str:
+    """v1 against v2 per point: delivered, packet loss, SER, goodput, and the (4.4)
+    throughput beside the dissertation's table 4.2 minimum for that reception."""
+    header = ["distance m", "reception", "air interface", "delivered/sent", "packet loss", "SER",
+              "goodput kbps", "(4.4) kbps", "dissertation (4.4) min"]
+    body = []
+    for r in sorted(rows, key=lambda r: (r.f_right, r.distance_m, r.note)):
+        c = r.result
+        d = ref.table_4_2(*reception_key(r), r.levels)
+        body.append([f"{r.distance_m:g}", c.mode.label, r.note, f"{c.exact}/{c.packets_sent}",
+                     fmt_rate(c.per), fmt_rate(c.ser), fmt(c.goodput_kbps, 3), fmt(c.throughput_kbps, 3),
+                     fmt(d, 2) if d is not None else "-"])
+    return _table(header, body)
+
+
+def plot_fec(rows: list[CommsRow], path: Path) -> None:
+    """Goodput and packet loss against distance, one line per air interface and reception,
+    beside the dissertation's table 4.2 minimum of (4.4)."""
+    plt = _plt()
+    fig, axes = plt.subplots(1, 2, figsize=(12, 4.4))
+    groups: dict[tuple[str, str], list[CommsRow]] = defaultdict(list)
+    for r in rows:
+        groups[(r.result.mode.label, r.note)].append(r)
+    for (label, air), rs in sorted(groups.items()):
+        rs = sorted(rs, key=lambda r: r.distance_m)
+        x = [r.distance_m for r in rs]
+        ls = ":" if air == "v1" else "-"
+        line, = axes[0].plot(x, [r.result.goodput_kbps for r in rs], "o" + ls, label=f"{label}, {air}")
+        axes[1].plot(x, [r.result.per for r in rs], "o" + ls, color=line.get_color(), label=f"{label}, {air}")
+    for key, style in (((4.0, 8.0, "hdr"), "--"), ((4.0, 4.0, "diversity"), "-.")):
+        d = ref.table_4_2(*key, 16)
+        if d is not None and any(reception_key(r) == key for r in rows):
+            axes[0].axhline(d, color="gray", ls=style, lw=0.8,
+                            label=f"dissertation (4.4) min, {key[2]} f/{key[0]:g}+f/{key[1]:g}: {d} kbps")
+    axes[0].set_ylabel("goodput, kbps (payload bits of delivered packets / s)")
+    axes[1].set_ylabel("packet loss (not delivered exact)")
+    axes[0].set_title("8x8 PWM-16: goodput, v1 (dotted) and v2", fontsize=10)
+    axes[1].set_title("8x8 PWM-16: packet loss", fontsize=10)
+    for ax in axes:
+        ax.set_xlabel("distance (m)")
+        ax.grid(True, alpha=0.3)
+    axes[0].legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
 def _group(rows: Iterable[CommsRow]) -> list[tuple[str, list[CommsRow]]]:
     g: dict[str, list[CommsRow]] = defaultdict(list)
     for r in rows:
@@ -465,6 +512,9 @@ def make_plots(results: EvalResults, out: Path) -> tuple[dict[str, str], str | N
     if results.ranging:
         plot_ranging(results.ranging, out / "ranging.png")
         plots["ranging"] = "ranging.png"
+    if results.fec:
+        plot_fec(results.fec, out / "fec.png")
+        plots["fec"] = "fec.png"
     return plots, None
 
 
@@ -511,6 +561,17 @@ def markdown(results: EvalResults, plots: dict[str, str] | None = None, note: st
                 comms_table(results.approach, dissertation_col=False)]
     if results.motion:
         out += motion_section(results.motion, s)
+    if results.fec:
+        out += ["", "## Air interface v1 against v2 (forward error correction)", "",
+                f"8x8 PWM-16, b = 0.25 m, the same scene (seed) per point for each air interface, "
+                f"{s.get('packets')} packets a point; v2's packets carry a PHY header and Reed-Solomon "
+                f"parity (docs/air-interface.md), so each holds fewer payload bytes (v1 19 196, "
+                f"RS(255,223) 16 732, RS(255,191) 14 321) and is delivered despite symbol errors. "
+                f"Goodput = payload bits of delivered packets per second; the dissertation's (4.4) "
+                f"counts every data symbol of a packet even when the packet is lost.", ""]
+        if "fec" in plots:
+            out += [f"![goodput and packet loss, v1 and v2]({plots['fec']})", ""]
+        out.append(fec_table(results.fec))
     if results.ranging:
         out += ["", "## Ranging (dissertation chapter 3, fig. 3.7)", "",
                 f"One LED, PWM-8, b = 0.6 m, f/4, right camera defocused (0.3 px), independent air "

@@ -28,7 +28,7 @@ import zlib
 from dataclasses import dataclass, field
 from typing import Any, Callable, Sequence
 
-from iscd.core.airinterface import AirInterface
+from iscd.core.airinterface_v2 import from_config as air_from_config
 from iscd.core.config import Config
 from iscd.eval.sweeps import CommsResult, RangingResult, ReceiverMode, run_comms, run_ranging
 from iscd.decode.ranging.estimators import METHODS
@@ -36,7 +36,11 @@ from iscd.sim.presets import override, single_led
 
 SUITES = ("comms", "hdr", "ranging")
 """The suites of ``--suite all`` (``motion`` runs only when asked for)."""
-ALL_SUITES = SUITES + ("motion",)
+ALL_SUITES = SUITES + ("motion", "fec")
+FEC_DISTANCES_M = (20.0, 29.0, 40.0, 50.0, 60.0)
+"""Distances of the ``fec`` suite (v1 against v2 goodput, 8x8 PWM-16)."""
+FEC_AIRS = (("v1", "rs255_223"), ("v2", "rs255_223"), ("v2", "rs255_191"))
+"""(air_interface, fec) of the ``fec`` suite's transmitters (v1 ignores fec)."""
 COMMS_DISTANCES_M = (20.0, 25.0, 30.0, 35.0, 40.0, 45.0, 50.0, 55.0, 60.0)
 HDR_DISTANCES_M = (10.0, 20.0, 30.0, 40.0, 50.0)
 RANGING_DISTANCES_M = COMMS_DISTANCES_M
@@ -266,6 +270,8 @@ class EvalResults:
     approach: list[CommsRow] = field(default_factory=list)
     ranging: list[RangingRow] = field(default_factory=list)
     motion: list["MotionRow"] = field(default_factory=list)
+    fec: list[CommsRow] = field(default_factory=list)
+    """v1 against v2 (``note``: the air interface and code) at the same points"""
     seconds: float = 0.0
 
     def as_dict(self) -> dict[str, Any]:
@@ -275,6 +281,8 @@ class EvalResults:
                "ranging": [r.as_dict() for r in self.ranging]}
         if self.motion:
             out["motion"] = [r.as_dict() for r in self.motion]
+        if self.fec:
+            out["fec"] = [r.as_dict() for r in self.fec]
         return out
 
 
@@ -319,6 +327,7 @@ class EvalPlan:
     comms_distances: tuple[float, ...] | None = None
     hdr_distances: tuple[float, ...] | None = None
     ranging_distances: tuple[float, ...] | None = None
+    fec_distances: tuple[float, ...] | None = None
     block: int = 32
     motion_block: int = 16
     """pairs per decode step of the motion suite: the daemon's ``[daemon] block_max`` (a
@@ -345,6 +354,7 @@ class EvalPlan:
             comms_distances=self.comms_distances or ((20.0, 60.0) if q else COMMS_DISTANCES_M),
             hdr_distances=self.hdr_distances or ((50.0,) if q else HDR_DISTANCES_M),
             ranging_distances=self.ranging_distances or ((30.0, 60.0) if q else RANGING_DISTANCES_M),
+            fec_distances=self.fec_distances or ((50.0,) if q else FEC_DISTANCES_M),
             motion_seeds=self.motion_seeds or (1 if q else MOTION_SEEDS),
             motion_cases=self.motion_cases or tuple(c.key for c in MOTION_CASES))
 
@@ -355,6 +365,7 @@ class EvalPlan:
                 "comms_distances_m": list(p.comms_distances or ()),
                 "hdr_distances_m": list(p.hdr_distances or ()),
                 "ranging_distances_m": list(p.ranging_distances or ()),
+                **({"fec_distances_m": list(p.fec_distances or ())} if "fec" in p.suites else {}),
                 **({"motion_seeds": p.motion_seeds, "motion_cases": list(p.motion_cases or ()),
                     "motion_scene": {k: v for k, v in p.motion_scene},
                     "motion_randomize": p.motion_randomize, "motion_block": p.motion_block}
@@ -364,7 +375,7 @@ class EvalPlan:
 def _packet_frames(cfg: Config, packets: int) -> int:
     """About the frames :func:`iscd.eval.sweeps.run_comms` renders (for the progress total)."""
     t = cfg.transmitter
-    period = AirInterface.from_config(t).period_symbols
+    period = air_from_config(t).period_symbols
     return int(period * packets * cfg.camera.fps / t.symbol_rate_hz) + 10
 
 
@@ -413,6 +424,18 @@ def jobs(base: Config, plan: EvalPlan, results: EvalResults) -> list[Job]:
                              s, results.approach,
                              note=f"{APPROACH_SPEED_MPS * 3.6:.0f} km/h, {APPROACH_VIBRATION_PX} px vibration",
                              packets=APPROACH_PACKETS))
+    if "fec" in p.suites:
+        pairs = ((4.0, 8.0),) if p.quick else ((4.0, 8.0), (4.0, 4.0))
+        for d in p.fec_distances or ():
+            for fl, fr in pairs:
+                s = point_seed(p.seed, "fec", d, fr)  # one scene (seed) for every air interface
+                mode = ReceiverMode("HDR f/4+f/8" if fr != fl else "diversity f/4+f/4", "both")
+                for air, fec in FEC_AIRS:
+                    cfg = override(chapter4_cfg(base, d, 16, fr, s),
+                                   transmitter={"air_interface": air, "fec": fec})
+                    label = air if air == "v1" else f"v2 {fec}"
+                    out.append(comms_job("fec", f"fec {label} PWM-16 f/{fl:g}+f/{fr:g} {d:g} m", cfg,
+                                         [mode], d, 16, fl, fr, s, results.fec, note=label))
     if "motion" in p.suites:
         cases = {c.key: c for c in MOTION_CASES}
         unknown = [k for k in p.motion_cases or () if k not in cases]

@@ -42,8 +42,9 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     p = sub.add_parser("eval", help="simulated sweeps (SER, goodput, range error vs distance) and a report",
                        description=DESCRIPTION, epilog=EPILOG,
                        formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--suite", choices=("comms", "hdr", "ranging", "all", "motion"), default="all",
-                   help="which sweep to run (default: all = comms, hdr and ranging)")
+    p.add_argument("--suite", choices=("comms", "hdr", "ranging", "all", "motion", "fec"), default="all",
+                   help="which sweep to run (default: all = comms, hdr and ranging; fec: goodput and "
+                        "packet loss of air interface v1 against v2, 8x8 PWM-16)")
     p.add_argument("--quick", action="store_true",
                    help="a few points only (comms 20 and 60 m, hdr 50 m with f/8, ranging 30 and 60 m "
                         "with 300 frames, project rule only): small enough for CI")
@@ -144,7 +145,7 @@ def build_plan(args: argparse.Namespace) -> "object":
     scene = tuple(_scene_key(t) for t in (getattr(args, "scene", None) or ()))
     return EvalPlan(suites=suites, quick=args.quick, seed=args.seed, packets=args.packets,
                     frames=args.frames, rules=rules, methods=methods, comms_distances=d,
-                    hdr_distances=d, ranging_distances=d, motion_seeds=seeds, motion_cases=cases,
+                    hdr_distances=d, ranging_distances=d, fec_distances=d, motion_seeds=seeds, motion_cases=cases,
                     motion_scene=scene, motion_randomize=bool(getattr(args, "randomize", False)))
 
 

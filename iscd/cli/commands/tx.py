@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import sys
 import threading
@@ -40,6 +41,11 @@ def register(sub: argparse._SubParsersAction) -> None:
     act.add_argument("--start", action="store_true", help="only start sending what the board holds")
     act.add_argument("--stop", action="store_true", help="only stop sending (LEDs dark)")
     act.add_argument("--status", action="store_true", help="only print the board's info and status")
+    p.add_argument("--air-interface", choices=("v1", "v2"),
+                   help="send the payload as air interface v1 or v2 (PHY header + Reed-Solomon; "
+                        "docs/air-interface.md); default [transmitter].air_interface")
+    p.add_argument("--fec", choices=("none", "rs255_239", "rs255_223", "rs255_191"),
+                   help="v2's code (default [transmitter].fec)")
     p.add_argument("--no-start", action="store_true", help="load the payload but do not start")
     p.add_argument("--clear-faults", action="store_true", help="clear the board's fault flags first")
     p.add_argument("--list", action="store_true", help="list the boards found on USB (JSON lines) and exit")
@@ -126,7 +132,7 @@ def run(args: argparse.Namespace) -> int:
     from iscd.drivers.board.discovery import find_boards
     from iscd.drivers.board.protocol import BoardConfig, ProtocolError
     from iscd.drivers.board.settings import board_settings
-    from iscd.core.airinterface import AirInterface
+    from iscd.core.airinterface_v2 import from_config as air_from_config
     from iscd.core.errors import UserError
     from iscd.core.config import load
 
@@ -149,13 +155,23 @@ def run(args: argparse.Namespace) -> int:
         raise UserError("--duration only applies with --emulate")
 
     tx = cfg.transmitter
+    if args.air_interface or args.fec:
+        from iscd.core.config import ConfigError
+
+        try:
+            tx = dataclasses.replace(tx, air_interface=args.air_interface or tx.air_interface,
+                                     fec=args.fec or tx.fec, payload_len=0)
+        except ConfigError as e:
+            raise UserError(str(e)) from None
     levels = _levels(args.levels_file, tx) if args.levels_file else None
     payload = None if (args.start or args.stop or args.status or levels is not None) else _payload(args, cfg)
     if payload is not None:
-        capacity = AirInterface.from_config(tx).payload_bytes
+        air = air_from_config(tx)
+        capacity = air.payload_bytes
         if len(payload) > capacity:
             raise UserError(f"payload of {len(payload)} bytes exceeds the capacity of {capacity} bytes of a "
-                            f"{tx.rows}x{tx.cols} PWM-{tx.levels} packet with F={tx.data_symbols}")
+                            f"{tx.rows}x{tx.cols} PWM-{tx.levels} {tx.air_interface} packet with "
+                            f"F={air.data_symbols}")
     try:
         board_config = BoardConfig.from_transmitter(tx)
         board_config.pack()
