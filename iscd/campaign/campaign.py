@@ -66,7 +66,7 @@ def clean_parts(out: Path) -> int:
 
 def run_campaign(manifest: str | Path, out: str | Path, *, workers: int | None = None, scheduler: str | None = None,
                  command: str = "iscd campaign", force: bool = False, say: Callable[[str], None] = _stderr,
-                 verbose: bool = False) -> CampaignResult:
+                 verbose: bool = False, runner: Any = None) -> CampaignResult:
     """Run a campaign (docs/campaign.md).
 
     Parameters
@@ -87,6 +87,9 @@ def run_campaign(manifest: str | Path, out: str | Path, *, workers: int | None =
         Where the progress lines go.
     verbose : bool
         Keep distributed's log lines.
+    runner : Runner, optional
+        A started :class:`~iscd.campaign.runner.Runner` to use (and leave open) instead of
+        starting one from ``workers`` / ``scheduler`` (tests, benchmarks, notebooks).
 
     Returns
     -------
@@ -115,21 +118,32 @@ def run_campaign(manifest: str | Path, out: str | Path, *, workers: int | None =
     results: list[dict[str, Any] | None] = [None if force else reusable(s, out) for s in specs]
     todo = [i for i, r in enumerate(results) if r is None]
     n_reused = len(specs) - len(todo)
-    say(f"iscd campaign: {len(specs)} tasks, {n_reused} complete and unchanged (skipped), {len(todo)} to run")
+    plan_line = f"iscd campaign: {len(specs)} tasks, {n_reused} complete and unchanged (skipped), {len(todo)} to run"
     runner_text = "no workers (nothing to run)"
     interrupted = False
     if todo:
         def store(k: int, res: dict[str, Any]) -> None:
             results[todo[k]] = res
 
+        def run_on(r: Any) -> None:
+            nonlocal runner_text
+            say(plan_line)  # once the runner is there (an unreachable scheduler is the only line)
+            runner_text = r.describe()
+            r.warm_up()
+            r.map(run_task, [specs[i] for i in todo], args=(str(out), __version__),
+                  labels=[specs[i].name for i in todo], desc="campaign", on_result=store,
+                  failed=lambda res: None if res["status"] == "ok" else res["error"])
+
         try:
-            with Runner(workers, scheduler, say=say, verbose=verbose) as runner:
-                runner_text = runner.describe()
-                runner.map(run_task, [specs[i] for i in todo], args=(str(out), __version__),
-                           labels=[specs[i].name for i in todo], desc="campaign", on_result=store,
-                           failed=lambda r: None if r["status"] == "ok" else r["error"])
+            if runner is not None:
+                run_on(runner)
+            else:
+                with Runner(workers, scheduler, say=say, verbose=verbose) as r:
+                    run_on(r)
         except KeyboardInterrupt:
             interrupted = True
+    else:
+        say(plan_line)
     final = [r if r is not None else {"name": s.name, "kind": s.kind, "status": "not run", "error": NOT_RUN}
              for s, r in zip(specs, results)]
     seconds = time.perf_counter() - t0

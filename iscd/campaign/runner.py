@@ -43,6 +43,14 @@ def quiet_logs() -> None:
         logging.getLogger(name).setLevel(logging.ERROR)
 
 
+def warm_worker() -> None:
+    """Import the decoder and load its compiled kernels in this (worker) process."""
+    import iscd.decode.stream  # noqa: F401
+    from iscd.core.jit import warm_up
+
+    warm_up()
+
+
 def default_workers() -> int:
     """Workers of the default LocalCluster: the cores this process may use."""
     try:
@@ -123,6 +131,12 @@ class Runner:
         where = self.client.dashboard_link if dashboard else "not available (install bokeh for it)"
         self.say(f"{self.prog}: LocalCluster of {n} worker process(es), 1 thread each; dashboard: {where}")
         return self
+
+    def warm_up(self) -> None:
+        """Load the decoder and its compiled kernels on every worker (``iscd.core.jit``:
+        from the cache, or compiled once), so that the first tasks and the ETA do not
+        carry it."""
+        self.client.run(warm_worker)
 
     def describe(self) -> str:
         """'a LocalCluster of N workers' or 'scheduler ADDRESS (N workers)', for reports."""

@@ -79,6 +79,9 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
                    help="base config (sensor, optics, background, distractors, [receiver], [tracking], "
                         "[ranging]); each suite sets its own transmitter, cameras and distances "
                         "(default: the embedded default config)")
+    from iscd.cli.commands.campaign import add_runner_options
+
+    add_runner_options(p)
     p.set_defaults(func=run)
 
 
@@ -200,6 +203,16 @@ def run(args: argparse.Namespace) -> int:
         total = total_frames(base, plan)  # type: ignore[arg-type]
     except ValueError as e:  # a --scene key or value the config rejects: one line
         raise UserError(str(e)) from None
+    if getattr(args, "workers", None) is not None or getattr(args, "scheduler", None) is not None:
+        from iscd.campaign.evalplan import run_plan_on
+        from iscd.campaign.runner import Runner
+
+        with Runner(args.workers, args.scheduler, prog="iscd eval", verbose=bool(getattr(args, "verbose", 0))) as r:
+            try:
+                results = run_plan_on(r, base, plan)  # type: ignore[arg-type]
+            except ValueError as e:
+                raise UserError(str(e)) from None
+        return _finish(args, results, out)
     with tqdm(total=total, unit="frame", desc="eval", disable=None, file=sys.stderr) as bar:
         current = [""]
 
@@ -214,12 +227,20 @@ def run(args: argparse.Namespace) -> int:
             results = run_plan(base, plan, progress)  # type: ignore[arg-type]
         except ValueError as e:  # a bad value (a --scene key the config rejects...): one line
             raise UserError(str(e)) from None
+    return _finish(args, results, out)
+
+
+def _finish(args: argparse.Namespace, results: "object", out: Path) -> int:
+    """The report of a suite run (serial or on the runner) and the motion section."""
+    from iscd.core.errors import UserError
+    from iscd.eval.report import write_report
+
     command = "iscd eval " + " ".join(shlex.quote(a) for a in _argv_of(args))
     try:
-        path = write_report(results, out, command)
+        path = write_report(results, out, command)  # type: ignore[arg-type]
     except OSError as e:
         raise UserError(f"--out: cannot write to {out}: {e.strerror or e}") from None
-    print(f"iscd eval: {results.seconds:.0f} s; wrote {path}, {out / 'results.json'} and the plots",
+    print(f"iscd eval: {results.seconds:.0f} s; wrote {path}, {out / 'results.json'} and the plots",  # type: ignore[attr-defined]
           file=sys.stderr)
     _print_motion(results)
     return 0
@@ -290,5 +311,8 @@ def _argv_of(args: argparse.Namespace) -> list[str]:
         a.append(f"--recording={t}")
     if getattr(args, "randomize", False):
         a.append("--randomize")
+    for k in ("workers", "scheduler"):
+        if getattr(args, k, None) is not None:
+            a.append(f"--{k}={getattr(args, k)}")
     a.append(f"--out={args.out}")
     return a
