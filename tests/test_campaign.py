@@ -48,6 +48,7 @@ def make_recordings(root: Path, n: int = N_RECORDINGS, frames: int = FRAMES) -> 
     own seed: root/recNN/{left,right}.iscr, config.toml, calibration.yml, truth.*."""
     from iscd.cli.main import main
 
+    root.mkdir(parents=True, exist_ok=True)
     out = []
     for i in range(n):
         cfg = root / f"small-{i}.toml"
