@@ -118,7 +118,8 @@ class Runner:
         from distributed import LocalCluster
 
         n = self.n_workers = self.workers or default_workers()
-        dashboard = ":0" if importlib.util.find_spec("bokeh") else None
+        dashboard = ":0"  # a free port (without bokeh only its health routes: no dashboard)
+        has_dashboard = importlib.util.find_spec("bokeh") is not None
         os.environ.update(SINGLE_THREAD_ENV)  # the Numba/BLAS pools of this process's children too
         try:
             self.cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True,
@@ -128,7 +129,7 @@ class Runner:
         except Exception:
             self.close()
             raise
-        where = self.client.dashboard_link if dashboard else "not available (install bokeh for it)"
+        where = self.client.dashboard_link if has_dashboard else "not available (install bokeh for it)"
         self.say(f"{self.prog}: LocalCluster of {n} worker process(es), 1 thread each; dashboard: {where}")
         return self
 

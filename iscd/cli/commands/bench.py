@@ -20,6 +20,7 @@ BENCHES = {
     "decode_loop": "the whole decode loop (tracking, luminance, demodulation, ranging every frame)",
     "record": "the recording's writer per mode (full, roi, blackbox), as a ratio to a raw sequential write of the same bytes",
     "fec": "Reed-Solomon encode/decode of a 19 kB v2 packet beside reedsolo, creedsolo and galois; residual PER per code mode",
+    "campaign": "iscd campaign of 12 short simulated recordings on 1 and on 2 Dask workers: the speed-up",
 }
 
 
@@ -36,7 +37,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--check", action="store_true",
                    help="exit status 1 when a benchmark misses a target it prints (decode_loop: "
                         "realtime ratio >= target; mock_rig: cores <= target; ringbuffer: the ring "
-                        "lines >= 1x target), or prints no target line; the verdicts go to stderr")
+                        "lines >= 1x target; campaign: speed-up >= target), or prints no target line; the verdicts go to stderr")
     p.set_defaults(func=run)
 
 
@@ -50,6 +51,8 @@ CHECKS: dict[str, list[tuple[str, re.Pattern[str]]]] = {
         r"(?P<value>[\d.]+) cores \(target (?P<op>>=|<=|>|<) (?P<target>[\d.]+)"))],
     "ringbuffer": [("ring pairs/s over the camera rate", re.compile(
         r"^ring -> .*?(?P<value>[\d.]+)x target(?P<op>)(?P<target>)"))],
+    "campaign": [("speed-up from 1 to 2 workers", re.compile(
+        r"speed-up (?P<value>[\d.]+) x from 1 to 2 workers \(target (?P<op>>=|<=|>|<) (?P<target>[\d.]+)\)"))],
 }
 """The targets that ``--check`` reads from each benchmark's output (receiver and ranging
 print ratios without a stated target: they are not checked)."""
