@@ -24,25 +24,8 @@ from collections.abc import Sequence
 from pathlib import Path
 
 TARGET = 1.7
-
-
-def _recordings(root: Path, n: int, frames: int) -> Path:
-    """N recordings rendered by iscd simulate and a manifest of them; returns the manifest."""
-    from iscd.cli.main import main
-
-    root.mkdir(parents=True, exist_ok=True)
-    lines = []
-    for i in range(n):
-        cfg = root / f"small-{i}.toml"
-        cfg.write_text(SMALL.format(distance=(20, 30, 40)[i % 3]))
-        d = root / f"rec{i:02d}"
-        if main(["-q", "simulate", "--config", str(cfg), "--out", str(d), "--frames", str(frames),
-                 "--seed", str(100 + i)]) != 0:
-            raise SystemExit("bench_campaign: iscd simulate failed")
-        lines.append(f'[[recording]]\nleft = "{d.name}"\n')
-    m = root / "campaign.toml"
-    m.write_text("\n".join(lines))
-    return m
+N_RECORDINGS = 12
+FRAMES = 400
 
 
 SMALL = """\
@@ -61,6 +44,32 @@ height = 128
 distance_m = {distance}
 background = "texture"
 """
+"""A short recording's config: one whole packet (113 symbols) in 400 frames."""
+
+
+def make_recordings(root: Path, n: int = N_RECORDINGS, frames: int = FRAMES) -> list[Path]:
+    """``n`` simulated recordings (iscd simulate, in this process) at 20, 30 and 40 m, each its
+    own seed: root/recNN/{left,right}.iscr, config.toml, calibration.yml, truth.*."""
+    from iscd.cli.main import main
+
+    root.mkdir(parents=True, exist_ok=True)
+    out = []
+    for i in range(n):
+        cfg = root / f"small-{i}.toml"
+        cfg.write_text(SMALL.format(distance=(20, 30, 40)[i % 3]))
+        d = root / f"rec{i:02d}"
+        if main(["-q", "simulate", "--config", str(cfg), "--out", str(d), "--frames", str(frames),
+                 "--seed", str(100 + i)]) != 0:
+            raise RuntimeError(f"iscd simulate failed for {d}")
+        out.append(d)
+    return out
+
+
+def write_manifest(path: Path, recordings: list[Path], extra: str = "") -> Path:
+    """A TOML manifest of simulate folders (each with its own truth), paths relative to it."""
+    lines = [f'[[recording]]\nleft = "{Path(os.path.relpath(r, path.parent)).as_posix()}"\n' for r in recordings]
+    path.write_text("\n".join(lines) + extra)
+    return path
 
 
 def bench(n: int, frames: int, repeats: int) -> dict[str, object]:
@@ -70,7 +79,7 @@ def bench(n: int, frames: int, repeats: int) -> dict[str, object]:
     quiet = lambda _m: None  # noqa: E731
     with tempfile.TemporaryDirectory(prefix="bench-campaign-") as tmp:
         root = Path(tmp)
-        manifest = _recordings(root / "recordings", n, frames)
+        manifest = write_manifest(root / "campaign.toml", make_recordings(root / "recordings", n, frames))
         load_before = os.getloadavg()
         times: dict[int, list[float]] = {1: [], 2: []}
         packets: dict[int, int] = {}

@@ -18,54 +18,20 @@ from typing import Any
 
 import pytest
 
+from benchmarks.bench_campaign import FRAMES, N_RECORDINGS, SMALL, make_recordings, write_manifest
 from fakes import cli, one_error_line
 
-SMALL = """\
-[transmitter]
-rows = 4
-cols = 4
-levels = 8
-training_symbols = 40
-data_symbols = 60
-
-[camera]
-width = 128
-height = 128
-
-[scene]
-distance_m = {distance}
-background = "texture"
-"""
-"""A short recording's config: one whole packet (113 symbols) in 400 frames."""
-N_RECORDINGS = 12
-FRAMES = 400
 TIMING_KEYS = ("wall_s", "pairs_per_s")
 """Fields of the stats record that measure time, not the recording."""
 
 
-def make_recordings(root: Path, n: int = N_RECORDINGS, frames: int = FRAMES) -> list[Path]:
-    """``n`` simulated recordings (iscd simulate, in this process) at 20, 30 and 40 m, each its
-    own seed: root/recNN/{left,right}.iscr, config.toml, calibration.yml, truth.*."""
-    from iscd.cli.main import main
-
-    root.mkdir(parents=True, exist_ok=True)
+def copies(recordings: list[Path], n: int, into: Path) -> list[Path]:
+    """Copies of the first ``n`` recordings in ``into`` (to change or corrupt)."""
     out = []
-    for i in range(n):
-        cfg = root / f"small-{i}.toml"
-        cfg.write_text(SMALL.format(distance=(20, 30, 40)[i % 3]))
-        d = root / f"rec{i:02d}"
-        assert main(["-q", "simulate", "--config", str(cfg), "--out", str(d), "--frames", str(frames),
-                     "--seed", str(100 + i)]) == 0
-        out.append(d)
+    for r in recordings[:n]:
+        shutil.copytree(r, into / r.name)
+        out.append(into / r.name)
     return out
-
-
-def write_manifest(path: Path, recordings: list[Path], extra: str = "") -> Path:
-    """A TOML manifest of simulate folders (each its own truth), paths relative to it."""
-    lines = [f'[[recording]]\nleft = "{Path(os.path.relpath(r, path.parent)).as_posix()}"\n'
-             for r in recordings]
-    path.write_text("\n".join(lines) + extra)
-    return path
 
 
 @pytest.fixture(scope="module")
@@ -154,10 +120,7 @@ def test_a_touched_input_is_hashed_again_and_a_changed_one_decoded_again(recordi
                                                                          campaign12: Any, tmp_path: Path) -> None:
     from iscd.campaign.campaign import run_campaign
 
-    recs = []
-    for r in recordings[:2]:
-        shutil.copytree(r, tmp_path / r.name)
-        recs.append(tmp_path / r.name)
+    recs = copies(recordings, 2, tmp_path)
     manifest = write_manifest(tmp_path / "m.toml", recs)
     first = run_campaign(manifest, tmp_path / "out", runner=runner2, say=lambda _m: None)
     assert first.failed == []
@@ -183,10 +146,7 @@ def test_one_corrupt_recording_is_a_failed_row_and_the_others_are_right(recordin
     from iscd.campaign.rows import FIGURES
     from iscd.campaign.summary import read_summary
 
-    recs = []
-    for r in recordings[:4]:
-        shutil.copytree(r, tmp_path / r.name)
-        recs.append(tmp_path / r.name)
+    recs = copies(recordings, 4, tmp_path)
     bad = recs[1] / "left.iscr"
     data = bytearray(bad.read_bytes())
     data[:64] = b"\xff" * 64  # the header destroyed
@@ -245,7 +205,8 @@ def test_eval_on_the_runner_gives_the_serial_results(runner2: Any) -> None:
 # ----------------------------------------------------------------------------- bad input
 
 
-def _free_port() -> int:
+def free_port() -> int:
+    """A TCP port free on loopback now."""
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         return int(s.getsockname()[1])
@@ -280,7 +241,7 @@ def test_an_unreachable_scheduler_is_one_line_and_exit_2(tmp_path: Path, capsys:
     monkeypatch.setattr(runner, "CONNECT_TIMEOUT_S", 2.0)
     manifest = write_manifest(tmp_path / "m.toml", recordings[:1])
     rc, _, err = cli(capsys, "campaign", str(manifest), "--out", str(tmp_path / "out"),
-                     "--scheduler", f"tcp://127.0.0.1:{_free_port()}")
+                     "--scheduler", f"tcp://127.0.0.1:{free_port()}")
     line = one_error_line(err, "campaign")
     assert rc == 2 and "--scheduler" in line and "cannot connect" in line, line
 

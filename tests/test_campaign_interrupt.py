@@ -20,7 +20,8 @@ from pathlib import Path
 
 import pytest
 
-from test_campaign import make_recordings
+from benchmarks.bench_campaign import make_recordings
+from test_campaign_scheduler import group_alive
 
 TIMEOUT_S = 120.0
 
@@ -33,17 +34,6 @@ def _wait_for(cond, what: str, proc: subprocess.Popen, log: Path) -> None:
         if time.monotonic() > deadline:
             pytest.fail(f"no {what} within {TIMEOUT_S:g} s:\n{log.read_text()[-2000:]}")
         time.sleep(0.05)
-
-
-def _group_gone(pgid: int, timeout_s: float = 30.0) -> bool:
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        try:
-            os.killpg(pgid, 0)
-        except ProcessLookupError:
-            return True
-        time.sleep(0.1)
-    return False
 
 
 def test_ctrl_c_keeps_the_finished_outputs_and_a_rerun_does_the_rest(tmp_path: Path) -> None:
@@ -71,7 +61,7 @@ def test_ctrl_c_keeps_the_finished_outputs_and_a_rerun_does_the_rest(tmp_path: P
         if proc.poll() is None:
             os.killpg(proc.pid, signal.SIGKILL)
             proc.wait(timeout=30)
-    assert _group_gone(proc.pid), "processes of the interrupted campaign outlived it"
+    assert not group_alive(proc.pid, 30.0), "processes of the interrupted campaign outlived it"
     assert rc == 130, log.read_text()[-2000:]
     assert "interrupted" in log.read_text().splitlines()[-1]
     for r in recs:

@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import os
 import signal
-import socket
 import subprocess
 import sys
 import time
@@ -17,16 +16,11 @@ from pathlib import Path
 import pytest
 
 from fakes import cli
-from test_campaign import make_recordings, replay_alone, write_manifest
+from benchmarks.bench_campaign import make_recordings, write_manifest
+from test_campaign import free_port, replay_alone
 
 READY_TIMEOUT_S = 120.0
 """Generous: a loaded 2-core machine starts a scheduler and a worker in seconds."""
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 def _spawn(args: list[str], log: Path) -> subprocess.Popen:
@@ -48,12 +42,12 @@ def _stop(proc: subprocess.Popen) -> None:
             proc.wait(timeout=grace)
         except subprocess.TimeoutExpired:
             continue
-        if not _group_alive(proc.pid, grace):
+        if not group_alive(proc.pid, grace):
             break
     proc.wait(timeout=30)
 
 
-def _group_alive(pgid: int, timeout_s: float) -> bool:
+def group_alive(pgid: int, timeout_s: float) -> bool:
     """Whether a process of group ``pgid`` is still there after polling up to ``timeout_s``."""
     deadline = time.monotonic() + timeout_s
     while time.monotonic() < deadline:
@@ -87,7 +81,7 @@ def _wait_ready(address: str, procs: list[subprocess.Popen], logs: list[Path]) -
 @pytest.fixture
 def dask_cluster(tmp_path: Path) -> Iterator[str]:
     """tcp://127.0.0.1:PORT of a separately started dask scheduler with one worker process."""
-    port = _free_port()
+    port = free_port()
     address = f"tcp://127.0.0.1:{port}"
     logs = [tmp_path / "scheduler.log", tmp_path / "worker.log"]
     procs: list[subprocess.Popen] = []
@@ -103,7 +97,7 @@ def dask_cluster(tmp_path: Path) -> Iterator[str]:
         for p in reversed(procs):  # the worker first, then the scheduler
             _stop(p)
         for p in procs:
-            assert not _group_alive(p.pid, 5.0), f"processes of group {p.pid} outlived the test"
+            assert not group_alive(p.pid, 5.0), f"processes of group {p.pid} outlived the test"
 
 
 def test_a_campaign_on_a_separately_started_scheduler_and_worker(dask_cluster: str, tmp_path: Path,
