@@ -41,9 +41,26 @@ class CampaignResult:
 
 
 def reusable(spec: TaskSpec, out: Path, version: str = __version__) -> dict[str, Any] | None:
-    """The finished result of ``spec`` when it can stand without any work: complete, every
-    input file at its recorded path and stamp, and the identity the same for this version
-    and these parameters; else None."""
+    """The finished result of ``spec`` when it can stand without any work.
+
+    It can when it is complete (:func:`iscd.campaign.tasks.is_complete`), every input file
+    is at its recorded path with its recorded stamp, and the identity is the same for this
+    version and these parameters.
+
+    Parameters
+    ----------
+    spec : TaskSpec
+        The task.
+    out : Path
+        The campaign's output folder.
+    version : str
+        The iscd version of this run.
+
+    Returns
+    -------
+    dict or None
+        The result with ``reused`` True, or None (the task must go to a worker).
+    """
     old = read_result(out, spec.name)
     if not is_complete(out, old) or not stamps_unchanged(old.get("inputs") or {}, spec.inputs()):  # type: ignore[union-attr]
         return None
@@ -53,7 +70,18 @@ def reusable(spec: TaskSpec, out: Path, version: str = __version__) -> dict[str,
 
 
 def clean_parts(out: Path) -> int:
-    """Remove what an interrupted run left under temporary names (``*.part-*``); how many."""
+    """Remove what an interrupted run left under temporary names (``tasks/*.part-*``).
+
+    Parameters
+    ----------
+    out : Path
+        The campaign's output folder.
+
+    Returns
+    -------
+    int
+        Files and folders removed.
+    """
     n = 0
     for p in (out / TASKS_DIR).glob("*.part-*"):
         if p.is_dir():

@@ -15,8 +15,18 @@ from iscd.eval.suites import EvalPlan, EvalResults, Job, jobs
 
 
 def run_job(job: Job) -> list[Any]:
-    """One point on a worker: its rows (the job's closure appends them to a copy of the
-    tables there, which is dropped)."""
+    """One point on a worker.
+
+    Parameters
+    ----------
+    job : Job
+        The point (its closure appends its rows to a copy of the tables there, dropped).
+
+    Returns
+    -------
+    list
+        Its rows (``CommsRow``, ``RangingRow`` or ``MotionRow``).
+    """
     return job.run(None)
 
 

@@ -22,7 +22,18 @@ CHUNK = 4 * 2**20
 
 
 def file_digest(path: str | Path) -> str:
-    """SHA-256 (hex) of a file's content, read in :data:`CHUNK` pieces."""
+    """SHA-256 of a file's content, read in :data:`CHUNK` pieces.
+
+    Parameters
+    ----------
+    path : str or Path
+        The file.
+
+    Returns
+    -------
+    str
+        64 hex digits.
+    """
     h = hashlib.sha256()
     with open(path, "rb") as f:
         while True:
@@ -34,15 +45,38 @@ def file_digest(path: str | Path) -> str:
 
 
 def stamp(path: str | Path) -> list[int]:
-    """[size in bytes, modification time in ns] of a file (OSError when it is missing)."""
+    """A file's stamp: what tells cheaply that it may have changed.
+
+    Parameters
+    ----------
+    path : str or Path
+        The file (OSError when it is missing).
+
+    Returns
+    -------
+    list of int
+        [size in bytes, modification time in ns].
+    """
     st = os.stat(path)
     return [int(st.st_size), int(st.st_mtime_ns)]
 
 
 def describe_inputs(files: dict[str, Path], known: dict[str, Any] | None = None) -> dict[str, dict[str, Any]]:
-    """{role: {"path", "stamp", "sha256"}} of a task's input files ({role: path}); a file
-    whose path and stamp equal those in ``known`` (a former description) keeps its digest
-    unread, the others are hashed."""
+    """Path, stamp and content digest of each of a task's input files.
+
+    Parameters
+    ----------
+    files : dict of str to Path
+        {role: file} (:meth:`iscd.campaign.manifest.TaskSpec.inputs`).
+    known : dict, optional
+        A former description: a file at the same path with the same stamp keeps its digest
+        unread; the others are hashed.
+
+    Returns
+    -------
+    dict
+        {role: {"path": str, "stamp": [bytes, ns], "sha256": str}}.
+    """
     known = known or {}
     out: dict[str, dict[str, Any]] = {}
     for role, f in files.items():
@@ -54,15 +88,43 @@ def describe_inputs(files: dict[str, Path], known: dict[str, Any] | None = None)
 
 
 def task_identity(params: dict[str, Any], inputs: dict[str, dict[str, Any]], version: str) -> str:
-    """SHA-256 (hex) of the iscd version, the task's parameters and its inputs' content
-    digests by role (not their paths: a moved recording with the same content is the same)."""
+    """A task's identity.
+
+    Parameters
+    ----------
+    params : dict
+        The task's parameters (:meth:`iscd.campaign.manifest.TaskSpec.params`).
+    inputs : dict
+        :func:`describe_inputs` of its files: their digests by role count, not their paths
+        (a moved recording with the same content is the same task).
+    version : str
+        The iscd version.
+
+    Returns
+    -------
+    str
+        SHA-256 (64 hex digits) of the version, the parameters and the digests.
+    """
     doc = {"iscd": version, "params": params, "inputs": sorted((r, d["sha256"]) for r, d in inputs.items())}
     return hashlib.sha256(json.dumps(doc, sort_keys=True, default=str).encode()).hexdigest()
 
 
 def stamps_unchanged(known: dict[str, Any], files: dict[str, Path]) -> bool:
-    """Whether ``files`` ({role: path}) are exactly the described ``known`` inputs, each at
-    the same path with the same stamp (a missing, extra or touched file is a change)."""
+    """Whether ``files`` are exactly the described inputs, unchanged by their stamps.
+
+    Parameters
+    ----------
+    known : dict
+        A :func:`describe_inputs` description.
+    files : dict of str to Path
+        {role: file} now.
+
+    Returns
+    -------
+    bool
+        True when the same roles are at the same paths with the same stamps (a missing,
+        extra or touched file is a change).
+    """
     if set(known) != set(files):
         return False
     try:

@@ -49,7 +49,18 @@ FIGURES = ("pairs", "frames_dropped", "packets_found", "packets_ok", "packets_se
 
 
 def read_records(path: str | Path) -> list[dict[str, Any]]:
-    """The records of a JSON Lines file."""
+    """The records of a JSON Lines file.
+
+    Parameters
+    ----------
+    path : str or Path
+        The file.
+
+    Returns
+    -------
+    list of dict
+        One per line, in order.
+    """
     with open(path, encoding="utf-8") as f:
         return [json.loads(line) for line in f if line.strip()]
 

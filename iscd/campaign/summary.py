@@ -18,7 +18,18 @@ NO_PYARROW = "pyarrow is not installed, so there is no summary.parquet (pip inst
 
 
 def summary_rows(results: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
-    """One row per task result, with every column of :data:`COLUMNS` (None where empty)."""
+    """One row per task result, with every column of :data:`COLUMNS`.
+
+    Parameters
+    ----------
+    results : sequence of dict
+        Task results (:func:`iscd.campaign.tasks.run_task`), in manifest order.
+
+    Returns
+    -------
+    list of dict
+        Column -> value, None where empty.
+    """
     rows = []
     for r in results:
         row = {c: None for c, _, _ in COLUMNS}
@@ -40,7 +51,15 @@ def _replace(path: Path, write: Any) -> None:
 
 
 def write_csv(rows: Sequence[dict[str, Any]], path: Path) -> None:
-    """``summary.csv``: a header of the column names, empty cells for None."""
+    """``summary.csv``: a header of the column names, an empty cell for None.
+
+    Parameters
+    ----------
+    rows : sequence of dict
+        :func:`summary_rows`.
+    path : Path
+        The file (written under a temporary name, then renamed).
+    """
     def w(tmp: Path) -> None:
         with open(tmp, "w", newline="", encoding="utf-8") as f:
             out = csv.writer(f)
@@ -51,8 +70,20 @@ def write_csv(rows: Sequence[dict[str, Any]], path: Path) -> None:
 
 
 def write_parquet(rows: Sequence[dict[str, Any]], path: Path) -> bool:
-    """``summary.parquet`` with typed columns (string, int64, float64, bool); False when
-    pyarrow is not installed."""
+    """``summary.parquet`` with typed columns (string, int64, float64, bool).
+
+    Parameters
+    ----------
+    rows : sequence of dict
+        :func:`summary_rows`.
+    path : Path
+        The file (written under a temporary name, then renamed).
+
+    Returns
+    -------
+    bool
+        False when pyarrow is not installed (nothing written).
+    """
     try:
         import pyarrow as pa
         import pyarrow.parquet as pq
@@ -66,7 +97,18 @@ def write_parquet(rows: Sequence[dict[str, Any]], path: Path) -> bool:
 
 
 def read_summary(path: str | Path) -> list[dict[str, Any]]:
-    """The rows of a ``summary.parquet`` (as dicts), for tests and notebooks."""
+    """The rows of a ``summary.parquet``, for tests and notebooks.
+
+    Parameters
+    ----------
+    path : str or Path
+        The file.
+
+    Returns
+    -------
+    list of dict
+        Column -> value, in the file's order.
+    """
     import pyarrow.parquet as pq
 
     return pq.read_table(path).to_pylist()
@@ -74,8 +116,26 @@ def read_summary(path: str | Path) -> list[dict[str, Any]]:
 
 def write_report(rows: Sequence[dict[str, Any]], out: Path, *, command: str, runner: str,
                  seconds: float) -> list[str]:
-    """``report.md`` (and ``campaign.png`` when matplotlib is there); returns the notes
-    (what is missing) it printed in the report."""
+    """``report.md`` (and ``campaign.png`` when matplotlib is there).
+
+    Parameters
+    ----------
+    rows : sequence of dict
+        :func:`summary_rows`.
+    out : Path
+        The campaign's output folder.
+    command : str
+        The command line, quoted in the report.
+    runner : str
+        What ran the tasks (``a LocalCluster of 2 worker processes``).
+    seconds : float
+        The campaign's wall time, s.
+
+    Returns
+    -------
+    list of str
+        The notes (what is missing: plots, Parquet) the report states.
+    """
     from iscd.eval.report import NO_MATPLOTLIB, _table, fmt, fmt_rate
 
     notes = []

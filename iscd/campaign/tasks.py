@@ -38,17 +38,56 @@ NO_ROTATION = 2**62
 
 
 def result_path(out_dir: str | Path, name: str) -> Path:
-    """``out_dir/tasks/NAME.json``."""
+    """Where a task's result goes.
+
+    Parameters
+    ----------
+    out_dir : str or Path
+        The campaign's output folder.
+    name : str
+        The task's name.
+
+    Returns
+    -------
+    Path
+        ``out_dir/tasks/NAME.json``.
+    """
     return Path(out_dir) / TASKS_DIR / f"{name}.json"
 
 
 def jsonl_path(out_dir: str | Path, name: str) -> Path:
-    """``out_dir/tasks/NAME.jsonl``."""
+    """Where a task's records go.
+
+    Parameters
+    ----------
+    out_dir : str or Path
+        The campaign's output folder.
+    name : str
+        The task's name.
+
+    Returns
+    -------
+    Path
+        ``out_dir/tasks/NAME.jsonl``.
+    """
     return Path(out_dir) / TASKS_DIR / f"{name}.jsonl"
 
 
 def read_result(out_dir: str | Path, name: str) -> dict[str, Any] | None:
-    """The finished result of task ``name``, or None when there is none (or it is unreadable)."""
+    """The finished result of a task.
+
+    Parameters
+    ----------
+    out_dir : str or Path
+        The campaign's output folder.
+    name : str
+        The task's name.
+
+    Returns
+    -------
+    dict or None
+        None when there is none (or it is unreadable).
+    """
     try:
         return json.loads(result_path(out_dir, name).read_text())
     except (OSError, ValueError):
@@ -56,7 +95,19 @@ def read_result(out_dir: str | Path, name: str) -> dict[str, Any] | None:
 
 
 def is_complete(out_dir: str | Path, result: dict[str, Any] | None) -> bool:
-    """Whether ``result`` is a successful task's whose JSONL is there, of the size recorded."""
+    """Whether a result is a successful task's whose JSONL is there, of the size recorded.
+
+    Parameters
+    ----------
+    out_dir : str or Path
+        The campaign's output folder.
+    result : dict or None
+        A task result.
+
+    Returns
+    -------
+    bool
+    """
     if not result or result.get("status") != "ok":
         return False
     try:
@@ -72,7 +123,18 @@ def _atomic_json(path: Path, doc: dict[str, Any]) -> None:
 
 
 def one_line(e: BaseException) -> str:
-    """An exception as one line: a UserError's message, else 'Type: message' (+ where)."""
+    """An exception as one line of error.
+
+    Parameters
+    ----------
+    e : BaseException
+        The exception.
+
+    Returns
+    -------
+    str
+        A UserError's message, else ``Type: message (at file:line)``, white space folded.
+    """
     if isinstance(e, UserError):
         msg = str(e)
     else:
@@ -161,8 +223,21 @@ def _decode(spec: TaskSpec, out: Path, tasks: Path) -> tuple[dict[str, Any], lis
 
 
 def simulate(spec: TaskSpec, out: Path) -> None:
-    """Render a simulated point into ``out`` with ``iscd simulate`` (a child process: the
-    same code and options as the command), or UserError with its last line of error."""
+    """Render a simulated point with ``iscd simulate`` in a child process (the same code and
+    options as the command).
+
+    Parameters
+    ----------
+    spec : TaskSpec
+        The point (config, frames, seed, randomize, noise).
+    out : Path
+        The recording's folder.
+
+    Raises
+    ------
+    UserError
+        With the command's last line of error.
+    """
     cmd = [sys.executable, "-m", "iscd", "-q", "simulate", "--out", str(out), "--overwrite"]
     if spec.config:
         cmd += ["--config", spec.config]

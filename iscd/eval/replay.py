@@ -68,7 +68,19 @@ class ReplayInputs:
 
 
 def resolve(inp: ReplayInputs) -> tuple[Path, Path, str | None, str | None]:
-    """(left, right, config, calibration) of a two-file or ``iscd simulate`` folder input."""
+    """The files of a two-file or ``iscd simulate`` folder input.
+
+    Parameters
+    ----------
+    inp : ReplayInputs
+        The input.
+
+    Returns
+    -------
+    tuple
+        (left, right, config or None, calibration or None); a folder's own config and
+        calibration unless given.
+    """
     left = Path(inp.left)
     if inp.right is None:
         if not left.is_dir() or not (left / "left.iscr").exists():
@@ -80,12 +92,26 @@ def resolve(inp: ReplayInputs) -> tuple[Path, Path, str | None, str | None]:
 
 
 def config_mismatch(rec: object, camera: object) -> tuple[list[str], list[str]]:
-    """What differs between a recording and the config's [camera], as (refuse, warn) lists of
-    phrases. The size and the frame rate refuse: the decoder takes frames per symbol from
-    camera.fps and the ideal rig from camera.width/height, so a recording that differs decodes
-    nothing (or ranges wrongly) without a word. The bit depth only warns: the decoder works
-    on the pixel values as they are (an unknown fps, e.g. a PNG folder without sidecar, is
-    not compared)."""
+    """What differs between a recording and the config's [camera].
+
+    The size and the frame rate refuse: the decoder takes frames per symbol from
+    camera.fps and the ideal rig from camera.width/height, so a recording that differs
+    decodes nothing (or ranges wrongly) without a word. The bit depth only warns: the
+    decoder works on the pixel values as they are (an unknown fps, e.g. a PNG folder
+    without sidecar, is not compared).
+
+    Parameters
+    ----------
+    rec : Recording
+        Has width, height (px), fps (1/s) and bit_depth.
+    camera : CameraConfig
+        The config's [camera].
+
+    Returns
+    -------
+    tuple of (list of str, list of str)
+        (refuse, warn) phrases.
+    """
     refuse: list[str] = []
     warn: list[str] = []
     w, h = rec.width, rec.height  # type: ignore[attr-defined]
@@ -102,8 +128,19 @@ def config_mismatch(rec: object, camera: object) -> tuple[list[str], list[str]]:
 
 
 def is_stereo(path: Path) -> bool:
-    """Whether ``path`` is an ``iscd run --record`` recording: a version-2 .iscr file, or a
-    folder holding some (and no simulate-style left.iscr)."""
+    """Whether ``path`` is an ``iscd run --record`` recording.
+
+    Parameters
+    ----------
+    path : Path
+        A file or folder.
+
+    Returns
+    -------
+    bool
+        True for a version-2 .iscr file, or a folder holding some (and no simulate-style
+        left.iscr).
+    """
     from iscd.recording.pairs import is_pair_file
 
     if path.is_dir():
@@ -112,8 +149,24 @@ def is_stereo(path: Path) -> bool:
 
 
 def load_sized_calibration(path: str, width: int, height: int) -> Any:
-    """The calibration at ``path``, refused (UserError naming both sizes) unless it is for
-    ``width`` x ``height`` px images."""
+    """The calibration at ``path``, refused unless it is for ``width`` x ``height`` images.
+
+    Parameters
+    ----------
+    path : str
+        Stereo calibration YAML.
+    width, height : int
+        The recording's image size, px.
+
+    Returns
+    -------
+    StereoCalibration
+
+    Raises
+    ------
+    UserError
+        Naming the file and both sizes.
+    """
     from iscd.calibration.io import CalibrationError, check_image_size, load_calibration
 
     try:
