@@ -260,3 +260,16 @@ def test_manifest_paths_are_relative_to_it_and_defaults_apply(tmp_path: Path, re
     assert (b.name, b.block, b.config, b.truth, b.left) == (rec.name, 32, None, str(rec), str(rec))
     assert set(b.inputs()) >= {"left/left.iscr", "left/right.iscr", "left/config.toml", "truth/truth.npz"}
     assert a.params() == {**b.params()}  # the paths are not parameters
+
+
+def _fails_on_odd(x: int) -> int:
+    if x % 2:
+        raise ValueError(f"odd {x}")
+    return x
+
+
+def test_a_task_that_raises_becomes_its_error_result_and_the_others_go_on(runner2: Any) -> None:
+    out = runner2.map(_fails_on_odd, [0, 1, 2, 3], error_result=lambda i, e: f"#{i}: {e}")
+    assert out == [0, "#1: odd 1", 2, "#3: odd 3"]
+    with pytest.raises(ValueError, match="odd 1"):  # without error_result the caller sees it
+        runner2.map(_fails_on_odd, [1])

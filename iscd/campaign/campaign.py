@@ -14,7 +14,7 @@ from typing import Any, Callable
 from iscd import __version__
 from iscd.campaign.identity import stamps_unchanged, task_identity
 from iscd.campaign.manifest import TaskSpec, load_manifest
-from iscd.campaign.tasks import TASKS_DIR, is_complete, read_result, run_task
+from iscd.campaign.tasks import TASKS_DIR, is_complete, one_line, read_result, run_task
 from iscd.core.errors import UserError
 
 NOT_RUN = "not run: the campaign was interrupted (run it again to finish it)"
@@ -160,7 +160,9 @@ def run_campaign(manifest: str | Path, out: str | Path, *, workers: int | None =
             r.warm_up()
             r.map(run_task, [specs[i] for i in todo], args=(str(out), __version__),
                   labels=[specs[i].name for i in todo], desc="campaign", on_result=store,
-                  failed=lambda res: None if res["status"] == "ok" else res["error"])
+                  failed=lambda res: None if res["status"] == "ok" else res["error"],
+                  error_result=lambda k, e: {"name": specs[todo[k]].name, "kind": specs[todo[k]].kind,
+                                             "status": "failed", "error": f"the task was lost: {one_line(e)}"})
 
         try:
             if runner is not None:

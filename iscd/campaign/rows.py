@@ -10,7 +10,7 @@ from __future__ import annotations
 import json
 import math
 from pathlib import Path
-from typing import Any, Iterable
+from typing import Any, Iterable, Iterator
 
 import numpy as np
 
@@ -48,6 +48,26 @@ FIGURES = ("pairs", "frames_dropped", "packets_found", "packets_ok", "packets_se
 """The columns that are measurements of the recording (equal however it was run)."""
 
 
+def iter_records(path: str | Path) -> Iterator[dict[str, Any]]:
+    """The records of a JSON Lines file, one at a time (a long recording's records are not
+    all held at once).
+
+    Parameters
+    ----------
+    path : str or Path
+        The file.
+
+    Yields
+    ------
+    dict
+        One per line, in order.
+    """
+    with open(path, encoding="utf-8") as f:
+        for line in f:
+            if line.strip():
+                yield json.loads(line)
+
+
 def read_records(path: str | Path) -> list[dict[str, Any]]:
     """The records of a JSON Lines file.
 
@@ -61,8 +81,7 @@ def read_records(path: str | Path) -> list[dict[str, Any]]:
     list of dict
         One per line, in order.
     """
-    with open(path, encoding="utf-8") as f:
-        return [json.loads(line) for line in f if line.strip()]
+    return list(iter_records(path))
 
 
 def _num(x: float) -> float | None:

@@ -160,7 +160,8 @@ class Runner:
 
     def map(self, fn: Callable[..., Any], items: Sequence[Any], *, args: tuple = (), labels: Sequence[str] = (),
             failed: Callable[[Any], str | None] = lambda r: None, desc: str = "tasks",
-            on_result: Callable[[int, Any], None] | None = None) -> list[Any]:
+            on_result: Callable[[int, Any], None] | None = None,
+            error_result: Callable[[int, BaseException], Any] | None = None) -> list[Any]:
         """``[fn(item, *args) for item in items]`` on the workers, in the items' order.
 
         Parameters
@@ -179,12 +180,17 @@ class Runner:
             The progress bar's label.
         on_result : callable, optional
             ``on_result(index, result)`` as each task finishes (in the order they finish).
+        error_result : callable, optional
+            ``error_result(index, exception)`` -> the result of a task that raised or whose
+            worker died (distributed's KilledWorker after its retries); without it the
+            exception is raised here.
 
         Returns
         -------
         list
-            The results in the items' order. A task that raised re-raises here (the
-            campaign's tasks never raise: they return a failed result).
+            The results in the items' order. A task that raised re-raises here unless
+            ``error_result`` is given (the campaign's tasks return a failed result instead of
+            raising; a worker that dies under one is such an error).
         """
         from distributed import as_completed
         from tqdm import tqdm
@@ -202,7 +208,12 @@ class Runner:
         try:
             for fut in as_completed(futures, loop=self.client.loop):
                 i = index[fut.key]
-                res = fut.result()
+                try:
+                    res = fut.result()
+                except Exception as e:  # noqa: BLE001 - a task's exception, a lost worker
+                    if error_result is None:
+                        raise
+                    res = error_result(i, e)
                 out[i] = res
                 err = failed(res)
                 done += 1

@@ -199,7 +199,7 @@ def run_task(spec: TaskSpec, out_dir: str, version: str) -> dict[str, Any]:
 def _decode(spec: TaskSpec, out: Path, tasks: Path) -> tuple[dict[str, Any], list[str]]:
     """Replay the task's recording (rendered first for a simulated point) into ``out``;
     (figures, warnings)."""
-    from iscd.campaign.rows import figures, read_records
+    from iscd.campaign.rows import figures, iter_records
     from iscd.eval.replay import ReplayInputs, replay
 
     warnings: list[str] = []
@@ -216,7 +216,7 @@ def _decode(spec: TaskSpec, out: Path, tasks: Path) -> tuple[dict[str, Any], lis
                                allow_mismatch=spec.allow_mismatch, block=spec.block)
             truth = spec.truth
         res = replay(inp, out, warn=warnings.append, rotate_bytes=NO_ROTATION)
-        return figures(read_records(out), res.config, truth), warnings
+        return figures(iter_records(out), res.config, truth), warnings
     finally:
         if rec_dir is not None and not spec.keep:
             shutil.rmtree(rec_dir, ignore_errors=True)
