@@ -36,7 +36,7 @@ EPILOG = """\
 examples:
   iscd campaign day1.toml --out day1-results
   iscd campaign sweep.csv --out /tmp/sweep --workers 2
-  iscd campaign day1.toml --out day1-results --scheduler tcp://10.0.0.5:8786"""
+  iscd campaign day1.toml --out day1-results --scheduler tcp://cluster-head:8786"""
 
 
 def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
@@ -52,12 +52,13 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     p.set_defaults(func=run)
 
 
-def add_runner_options(p: argparse.ArgumentParser) -> None:
-    """``--workers`` and ``--scheduler`` (campaign and eval)."""
+def add_runner_options(p: argparse.ArgumentParser,
+                       default: str = "default: the cores this process may use") -> None:
+    """``--workers`` and ``--scheduler`` (campaign and eval); ``default`` says what happens
+    without them."""
     g = p.add_mutually_exclusive_group()
     g.add_argument("--workers", type=int, metavar="N",
-                   help="worker processes of the local Dask cluster, one thread each (default for a "
-                        "campaign: the cores this process may use)")
+                   help=f"worker processes of a local Dask cluster, one thread each ({default})")
     g.add_argument("--scheduler", metavar="ADDRESS",
                    help="run on an existing Dask cluster: its scheduler's address, e.g. tcp://HOST:8786 "
                         "(its workers need iscd installed and the same paths)")

@@ -81,7 +81,8 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
                         "(default: the embedded default config)")
     from iscd.cli.commands.campaign import add_runner_options
 
-    add_runner_options(p)
+    add_runner_options(p, "without --workers or --scheduler the points run one after another in this "
+                          "process, as before; the results are the same either way")
     p.set_defaults(func=run)
 
 
