@@ -8,10 +8,10 @@ import pytest
 
 from iscd.decode.tracking.follow_kernel import follow_and_measure_compiled
 from iscd.decode.tracking.luminance import Patches, PixelBackground, follow_and_measure, gather_patches
-from iscd.decode.tracking.path_kernel import final_select_compiled, path_step_compiled
+from iscd.decode.tracking.path_kernel import path_block_compiled
 from iscd.decode.tracking.trajectory import (FINAL_LIT_SHARE, LIT_SHARE, REACH_SIGMAS, SIGMA_FRAMES,
-                                             final_select, follow_path, frame_weights, held_floor,
-                                             path_step, smooth_path)
+                                             follow_path, frame_weights, held_floor, path_block,
+                                             smooth_path)
 from test_rx_follow import _integrated_spots
 
 SIZE = 5
@@ -120,26 +120,28 @@ def test_held_floor_takes_the_lowest_and_rises_slowly() -> None:
     assert held_floor(f, np.array([[2.0]])).tolist() == [2.0]
 
 
-def test_compiled_path_steps_equal_the_references() -> None:
+def test_compiled_path_block_equals_the_reference() -> None:
     rng = np.random.default_rng(7)
     worst = 0.0
-    for _ in range(300):
-        F, N = int(rng.integers(1, 40)), int(rng.integers(1, 6))
-        c = rng.normal(50, 2, (F, N, 2))
-        cur = c + rng.normal(0, 0.5, (F, N, 2))
-        dark = rng.random(F) < 0.3
-        c[dark] = cur[dark]  # frames the following did not refine
-        lum = rng.uniform(0, 200, (F, N))
-        lum[rng.random((F, N)) < 0.2] = np.nan
-        floor = rng.uniform(0, 50, N)
-        anchor = None if rng.random() < 0.3 else rng.normal(50, 2, (N, 2))
+    kw = dict(lit_share=LIT_SHARE, final_share=FINAL_LIT_SHARE, sigma_frames=SIGMA_FRAMES,
+              reach_sigmas=REACH_SIGMAS)
+    for _ in range(200):
+        F, N, G = int(rng.integers(1, 40)), int(rng.integers(1, 6)), int(rng.integers(1, 3))
+        cs, lums, curs, floors, anchors = [], [], [], [], []
+        for _g in range(G):
+            c = rng.normal(50, 2, (F, N, 2))
+            cur = c + rng.normal(0, 0.5, (F, N, 2))
+            dark = rng.random(F) < 0.3
+            c[dark] = cur[dark]  # frames the following did not refine
+            lum = rng.uniform(0, 200, (F, N))
+            lum[rng.random((F, N)) < 0.2] = np.nan
+            cs.append(c), curs.append(cur), lums.append(lum), floors.append(rng.uniform(0, 50, N))
+            anchors.append(None if rng.random() < 0.3 else rng.normal(50, 2, (N, 2)))
         use = None if rng.random() < 0.5 else np.sort(rng.choice(N, int(rng.integers(1, N + 1)), replace=False))
-        p1, m1 = path_step(c, lum, cur, floor, anchor, use)
-        p2, m2 = path_step_compiled(c, lum, cur, floor, anchor, use, lit_share=LIT_SHARE,
-                                    sigma_frames=SIGMA_FRAMES, reach_sigmas=REACH_SIGMAS)
-        f1, x1 = final_select(c, lum, cur, p1, floor, use)
-        f2, x2 = final_select_compiled(c, lum, cur, p1, floor, use, lit_share=FINAL_LIT_SHARE)
-        worst = max(worst, np.abs(p1 - p2).max(), abs(m1 - m2), np.abs(f1 - f2).max(), abs(x1 - x2))
+        p1, m1, f1, x1 = path_block(cs, lums, curs, floors, anchors, use, **kw)
+        p2, m2, f2, x2 = path_block_compiled(cs, lums, curs, floors, anchors, use, **kw)
+        worst = max(worst, abs(m1 - m2), abs(x1 - x2), *(np.abs(a - b).max() for a, b in zip(p1, p2)),
+                    *(np.abs(a - b).max() for a, b in zip(f1, f2)))
     assert worst < 1e-9
 
 

@@ -106,18 +106,18 @@ def _smooth(c: np.ndarray, w: np.ndarray, anchor: np.ndarray, has_anchor: bool,
         ok[f] = True
         det = s0 * s2 - s1 * s1
         lin = det > 1e-6 * max(s0 * s2, 1e-300)
-        # the line's value at f: sum over q of g_q (s2 - s1 dt_q) / det c_q (or g_q / s0)
-        for i in range(N):
-            for k in range(2):
-                out[f, i, k] = 0.0
+        # the line's value at f: sum over q of g_q (s2 - s1 dt_q) / det c_q (or g_q / s0),
+        # over the LEDs' coordinates as one contiguous row (vectorizes)
+        of = out[f].reshape(-1)
+        of[:] = 0.0
         for q in range(q0, q1):
             if w[q] > 0:
                 dt = float(q - f)
                 g = gk[q - f + R] * w[q]
                 a = g * (s2 - s1 * dt) / det if lin else g / s0
-                for i in range(N):
-                    for k in range(2):
-                        out[f, i, k] += a * c[q, i, k]
+                cq = c[q].reshape(-1)
+                for j in range(of.size):
+                    of[j] += a * cq[j]
     # the others bridged: linear between the smoothed frames around them (the anchor at
     # frame -1 before the first), held beyond the ends
     for f in range(F):
@@ -183,40 +183,91 @@ def _final_select(c: np.ndarray, lum: np.ndarray, cur: np.ndarray, path: np.ndar
     return change
 
 
+@njit
+def _path_block(c: np.ndarray, lum: np.ndarray, cur: np.ndarray, floor: np.ndarray,
+                sel: np.ndarray, anchor: np.ndarray, has_anchor: np.ndarray, share: float,
+                final_share: float, sigma: float, reach: float, out_path: np.ndarray,
+                out_final: np.ndarray, out_mc: np.ndarray) -> None:
+    """Every camera g of c (G, F, N, 2) at once: :func:`_path_step` into out_path[g] and
+    :func:`_final_select` into out_final[g]; out_mc = (largest move, largest change)."""
+    G = c.shape[0]
+    moved = 0.0
+    change = 0.0
+    for g in range(G):
+        moved = max(moved, _path_step(c[g], lum[g], cur[g], floor[g], sel, anchor[g], has_anchor[g],
+                                      share, sigma, reach, out_path[g]))
+        change = max(change, _final_select(c[g], lum[g], cur[g], out_path[g], floor[g], sel,
+                                           final_share, out_final[g]))
+    out_mc[0] = moved
+    out_mc[1] = change
+
+
 def _f64(a: np.ndarray) -> np.ndarray:
     return np.require(np.asarray(a, dtype=np.float64), requirements=["C", "W"])
 
 
-def _args(c, lum, cur, floor, use):
-    c, lum = _f64(c), _f64(lum)
-    cur = _f64(np.broadcast_to(cur, c.shape))
-    sel = np.arange(c.shape[1], dtype=np.int64) if use is None else np.require(
+def path_block_compiled(centres: list[np.ndarray], lums: list[np.ndarray], starts: list[np.ndarray],
+                        floors: list[np.ndarray], anchors: list[np.ndarray | None],
+                        use: np.ndarray | None, *, lit_share: float, final_share: float,
+                        sigma_frames: float, reach_sigmas: float
+                        ) -> tuple[list[np.ndarray], float, list[np.ndarray], float]:
+    """:func:`~iscd.decode.tracking.trajectory.path_block`, compiled: one call for every camera.
+
+    Parameters
+    ----------
+    centres : list of ndarray
+        Per camera (F, N, 2) a following pass's centres, px.
+    lums : list of ndarray
+        Per camera (F, N) its luminance, DN.
+    starts : list of ndarray
+        Per camera (F, N, 2) or (N, 2) where the pass started, px.
+    floors : list of ndarray
+        Per camera (N,) a dark LED's luminance, DN.
+    anchors : list of ndarray or None
+        Per camera (N, 2) the last block's path end, px.
+    use : ndarray or None
+        The LEDs that steer (all by default).
+    lit_share : float
+        Share of the block's 90th percentile light that makes a frame steer the path.
+    final_share : float
+        Share that lets a frame keep its own centres.
+    sigma_frames : float
+        Smoothing in time, frames.
+    reach_sigmas : float
+        The smoothing reads frames within this many ``sigma_frames``.
+
+    Returns
+    -------
+    paths : list of ndarray
+        Per camera (F, N, 2), px.
+    moved : float
+        Largest distance of a path from its starts, px.
+    final : list of ndarray
+        Per camera (F, N, 2) where the luminance is taken, px.
+    change : float
+        Largest distance of those from ``centres``, px.
+    """
+    c = np.ascontiguousarray(np.stack(centres), dtype=np.float64)
+    G, F, N = c.shape[:3]
+    lum = np.ascontiguousarray(np.stack(lums), dtype=np.float64)
+    cur = np.empty_like(c)
+    for g in range(G):
+        cur[g] = starts[g]
+    floor = np.ascontiguousarray(np.stack(floors), dtype=np.float64)
+    anc = np.zeros((G, N, 2))
+    has = np.zeros(G, np.bool_)
+    for g, a in enumerate(anchors):
+        if a is not None:
+            anc[g] = a
+            has[g] = True
+    sel = np.arange(N, dtype=np.int64) if use is None else np.require(
         np.asarray(use, dtype=np.int64), requirements=["C", "W"])
-    return c, lum, cur, _f64(floor), sel
-
-
-def path_step_compiled(centres: np.ndarray, lum: np.ndarray, starts: np.ndarray,
-                       floor: np.ndarray, anchor: np.ndarray | None, use: np.ndarray | None,
-                       *, lit_share: float, sigma_frames: float, reach_sigmas: float
-                       ) -> tuple[np.ndarray, float]:
-    """:func:`~iscd.decode.tracking.trajectory.path_step`, compiled (same arguments)."""
-    c, lum, cur, floor, sel = _args(centres, lum, starts, floor, use)
-    out = np.empty_like(c)
-    has = anchor is not None
-    a = _f64(anchor) if has else np.zeros(c.shape[1:])
-    moved = _path_step(c, lum, cur, floor, sel, a, has, float(lit_share), float(sigma_frames),
-                       float(reach_sigmas), out)
-    return out, float(moved)
-
-
-def final_select_compiled(centres: np.ndarray, lum: np.ndarray, starts: np.ndarray,
-                          path: np.ndarray, floor: np.ndarray, use: np.ndarray | None,
-                          *, lit_share: float) -> tuple[np.ndarray, float]:
-    """:func:`~iscd.decode.tracking.trajectory.final_select`, compiled (same arguments)."""
-    c, lum, cur, floor, sel = _args(centres, lum, starts, floor, use)
-    out = np.empty_like(c)
-    change = _final_select(c, lum, cur, _f64(path), floor, sel, float(lit_share), out)
-    return out, float(change)
+    path = np.empty_like(c)
+    final = np.empty_like(c)
+    mc = np.empty(2)
+    _path_block(c, lum, cur, floor, sel, anc, has, float(lit_share), float(final_share),
+                float(sigma_frames), float(reach_sigmas), path, final, mc)
+    return list(path), float(mc[0]), list(final), float(mc[1])
 
 
 def _warm_step() -> tuple:
@@ -230,5 +281,12 @@ def _warm_final() -> tuple:
     return (c, np.ones((4, 2)), c.copy(), c.copy(), np.zeros(2), np.arange(2), 0.1, np.empty_like(c))
 
 
+def _warm_block() -> tuple:
+    c = np.zeros((2, 4, 2, 2))
+    return (c, np.ones((2, 4, 2)), c.copy(), np.zeros((2, 2)), np.arange(2), np.zeros((2, 2, 2)),
+            np.ones(2, np.bool_), 0.25, 0.1, 1.5, 4.0, np.empty_like(c), np.empty_like(c), np.empty(2))
+
+
 register_warm(_path_step, _warm_step)
 register_warm(_final_select, _warm_final)
+register_warm(_path_block, _warm_block)

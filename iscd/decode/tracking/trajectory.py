@@ -246,6 +246,46 @@ def final_select(centres: np.ndarray, lum: np.ndarray, starts: np.ndarray, path:
     return out, float(np.abs(out - c).max()) if c.size else 0.0
 
 
+def path_block(centres: list[np.ndarray], lums: list[np.ndarray], starts: list[np.ndarray],
+               floors: list[np.ndarray], anchors: list[np.ndarray | None], use: np.ndarray | None,
+               *, lit_share: float = LIT_SHARE, final_share: float = FINAL_LIT_SHARE,
+               sigma_frames: float = SIGMA_FRAMES, reach_sigmas: float = REACH_SIGMAS
+               ) -> tuple[list[np.ndarray], float, list[np.ndarray], float]:
+    """One pass's step for every camera: :func:`path_step` and :func:`final_select`.
+
+    Parameters
+    ----------
+    centres, lums, starts, floors, anchors : list
+        Per camera, as :func:`path_step` takes them.
+    use : ndarray or None
+        The LEDs that steer.
+    lit_share, final_share : float
+        :func:`path_step`'s and :func:`final_select`'s shares.
+    sigma_frames, reach_sigmas : float
+        The smoothing (:func:`smooth_path`).
+
+    Returns
+    -------
+    paths : list of ndarray
+        Per camera (F, N, 2), px.
+    moved : float
+        Largest distance of a path from its starts, px.
+    final : list of ndarray
+        Per camera where the luminance is taken, (F, N, 2) px.
+    change : float
+        Largest distance of those from ``centres``, px.
+    """
+    paths, finals, moved, change = [], [], 0.0, 0.0
+    for c, lum, st, fl, an in zip(centres, lums, starts, floors, anchors):
+        p, m = path_step(c, lum, st, fl, an, use, lit_share=lit_share, sigma_frames=sigma_frames,
+                         reach_sigmas=reach_sigmas)
+        f, ch = final_select(c, lum, st, p, fl, use, lit_share=final_share)
+        paths.append(p)
+        finals.append(f)
+        moved, change = max(moved, m), max(change, ch)
+    return paths, moved, finals, change
+
+
 def follow_path(follow: Callable[..., tuple[list[np.ndarray], list[np.ndarray]]],
                 frames: list[np.ndarray], starts: list[np.ndarray], size: int,
                 sigmas: list[float], floors: list[np.ndarray | None],
@@ -308,18 +348,14 @@ def follow_path(follow: Callable[..., tuple[list[np.ndarray], list[np.ndarray]]]
     floors = [held_floor(floors[k], lums[k]) for k in range(n)]
     anchors = [a if a is not None and np.shape(a) == cs[k].shape[1:] else None for k, a in enumerate(anchors)]
     if compiled:
-        from iscd.decode.tracking.path_kernel import final_select_compiled as select
-        from iscd.decode.tracking.path_kernel import path_step_compiled as step
+        from iscd.decode.tracking.path_kernel import path_block_compiled as block
     else:
-        select, step = final_select, path_step
+        block = path_block
     ran = 0
     while True:
-        paths, moved = [], 0.0
-        for k in range(n):
-            p, m = step(cs[k], lums[k], cur[k], floors[k], anchors[k], use, lit_share=LIT_SHARE,
-                        sigma_frames=sigma_frames, reach_sigmas=REACH_SIGMAS)
-            paths.append(p)
-            moved = max(moved, m)
+        paths, moved, final, change = block(cs, lums, cur, floors, anchors, use, lit_share=LIT_SHARE,
+                                            final_share=FINAL_LIT_SHARE, sigma_frames=sigma_frames,
+                                            reach_sigmas=REACH_SIGMAS)
         if ran >= passes or moved < settle_px:
             break
         again: dict = {}
@@ -330,11 +366,6 @@ def follow_path(follow: Callable[..., tuple[list[np.ndarray], list[np.ndarray]]]
         ran += 1
         if "spot_area" in again:  # the spots' size where they now are
             info["spot_area"] = again["spot_area"]
-    final, change = [], 0.0
-    for k in range(n):
-        fk, ch = select(cs[k], lums[k], cur[k], paths[k], floors[k], use, lit_share=FINAL_LIT_SHARE)
-        change = max(change, ch)
-        final.append(fk)
     if change > CHANGE_PX:  # the luminance where it is now taken (no refinement: iterations=0)
         cs, lums = follow(frames, final, size, sigmas, use, iterations=0, lit_light=lit_light,
                           info={}, backgrounds=backgrounds, spot_radius_px=None,
