@@ -69,6 +69,13 @@ def reusable(spec: TaskSpec, out: Path, version: str = __version__) -> dict[str,
     return {**old, "reused": True}  # type: ignore[dict-item]
 
 
+def _finished_on_disk(spec: TaskSpec, out: Path) -> dict[str, Any] | None:
+    """The result a worker wrote for ``spec`` in this run, when it is complete and valid
+    (:func:`reusable`), as done in this run; else None."""
+    r = reusable(spec, out)
+    return None if r is None else {**r, "reused": False}
+
+
 def clean_parts(out: Path) -> int:
     """Remove what an interrupted run left under temporary names (``tasks/*.part-*``).
 
@@ -174,6 +181,8 @@ def run_campaign(manifest: str | Path, out: str | Path, *, workers: int | None =
             interrupted = True
     else:
         say(plan_line)
+    if interrupted:  # a task that finished on its worker as Ctrl-C came, before the client heard of it
+        results = [r if r is not None else _finished_on_disk(s, out) for s, r in zip(specs, results)]
     final = [r if r is not None else {"name": s.name, "kind": s.kind, "status": "not run", "error": NOT_RUN}
              for s, r in zip(specs, results)]
     seconds = time.perf_counter() - t0
