@@ -22,18 +22,8 @@ CHUNK = 4 * 2**20
 
 
 def file_digest(path: str | Path) -> str:
-    """SHA-256 of a file's content, read in :data:`CHUNK` pieces.
-
-    Parameters
-    ----------
-    path : str or Path
-        The file.
-
-    Returns
-    -------
-    str
-        64 hex digits.
-    """
+    """SHA-256 (64 hex digits) of the content of the file at ``path``, read in
+    :data:`CHUNK` pieces."""
     h = hashlib.sha256()
     with open(path, "rb") as f:
         while True:

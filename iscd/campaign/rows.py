@@ -69,18 +69,7 @@ def iter_records(path: str | Path) -> Iterator[dict[str, Any]]:
 
 
 def read_records(path: str | Path) -> list[dict[str, Any]]:
-    """The records of a JSON Lines file.
-
-    Parameters
-    ----------
-    path : str or Path
-        The file.
-
-    Returns
-    -------
-    list of dict
-        One per line, in order.
-    """
+    """``list(iter_records(path))``: every record of a JSON Lines file, in order."""
     return list(iter_records(path))
 
 

@@ -51,15 +51,8 @@ def _replace(path: Path, write: Any) -> None:
 
 
 def write_csv(rows: Sequence[dict[str, Any]], path: Path) -> None:
-    """``summary.csv``: a header of the column names, an empty cell for None.
-
-    Parameters
-    ----------
-    rows : sequence of dict
-        :func:`summary_rows`.
-    path : Path
-        The file (written under a temporary name, then renamed).
-    """
+    """``summary.csv`` at ``path`` from :func:`summary_rows` ``rows``: a header of the
+    column names, an empty cell for None (written under a temporary name, then renamed)."""
     def w(tmp: Path) -> None:
         with open(tmp, "w", newline="", encoding="utf-8") as f:
             out = csv.writer(f)
@@ -97,18 +90,8 @@ def write_parquet(rows: Sequence[dict[str, Any]], path: Path) -> bool:
 
 
 def read_summary(path: str | Path) -> list[dict[str, Any]]:
-    """The rows of a ``summary.parquet``, for tests and notebooks.
-
-    Parameters
-    ----------
-    path : str or Path
-        The file.
-
-    Returns
-    -------
-    list of dict
-        Column -> value, in the file's order.
-    """
+    """The rows of ``path``, a ``summary.parquet``, as {column: value} dicts in the file's
+    order (for tests and notebooks)."""
     import pyarrow.parquet as pq
 
     return pq.read_table(path).to_pylist()

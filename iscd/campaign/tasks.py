@@ -37,8 +37,8 @@ NO_ROTATION = 2**62
 """A task's JSONL is one file (bytes before a rotation: never)."""
 
 
-def result_path(out_dir: str | Path, name: str) -> Path:
-    """Where a task's result goes.
+def task_file(out_dir: str | Path, name: str, suffix: str) -> Path:
+    """A task's output file.
 
     Parameters
     ----------
@@ -46,50 +46,22 @@ def result_path(out_dir: str | Path, name: str) -> Path:
         The campaign's output folder.
     name : str
         The task's name.
+    suffix : str
+        ``.json`` (its result) or ``.jsonl`` (its records).
 
     Returns
     -------
     Path
-        ``out_dir/tasks/NAME.json``.
+        ``out_dir/tasks/NAME.SUFFIX``.
     """
-    return Path(out_dir) / TASKS_DIR / f"{name}.json"
-
-
-def jsonl_path(out_dir: str | Path, name: str) -> Path:
-    """Where a task's records go.
-
-    Parameters
-    ----------
-    out_dir : str or Path
-        The campaign's output folder.
-    name : str
-        The task's name.
-
-    Returns
-    -------
-    Path
-        ``out_dir/tasks/NAME.jsonl``.
-    """
-    return Path(out_dir) / TASKS_DIR / f"{name}.jsonl"
+    return Path(out_dir) / TASKS_DIR / f"{name}{suffix}"
 
 
 def read_result(out_dir: str | Path, name: str) -> dict[str, Any] | None:
-    """The finished result of a task.
-
-    Parameters
-    ----------
-    out_dir : str or Path
-        The campaign's output folder.
-    name : str
-        The task's name.
-
-    Returns
-    -------
-    dict or None
-        None when there is none (or it is unreadable).
-    """
+    """The finished result of task ``name`` in ``out_dir`` (:func:`task_file` ``.json``),
+    or None when there is none or it is unreadable."""
     try:
-        return json.loads(result_path(out_dir, name).read_text())
+        return json.loads(task_file(out_dir, name, ".json").read_text())
     except (OSError, ValueError):
         return None
 
@@ -111,7 +83,7 @@ def is_complete(out_dir: str | Path, result: dict[str, Any] | None) -> bool:
     if not result or result.get("status") != "ok":
         return False
     try:
-        return jsonl_path(out_dir, result["name"]).stat().st_size == result.get("jsonl_bytes")
+        return task_file(out_dir, result["name"], ".jsonl").stat().st_size == result.get("jsonl_bytes")
     except (OSError, KeyError):
         return False
 
@@ -177,20 +149,20 @@ def run_task(spec: TaskSpec, out_dir: str, version: str) -> dict[str, Any]:
         result.update(inputs=inputs, identity=ident)
         if old and old.get("identity") == ident and is_complete(out_dir, old):
             old.update(reused=True, inputs=inputs)
-            _atomic_json(result_path(out_dir, spec.name), {k: v for k, v in old.items() if k != "reused"})
+            _atomic_json(task_file(out_dir, spec.name, ".json"), {k: v for k, v in old.items() if k != "reused"})
             return old
         figures, warnings = _decode(spec, tmp_jsonl, tasks)
-        os.replace(tmp_jsonl, jsonl_path(out_dir, spec.name))
+        os.replace(tmp_jsonl, task_file(out_dir, spec.name, ".jsonl"))
         result.update(status="ok", figures=figures, warnings=warnings,
-                      jsonl_bytes=jsonl_path(out_dir, spec.name).stat().st_size)
+                      jsonl_bytes=task_file(out_dir, spec.name, ".jsonl").stat().st_size)
     except Exception as e:  # noqa: BLE001 - a task records its failure and never raises
         result["error"] = one_line(e)
-        jsonl_path(out_dir, spec.name).unlink(missing_ok=True)  # a former output is stale now
+        task_file(out_dir, spec.name, ".jsonl").unlink(missing_ok=True)  # a former output is stale now
     finally:
         tmp_jsonl.unlink(missing_ok=True)
     result["wall_s"] = round(time.perf_counter() - t0, 3)
     try:
-        _atomic_json(result_path(out_dir, spec.name), result)
+        _atomic_json(task_file(out_dir, spec.name, ".json"), result)
     except OSError as e:
         result.update(status="failed", error=one_line(e))
     return result
