@@ -138,6 +138,10 @@ def test_a_touched_input_is_hashed_again_and_a_changed_one_decoded_again(recordi
 
     assert [second.results[1]["figures"][k] for k in FIGURES] == \
         [first.results[1]["figures"][k] for k in FIGURES]  # a comment changes no figure
+    forced = run_campaign(manifest, tmp_path / "out", runner=runner2, say=lambda _m: None, force=True)
+    assert forced.submitted == [recs[0].name, recs[1].name]
+    assert [r["reused"] for r in forced.results] == [False, False]  # decoded again, on the workers too
+    assert jsonl.stat().st_mtime_ns != mtime
 
 
 def test_one_corrupt_recording_is_a_failed_row_and_the_others_are_right(recordings: list[Path], runner2: Any,

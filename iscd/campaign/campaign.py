@@ -165,7 +165,7 @@ def run_campaign(manifest: str | Path, out: str | Path, *, workers: int | None =
             say(plan_line)  # once the runner is there (an unreachable scheduler is the only line)
             runner_text = r.describe()
             r.warm_up()
-            r.map(run_task, [specs[i] for i in todo], args=(str(out), __version__),
+            r.map(run_task, [specs[i] for i in todo], args=(str(out), __version__, force),
                   labels=[specs[i].name for i in todo], desc="campaign", on_result=store,
                   failed=lambda res: None if res["status"] == "ok" else res["error"],
                   error_result=lambda k, e: {"name": specs[todo[k]].name, "kind": specs[todo[k]].kind,

@@ -116,7 +116,7 @@ def one_line(e: BaseException) -> str:
     return " ".join(msg.split()) or type(e).__name__
 
 
-def run_task(spec: TaskSpec, out_dir: str, version: str) -> dict[str, Any]:
+def run_task(spec: TaskSpec, out_dir: str, version: str, force: bool = False) -> dict[str, Any]:
     """Run one task (see the module docstring); returns its result (also in ``tasks/NAME.json``).
 
     Parameters
@@ -128,6 +128,8 @@ def run_task(spec: TaskSpec, out_dir: str, version: str) -> dict[str, Any]:
     version : str
         The iscd version the identity is made with (the client's: a worker of another
         version makes a different identity, so nothing of another version is reused).
+    force : bool
+        Decode even when a finished output has the same identity.
 
     Returns
     -------
@@ -147,7 +149,7 @@ def run_task(spec: TaskSpec, out_dir: str, version: str) -> dict[str, Any]:
         inputs = describe_inputs(spec.inputs(), (old or {}).get("inputs"))
         ident = task_identity(spec.params(), inputs, version)
         result.update(inputs=inputs, identity=ident)
-        if old and old.get("identity") == ident and is_complete(out_dir, old):
+        if not force and old and old.get("identity") == ident and is_complete(out_dir, old):
             old.update(reused=True, inputs=inputs)
             _atomic_json(task_file(out_dir, spec.name, ".json"), {k: v for k, v in old.items() if k != "reused"})
             return old
