@@ -28,12 +28,15 @@ def _stderr(msg: str) -> None:
 class CampaignResult:
     """What :func:`run_campaign` did: ``results`` one per task in manifest order (see
     :func:`iscd.campaign.tasks.run_task`), ``submitted`` the names of the tasks sent to the
-    workers (the others were reused without any work), ``seconds`` its wall time, s."""
+    workers (the others were reused without any work), ``seconds`` its wall time, s,
+    ``summary`` the summary's rows."""
 
     results: list[dict[str, Any]]
     submitted: list[str] = field(default_factory=list)
     seconds: float = 0.0
     summary: list[dict[str, Any]] = field(default_factory=list)
+    tasks_seconds: float = 0.0
+    """wall time from the first task's submission to the last one's result, s"""
 
     @property
     def failed(self) -> list[dict[str, Any]]:
@@ -155,6 +158,7 @@ def run_campaign(manifest: str | Path, out: str | Path, *, workers: int | None =
     n_reused = len(specs) - len(todo)
     plan_line = f"iscd campaign: {len(specs)} tasks, {n_reused} complete and unchanged (skipped), {len(todo)} to run"
     runner_text = "no workers (nothing to run)"
+    tasks_s = [0.0]
     interrupted = False
     if todo:
         def store(k: int, res: dict[str, Any]) -> None:
@@ -165,6 +169,13 @@ def run_campaign(manifest: str | Path, out: str | Path, *, workers: int | None =
             say(plan_line)  # once the runner is there (an unreachable scheduler is the only line)
             runner_text = r.describe()
             r.warm_up()
+            t_tasks = time.perf_counter()
+            try:
+                _map(r)
+            finally:
+                tasks_s[0] = time.perf_counter() - t_tasks
+
+        def _map(r: Any) -> None:
             r.map(run_task, [specs[i] for i in todo], args=(str(out), __version__, force),
                   labels=[specs[i].name for i in todo], desc="campaign", on_result=store,
                   failed=lambda res: None if res["status"] == "ok" else res["error"],
@@ -197,7 +208,7 @@ def run_campaign(manifest: str | Path, out: str | Path, *, workers: int | None =
         say(f"iscd campaign: note: {n}")
     if interrupted:
         raise KeyboardInterrupt
-    res = CampaignResult(final, [specs[i].name for i in todo], seconds, rows)
+    res = CampaignResult(final, [specs[i].name for i in todo], seconds, rows, tasks_s[0])
     say(f"iscd campaign: {len(specs) - len(res.failed)} ok, {len(res.failed)} failed in {seconds:.1f} s; wrote "
         f"{out / 'summary.parquet' if has_parquet else ''} {out / 'summary.csv'} {out / 'report.md'}")
     return res
