@@ -120,9 +120,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--frames", type=int, default=2000,
                     help="stereo pairs per recording (default 2000; the tests' campaign has 400)")
     ap.add_argument("--repeats", type=int, default=3, help="campaign runs per worker count (default 3; the best counts)")
-    ap.add_argument("--quick", action="store_true", help="a short run (4 recordings of 200 pairs, 1 repeat) to check that it works")
+    ap.add_argument("--quick", action="store_true", help="a short run (4 recordings of 300 pairs, 1 repeat) to check that it works")
     a = ap.parse_args(argv)
-    n, frames, repeats = (4, 200, 1) if a.quick else (a.recordings, a.frames, a.repeats)
+    n, frames, repeats = (4, 300, 1) if a.quick else (a.recordings, a.frames, a.repeats)
     r = bench(n, frames, repeats)
     t1, t2 = r["times"][1], r["times"][2]  # type: ignore[index]
     lb, la = r["load_before"], r["load_after"]
