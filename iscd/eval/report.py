@@ -198,7 +198,7 @@ def motion_ser_table(rows: list[MotionRow]) -> str:
     vibs = sorted({g[0].vibration_px for g in groups})
     lines: dict[tuple, dict[float, str]] = {}
     for case, res, _ in groups:
-        who = "1 LED (f/4+f/4)" if case.leds == 1 else "8x8 (HDR f/4+f/8)"
+        who = f"{'1 LED' if case.leds == 1 else '8x8'} ({case.cameras})"
         motion = (f"{case.speed_kmh:g} km/h, {case.start_m:g} -> {case.end_m:g} m" if case.speed_kmh
                   else f"still, {case.start_m:g} m")
         extra = ", ".join(f"{k}={v}" for k, v in case.scene)

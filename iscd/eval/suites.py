@@ -12,7 +12,7 @@
 - ``motion`` (issue 12; not part of ``all``): a moving car, :data:`MOTION_CASES` (one LED
   approaching at 40 km/h from 50 m and at 100 km/h from 100 m, both down to 25 m, 0.3 and
   0.5 px vibration, one LED still with vibration only, the 8x8 array with HDR f/4 + f/8 at
-  40 km/h), several seeds a case, each decoded by the receiver and by the oracle stages of
+  40 km/h, and the one-LED approaches again with the HDR pair f/4 + f/8), several seeds a case, each decoded by the receiver and by the oracle stages of
   :mod:`iscd.eval.oracle` (where the errors come from, and where along the packet).
 
 Each reception mode runs with the project's decision rule and (``rules``) the
@@ -81,12 +81,23 @@ class MotionCase:
     randomize: bool = False
     title: str = ""
     """the label, when not made from the fields (a recording's)"""
+    f_number_right: float = 0.0
+    """the right camera's f-number; 0 = the chapter's (f/4 for one LED, f/8 for the array).
+    One LED with f/8: the HDR pair, whose f/8 camera keeps the top levels apart where the
+    f/4 spot's core clips as the car closes in."""
+
+    @property
+    def cameras(self) -> str:
+        """``f/4+f/4`` or ``HDR f/4+f/N``."""
+        fr = self.f_number_right or (4.0 if self.leds == 1 else 8.0)
+        return "f/4+f/4" if fr == 4.0 else f"HDR f/4+f/{fr:g}"
 
     @property
     def label(self) -> str:
         if self.title:
             return self.title
-        who = "1 LED" if self.leds == 1 else "8x8 HDR f/4+f/8"
+        who = ("1 LED" + ("" if self.cameras == "f/4+f/4" else " " + self.cameras) if self.leds == 1
+               else "8x8 " + self.cameras)
         if self.speed_kmh:
             how = f"{self.speed_kmh:g} km/h {self.start_m:g}->{self.end_m:g} m"
         else:
@@ -102,6 +113,10 @@ MOTION_CASES = (
     MotionCase("1led-100kmh-0.5px", 1, 100.0, 100.0, 25.0, 0.5),
     MotionCase("1led-still-0.5px", 1, 0.0, 50.0, 50.0, 0.5),
     MotionCase("8x8-40kmh-0.3px", 64, 40.0, 50.0, 25.0, 0.3),
+    MotionCase("1led-hdr-40kmh-0.3px", 1, 40.0, 50.0, 25.0, 0.3, f_number_right=8.0),
+    MotionCase("1led-hdr-40kmh-0.5px", 1, 40.0, 50.0, 25.0, 0.5, f_number_right=8.0),
+    MotionCase("1led-hdr-100kmh-0.3px", 1, 100.0, 100.0, 25.0, 0.3, f_number_right=8.0),
+    MotionCase("1led-hdr-100kmh-0.5px", 1, 100.0, 100.0, 25.0, 0.5, f_number_right=8.0),
 )
 """The motion suite. Two packets (1.3 s each) a case: 40 km/h covers 50 -> 25 m (reached
 after 2.25 s; the rest at 25 m), 100 km/h 100 -> 27.4 m."""
@@ -146,6 +161,8 @@ def motion_cfg(base: Config, case: MotionCase, seed: int, *, quick: bool = False
         cfg = chapter4_cfg(base, case.start_m, 8, 8.0, seed, **keys)
         if side != 8:
             cfg = override(cfg, transmitter={"rows": side, "cols": side})
+    if case.f_number_right:
+        cfg = override(cfg, camera={"f_number_right": case.f_number_right})
     if quick:
         cfg = override(cfg, transmitter={"data_symbols": MOTION_QUICK_DATA_SYMBOLS})
     note = ""
