@@ -69,6 +69,7 @@ class PipelineSettings:
     window_scale: float = field(default=1.0, metadata={"lo": 0.5, "hi": 4.0, "doc": "luminance window relative to the spot-matched Gaussian (roi_sigma_px = -1): wider reaches the unsaturated wings of a spot whose core clips"})
     window_follows_spot: bool = field(default=False, metadata={"doc": "the luminance window follows the spot's measured size (its half-maximum area, smoothed over ~10 blocks) times window_scale, instead of the size at acquisition grown with the array"})
     background_rise_dn: float = field(default=0.25, metadata={"lo": 0, "doc": "how fast the per-pixel background follows a background that brightens, DN per block"})
+    background_one_led: bool = field(default=True, metadata={"doc": "the per-pixel background (as background) whenever the transmitter is one LED: measured on a moving car's randomized scenes it delivered more packets (4 seed sets, docs/eval.md), and one LED's static suites (SER, range errors) are unchanged; an array keeps background's setting (its neighbours' light under a pixel cost static f/4 receivers packets)"})
     follow_passes: int = field(default=3, metadata={"lo": 0, "hi": 8, "doc": "further following passes per block along the LEDs' path (their lit frames' centres smoothed in time), while the path moves more than path_settle_px; dark and dimly lit frames are measured on the path; 0 = one pass from the last block's end (before issue 12)"})
     path_settle_px: float = field(default=0.5, metadata={"lo": 0.05, "hi": 5.0, "doc": "no further following pass once the path is within this of where the last pass started, px"})
 
@@ -606,7 +607,8 @@ class StreamDecoder:
         box = 2 * max(1, int(round(max(tr.roi_radius) * max(growth)))) + 1
         info: dict[str, np.ndarray] = {}
         follow = follow_and_measure_compiled if self.compiled else follow_and_measure
-        if (self.settings.background or self.settings.lit_background) and self._backgrounds is None:
+        subtract = self.background_on
+        if (subtract or self.settings.lit_background) and self._backgrounds is None:
             rise = self.settings.background_rise_dn
             self._backgrounds = [PixelBackground(left.shape[1:], rise), PixelBackground(right.shape[1:], rise)]
         sigmas = [min(max(sig * g, 0.6), max(sig, self.MAX_SIGMA_PX)) for sig, g in zip(tr.roi_sigma, growth)]
@@ -626,7 +628,7 @@ class StreamDecoder:
             res = follow_path(follow, [left, right], starts, box, sigmas, self._lum_floor,
                               self._path_end, use=self._use, lit_light=self._lit_light,
                               backgrounds=backgrounds, spot_radius_px=spot_r,
-                              subtract=self.settings.background, passes=self.settings.follow_passes,
+                              subtract=subtract, passes=self.settings.follow_passes,
                               settle_px=self.settings.path_settle_px, compiled=self.compiled)
             (c_l, c_r), (lum_l, lum_r) = res.centres, res.luminance
             info = res.info
@@ -637,7 +639,7 @@ class StreamDecoder:
             (c_l, c_r), (lum_l, lum_r) = follow(
                 [left, right], starts, box, sigmas,
                 use=self._use, lit_light=self._lit_light, info=info,
-                backgrounds=backgrounds, spot_radius_px=spot_r, subtract=self.settings.background)
+                backgrounds=backgrounds, spot_radius_px=spot_r, subtract=subtract)
         if spot_r is not None:
             self._fold_spot_area(info["spot_area"])
         # the light of a lit LED, held over dark stretches (halves in ~5 s of darkness)
@@ -646,6 +648,12 @@ class StreamDecoder:
         self._followed = [c_l[-1].copy(), c_r[-1].copy()]
         self.last_centres = (c_l, c_r)
         return lum_l, lum_r
+
+    @property
+    def background_on(self) -> bool:
+        """Whether the luminance and the centroids are of the light above the per-pixel
+        background (``[tracking] background``, or ``background_one_led`` for one LED)."""
+        return bool(self.settings.background or (self.settings.background_one_led and self.rows * self.cols == 1))
 
     MAX_SIGMA_PX = 4.0
     """Largest Gaussian luminance window, px (an array seen from close by)."""

@@ -432,8 +432,28 @@ class OracleResult:
 
 # ----------------------------------------------------------------------------- the run
 
+def above_background(frames: np.ndarray, bg: np.ndarray) -> np.ndarray:
+    """The light above a per-pixel background.
+
+    Parameters
+    ----------
+    frames : numpy.ndarray
+        (F, H, W) frames, DN.
+    bg : numpy.ndarray
+        (H, W) background, DN (+inf where none was taken yet: those pixels are left as they are).
+
+    Returns
+    -------
+    numpy.ndarray
+        (F, H, W) float32, DN.
+    """
+    b = np.where(np.isfinite(bg), bg, 0.0).astype(np.float32)
+    return frames.astype(np.float32) - b[None]
+
+
 class _RecordingDecoder(StreamDecoder):
-    """The pipeline's decoder, unchanged, that also hands each decoded block's frames,
+    """The pipeline's decoder, unchanged, that also hands each decoded block's frames (the
+    light above its per-pixel background where it subtracts one),
     luminance and Gaussian window (px, per camera, as :meth:`_luminance` computed it) to
     ``hook(ids, left, right, lum_l, lum_r, sigmas)``."""
 
@@ -458,12 +478,17 @@ class _RecordingDecoder(StreamDecoder):
         assert tr is not None
         # the window of StreamDecoder._luminance
         sig = [float(np.clip(s * g, 0.6, max(s, self.MAX_SIGMA_PX))) for s, g in zip(tr.roi_sigma, self._last_growth)]
+        # the receiver's images: the light above its per-pixel background where it has one
+        # (one LED by default, [tracking] background_one_led), as its window saw them
+        imgs = (left, right)
+        if self.background_on and self._backgrounds is not None:
+            imgs = tuple(above_background(img, b.bg) for img, b in zip(imgs, self._backgrounds))
         if self.last_centres is not None:  # check: that window at the followed centres is the receiver's
-            for img, c, lum, sg in zip((left, right), self.last_centres, (lum_l, lum_r), sig):
+            for img, c, lum, sg in zip(imgs, self.last_centres, (lum_l, lum_r), sig):
                 again = gauss_mean(img[:1], c[:1], sg, radius=int(np.ceil(3.5 * sg)) + 1)
                 scale = max(float(np.nanmax(np.abs(lum[:1]))), 1.0)
                 self.window_error = max(self.window_error, float(np.nanmax(np.abs(again - lum[:1]))) / scale)
-        self._hook(np.asarray(frame_ids, dtype=np.int64), left, right, lum_l, lum_r, sig)
+        self._hook(np.asarray(frame_ids, dtype=np.int64), imgs[0], imgs[1], lum_l, lum_r, sig)
         return lum_l, lum_r
 
 
