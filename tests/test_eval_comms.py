@@ -139,11 +139,14 @@ def test_car_approaching_at_40kmh_with_vibration_still_decodes(seed: int) -> Non
     assert res.ser == 0.0
 
 
+@pytest.mark.parametrize("model", ["smooth", pytest.param("bumps", marks=pytest.mark.slow),
+                                   pytest.param("engine", marks=pytest.mark.slow)])
 @pytest.mark.parametrize("vibration_px", [0.3, pytest.param(0.5, marks=pytest.mark.slow)])
 @pytest.mark.parametrize("seed", [3, pytest.param(4, marks=pytest.mark.slow), pytest.param(5, marks=pytest.mark.slow)])
-def test_one_led_hdr_approaching_at_40kmh_decodes_every_packet(seed: int, vibration_px: float) -> None:
+def test_one_led_hdr_approaching_at_40kmh_decodes_every_packet(seed: int, vibration_px: float, model: str) -> None:
     """One LED, PWM-8, the HDR pair f/4 + f/8 (b = 0.6 m), closing at 40 km/h from 50 m to
-    25 m, rig vibration 0.3 (and, slow, 0.5) px RMS, the project's physics (issue 12): every
+    25 m, rig vibration 0.3 (and, slow, 0.5) px RMS, smooth (and, slow, road bumps and engine
+    shake), the project's physics otherwise (issue 12): every
     packet found, CRC-valid and bit-exact, SER 0. With f/4 + f/4 the top two levels, which a
     clipping f/4 core compresses as the LED closes in, cost every packet of such scenes
     (docs/eval.md); these seeds were not among the ones looked at."""
@@ -151,7 +154,7 @@ def test_one_led_hdr_approaching_at_40kmh_decodes_every_packet(seed: int, vibrat
 
     case = next(c for c in MOTION_CASES if c.key == "1led-hdr-40kmh-0.3px")
     cfg, _ = motion_cfg(default_config(), case, point_seed(seed, "1led-hdr-test"),
-                        scene={"vibration_px": vibration_px})
+                        scene={"vibration_px": vibration_px, "vibration_model": model})
     assert cfg.camera.f_number_right == 8.0 and cfg.scene.min_distance_m == 25.0
     (res,) = run_comms(cfg, [ReceiverMode("HDR f/4+f/8", "both")], 2)
     print(f"one LED HDR approach: found {res.found}/{res.packets_sent}, exact {res.exact}, SER {res.ser:.3g}")
