@@ -71,6 +71,16 @@ PIPE_BYTES = 1 << 20
 four blocks of an 8x8 array): what queues while the worker decides a packet."""
 
 
+READ_BYTES = 1 << 16
+"""The worker reads the operations pipe into one buffer of this size, allocated once (a
+full pipe takes a few reads).
+(``os.read(fd, 1 MiB)`` allocated a fresh 1 MiB ``bytes`` at every poll, 250 a second, and
+shrank it to the few hundred bytes read; glibc serves these from the heap once its mmap
+threshold has risen past 1 MiB, and the heap grew: the worker's private memory rose 13 MiB
+in the first 5 minutes of a live run, the soak's "climb", and stays flat without these
+reads; docs/hardening.md, "The demodulation worker's memory".)"""
+
+
 def _serve(conn_in: Any, conn_out: Any) -> None:  # pragma: no cover - runs in the worker
     """The worker process: read operations, run them in order, send the results back."""
     from iscd.decode.worker import _call, _init
@@ -80,18 +90,20 @@ def _serve(conn_in: Any, conn_out: Any) -> None:  # pragma: no cover - runs in t
     os.set_blocking(rfd, False)
     os.set_blocking(wfd, True)
     buf = bytearray()
+    chunk = bytearray(READ_BYTES)  # read into this one buffer: see READ_BYTES
+    view = memoryview(chunk)
     eof = False
     while True:
         got = False
         while not eof:
             try:
-                chunk = os.read(rfd, 1 << 20)
+                n_read = os.readv(rfd, [chunk])
             except BlockingIOError:
                 break
-            if not chunk:  # the decoder closed its end: stop after what it sent
+            if not n_read:  # the decoder closed its end: stop after what it sent
                 eof = True
                 break
-            buf += chunk
+            buf += view[:n_read]
             got = True
         ran = False
         while len(buf) >= _HDR.size and len(buf) >= _HDR.size + _HDR.unpack_from(buf)[0]:

@@ -10,6 +10,12 @@ The worker keeps one :class:`~iscd.decode.comms.packets.PacketAssembler` in a mo
 :class:`DemodWorker` sends it operations in order (one worker, first in first out) and
 hands back a :class:`~concurrent.futures.Future` per operation whose result is the list
 of packets that operation completed.
+
+Memory debugging: with ``ISCD_DEMOD_TRACEMALLOC=FILE`` in its environment the worker traces
+its Python allocations (:mod:`tracemalloc`) and, every ``ISCD_DEMOD_TRACEMALLOC_EVERY``
+packets (default 1000), appends to FILE one line of figures (packets, traced KiB now, the
+peak since the last line, RssAnon KiB) and the 10 biggest differences against its first
+such line (:class:`MemoryReport`; docs/hardening.md, "The demodulation worker's memory").
 """
 
 from __future__ import annotations
@@ -22,6 +28,55 @@ from typing import Any
 from iscd.decode.comms.packets import Packet, PacketAssembler
 
 _assembler: PacketAssembler | None = None
+
+
+def rss_anon_kib(pid: int | str = "self") -> int:
+    """A process's private resident memory (``RssAnon`` of ``/proc/PID/status``), KiB."""
+    with open(f"/proc/{pid}/status") as fh:
+        for line in fh:
+            if line.startswith("RssAnon:"):
+                return int(line.split()[1])
+    raise OSError(f"no RssAnon in /proc/{pid}/status")
+
+
+class MemoryReport:
+    """The ``ISCD_DEMOD_TRACEMALLOC`` lines (module docstring): :meth:`tick` after every push
+    with the packets it completed. A line ``packets=N traced_kib=T peak_kib=P
+    rss_anon_kib=R``, then ``  <difference>`` lines. The peak is reset after each line: it
+    is the most traced at once between two lines (the report's own snapshot not counted)."""
+
+    def __init__(self, path: str, every: int) -> None:
+        self.path, self.every = path, max(1, every)
+        self.packets = 0
+        self._next = self.every
+        self._first: Any = None
+
+    def tick(self, packets: int) -> None:
+        import gc
+        import tracemalloc
+
+        if not tracemalloc.is_tracing():  # from the first push on (the kernels are loaded)
+            tracemalloc.start(8)
+        self.packets += packets
+        if self.packets < self._next:
+            return
+        self._next = self.packets + self.every
+        gc.collect()
+        now, peak = tracemalloc.get_traced_memory()
+        lines = [f"packets={self.packets} traced_kib={now / 1024:.1f} peak_kib={peak / 1024:.1f} "
+                 f"rss_anon_kib={rss_anon_kib()}"]
+        snap = tracemalloc.take_snapshot()
+        if self._first is None:
+            self._first = snap
+        else:
+            lines += [f"  {d}" for d in snap.compare_to(self._first, "lineno")[:10]]
+        with open(self.path, "a") as fh:
+            fh.write("\n".join(lines) + "\n")
+        del snap
+        tracemalloc.reset_peak()
+
+
+_report: MemoryReport | None = None
 
 
 def _call(op: str, *args: Any) -> list[Packet]:
@@ -41,7 +96,10 @@ def _call(op: str, *args: Any) -> list[Packet]:
     if _assembler is None:
         raise RuntimeError(f"demodulation worker: {op!r} before the assembler was made")
     if op == "push":
-        return _assembler.push(*args)
+        out = _assembler.push(*args)
+        if _report is not None:
+            _report.tick(len(out))
+        return out
     if op == "reset":
         _assembler.reset()
         return []
@@ -58,6 +116,11 @@ whole packet's time (1.3 s) for each packet, they have a millisecond per frame."
 def _init() -> None:
     import os
     import signal
+
+    global _report
+    if os.environ.get("ISCD_DEMOD_TRACEMALLOC"):  # memory debugging (module docstring)
+        _report = MemoryReport(os.environ["ISCD_DEMOD_TRACEMALLOC"],
+                               int(os.environ.get("ISCD_DEMOD_TRACEMALLOC_EVERY", "1000")))
 
     # Ctrl-C reaches the whole process group: the daemon stops this worker itself (it
     # closes the pipe), so the worker ignores SIGINT instead of dying with a traceback

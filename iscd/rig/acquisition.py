@@ -51,7 +51,7 @@ import numpy as np
 
 from iscd.core.config import config_section
 from iscd.drivers.base import Camera, CameraError, CameraLost, CameraSettings, CameraTimeout, Frame, StereoPairSource
-from iscd.rig.pairing import StereoPairer
+from iscd.rig.pairing import UNPAIRED_WHY, StereoPairer
 from iscd.rig.ringbuffer import RingError, StereoRing
 
 log = logging.getLogger(__name__)
@@ -66,8 +66,9 @@ CameraFactory = Callable[[], tuple[Camera, Camera]]
 _SIDES = ("left", "right")
 
 
-def _opt(default: Any, doc: str, lo: float | None = None, lo_open: bool = False) -> Any:
-    return field(default=default, metadata={"lo": lo, "lo_open": lo_open, "doc": doc})
+def _opt(default: Any, doc: str, lo: float | None = None, lo_open: bool = False,
+         hi: float | None = None) -> Any:
+    return field(default=default, metadata={"lo": lo, "lo_open": lo_open, "hi": hi, "doc": doc})
 
 
 @config_section("acquisition")
@@ -85,9 +86,12 @@ class AcquisitionOptions:
                               "one clock: 0)")
     learn_ts_offset: bool = _opt(False, "learn the clock offset from the first pair "
                                  "(free-running device clocks)")
-    pair_window: int = _opt(16, "frames a camera may run ahead before its partner counts "
-                            "as lost", lo=1)
-    max_pending: int = _opt(64, "frames that may wait for their partner, per camera", lo=1)
+    pair_window: int = _opt(16, "frames (1..4096) a camera may run ahead of a waiting frame "
+                            "before that frame's partner counts as lost", lo=1, hi=4096)
+    max_pending: int = _opt(64, "frames (1..4096) that may wait for their partner, per camera: "
+                            "the longest skew between the two cameras' readers that pairing "
+                            "absorbs (each waiting frame holds a copy of its image, 256 KiB at "
+                            "512x512 8-bit)", lo=1, hi=4096)
     resync_after: int = _opt(8, "failed frames in a row before re-learning the id "
                              "alignment (0 = never)", lo=0)
     reopen_backoff_s: float = _opt(0.05, "first wait before reopening a lost camera, s",
@@ -177,6 +181,51 @@ class AcquisitionStats:
         return dataclasses.asdict(self)
 
 
+class PairingReport:
+    """Says in the log, at most once every :attr:`every_s` (and only when it happened), that
+    frames found no partner since the last line, how many per camera and why (the pairer's
+    :data:`~iscd.rig.pairing.UNPAIRED_WHY`, and ``timestamps disagree``: equal ids, both
+    dropped), naming the ``[acquisition]`` keys that decide it, e.g. ``pairing: 36 left and 36
+    right frames of 200 + 200 found no partner in the last 1.0 s (window 36, max_pending 36;
+    [acquisition] pair_window = 16, max_pending = 64 frames: ...)``. ``clock``: seconds,
+    monotonic (tests hand it a fake one)."""
+
+    every_s = 1.0
+
+    def __init__(self, pairer: StereoPairer, clock: Callable[[], float] = time.monotonic) -> None:
+        self.pairer = pairer
+        self.clock = clock
+        self._t = clock()
+        self._seen = self._now()
+        self.said = 0
+        """lines written so far"""
+
+    def _now(self) -> tuple[int, ...]:
+        c, why = self.pairer.counters, self.pairer.unpaired_why
+        return (c.frames_left, c.frames_right, c.unpaired_left, c.unpaired_right, c.id_mismatch,
+                *(why[k] for k in UNPAIRED_WHY))
+
+    def check(self) -> bool:
+        """Called after each frame; True when it wrote a line."""
+        t = self.clock()
+        if t - self._t < self.every_s:
+            return False
+        now = self._now()
+        d = [a - b for a, b in zip(now, self._seen)]
+        dt, self._t, self._seen = t - self._t, t, now
+        if d[2] + d[3] + d[4] <= 0:
+            return False
+        p = self.pairer
+        why = ", ".join([f"{k} {n}" for k, n in zip(UNPAIRED_WHY, d[5:]) if n]
+                        + ([f"timestamps disagree {d[4]} + {d[4]}"] if d[4] else []))
+        log.warning("pairing: %d left and %d right frames of %d + %d found no partner in the last %.1f s "
+                    "(%s; [acquisition] pair_window = %d, max_pending = %d frames: raise them if one "
+                    "camera's frames come that many frames after the other's)",
+                    d[2] + d[4], d[3] + d[4], d[0], d[1], dt, why, p.window, p.max_pending)
+        self.said += 1
+        return True
+
+
 def _retain(frame: Frame) -> Frame:
     return dataclasses.replace(frame, image=np.array(frame.image, copy=True))
 
@@ -209,6 +258,7 @@ class Acquisition:
             ts_offset_ns=None if opt.learn_ts_offset else round(opt.ts_offset_s * 1e9),
             window=opt.pair_window, max_pending=opt.max_pending, resync_after=opt.resync_after,
             retain=_retain if opt.copy_frames else None)
+        self.pairing_report = PairingReport(self.pairer)
         self._stats = AcquisitionStats(pid=os.getpid())
         self._lock = threading.Lock()
         self._stop = threading.Event()
@@ -448,7 +498,9 @@ class Acquisition:
                     log.warning("%s camera delivers %s images, the ring holds %s %s: dropped",
                                 side, got, self._shape, self.ring.dtype)
                 return
-            for pair in self.pairer.push(side, frame):  # type: ignore[arg-type]
+            pairs = self.pairer.push(side, frame)  # type: ignore[arg-type]
+            self.pairing_report.check()
+            for pair in pairs:
                 try:
                     self.ring.write(pair.left.image, pair.right.image, frame_id=pair.frame_id,
                                     ts_left_ns=pair.left.timestamp_ns,

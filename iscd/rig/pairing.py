@@ -67,6 +67,14 @@ class StereoPair:
         return self.right.timestamp_ns - self.left.timestamp_ns
 
 
+UNPAIRED_WHY = ("window", "max_pending", "late", "overtaken", "end")
+"""Why frames went unpaired (:attr:`StereoPairer.unpaired_why`): ``window``: the other camera
+got ``window`` frames past it without its partner; ``max_pending``: more than
+``max_pending`` frames of its camera waited (the oldest goes); ``late``: it came after a
+later pair had gone out; ``overtaken``: it waited while a later pair went out; ``end``:
+still waiting at :meth:`StereoPairer.flush`."""
+
+
 @dataclass
 class PairingCounters:
     """What happened to the pushed frames (see the module docstring)."""
@@ -146,6 +154,8 @@ class StereoPairer:
         self._last_emitted: int | None = None
         self._fail_run = 0
         self.counters = PairingCounters()
+        self.unpaired_why: dict[str, int] = dict.fromkeys(UNPAIRED_WHY, 0)
+        """the unpaired frames (both cameras) by cause, :data:`UNPAIRED_WHY`"""
 
     # ------------------------------------------------------------------ public
     @property
@@ -189,7 +199,7 @@ class StereoPairer:
         else:
             me.max_seen = pid
         if self._last_emitted is not None and pid <= self._last_emitted:
-            self._count(f"unpaired_{side}")  # too late: its pair can no longer go out in order
+            self._count(f"unpaired_{side}", why="late")  # its pair can no longer go out in order
             return self._failed()
 
         partner = other.pending.pop(pid, None)
@@ -205,12 +215,14 @@ class StereoPairer:
         """End of stream: count every pending frame as unpaired."""
         for side in _SIDES:
             st = self._s[side]
-            self._count(f"unpaired_{side}", len(st.pending))
+            self._count(f"unpaired_{side}", len(st.pending), why="end")
             st.pending.clear()
 
     # ------------------------------------------------------------------ internals
-    def _count(self, name: str, n: int = 1) -> None:
+    def _count(self, name: str, n: int = 1, why: str = "") -> None:
         setattr(self.counters, name, getattr(self.counters, name) + n)
+        if why:
+            self.unpaired_why[why] += n
 
     def _remember(self, st: _SideState, pid: int) -> None:
         st.recent.append(pid)
@@ -233,7 +245,7 @@ class StereoPairer:
             old = [k for k in st.pending if k < pid]
             for k in old:
                 del st.pending[k]
-            self._count(f"unpaired_{side}", len(old))
+            self._count(f"unpaired_{side}", len(old), why="overtaken")
         self._last_emitted = pid
         self._fail_run = 0
         self.counters.pairs += 1
@@ -249,11 +261,13 @@ class StereoPairer:
                 drop = [k for k in st.pending if k <= ot.max_seen - self.window]
             for k in drop:
                 del st.pending[k]
+            self._count(f"unpaired_{s}", len(drop), why="window")
+            n_win = len(drop)
             while len(st.pending) > self.max_pending:
                 k = min(st.pending)
                 del st.pending[k]
                 drop.append(k)
-            self._count(f"unpaired_{s}", len(drop))
+            self._count(f"unpaired_{s}", len(drop) - n_win, why="max_pending")
             n += len(drop)
         return n
 
@@ -325,8 +339,8 @@ class StereoPairer:
                 continue  # flushed by an earlier pair of this loop
             left, right = sl.pending.pop(pid), sr.pending.pop(pid)
             if self._last_emitted is not None and pid <= self._last_emitted:
-                self._count("unpaired_left")
-                self._count("unpaired_right")
+                self._count("unpaired_left", why="late")
+                self._count("unpaired_right", why="late")
                 continue
             pair = self._try_pair(pid, left, right)
             if pair is not None:
