@@ -44,19 +44,24 @@ def _records(path: Path) -> list[dict]:
 
 def test_duration_ends_on_time_when_the_decoder_is_behind(tmp_path: Path, monkeypatch) -> None:
     """Item 11. Each decoded block costs an injected 0.3 s (16 pairs: 0.05x real time), so
-    the 500-pair ring is full the whole run. The run must end within 1.5 s of --duration
-    counted from the first decoded block (which comes after the acquisition starts):
-    the block in hand is finished, the records flushed, a final stats record written, and
-    the pairs left in the ring dropped and counted. Before the fix the daemon decoded the
-    backlog for up to 5 s more."""
+    the 500-pair ring is full the whole run. When --duration has passed (counted from the
+    first decoded block, which comes after the acquisition starts) the daemon finishes the
+    block in hand and starts no other: the records are flushed, a final stats record
+    written, and the pairs left in the ring dropped and counted. Before the fix the daemon
+    decoded the backlog (~30 blocks, ~9 s) on. What is counted is the blocks begun after
+    the deadline (at most the one in hand), not the wall time of the shutdown, which a busy
+    machine stretches (2.05 s once at load 5, where 1.5 s had been the bound)."""
     from iscd.decode import stream as pipeline
 
     orig = pipeline.StreamDecoder.push
     first: list[float] = []
+    begun: list[float] = []
 
     def slow_push(self, *a, **kw):
+        now = time.monotonic()
         if not first:
-            first.append(time.monotonic())
+            first.append(now)
+        begun.append(now)
         time.sleep(0.3)
         return orig(self, *a, **kw)
 
@@ -67,8 +72,10 @@ def test_duration_ends_on_time_when_the_decoder_is_behind(tmp_path: Path, monkey
     d.run()
     t_end = time.monotonic()
     assert first, "no block was decoded"
+    after = [t for t in begun if t > first[0] + duration]
+    assert len(after) <= 1, f"{len(after)} blocks begun after the duration (the backlog was decoded)"
     late = t_end - first[0] - duration
-    assert late < 1.5, f"the run ended {late:.2f} s after its duration"
+    assert late < 6.0, f"the run ended {late:.2f} s after its duration (the backlog alone is ~9 s)"
     recs = _records(out)  # every line parses
     stats = [r for r in recs if r["type"] == "stats"]
     final = stats[-1]
@@ -76,7 +83,7 @@ def test_duration_ends_on_time_when_the_decoder_is_behind(tmp_path: Path, monkey
     # the backlog is dropped, counted, and part of SPEC's frames_dropped
     assert final["stop_dropped"] > 0
     assert final["frames_dropped"] >= final["stop_dropped"]
-    assert final["acquiring_s"] < duration + 1.5
+    assert final["acquiring_s"] < duration + 6.0
     assert d.final_stats is not None and d.final_stats["stop_dropped"] == final["stop_dropped"]
     print(f"ended {late:.2f} s after the duration; {final['stop_dropped']} pairs dropped at the stop")
 
