@@ -120,7 +120,16 @@ class Runner:
         n = self.n_workers = self.workers or default_workers()
         dashboard = ":0"  # a free port (without bokeh only its health routes: no dashboard)
         has_dashboard = importlib.util.find_spec("bokeh") is not None
-        os.environ.update(SINGLE_THREAD_ENV)  # the Numba/BLAS pools of this process's children too
+        # the workers' Numba/BLAS pools: one thread (env=, which the nannies set in the
+        # workers before they start, and the BLAS variables in this process's environment
+        # while they are started, restored afterwards). Never this process's
+        # NUMBA_NUM_THREADS: Numba rereads it at every compilation and refuses to compile
+        # once its thread pool was launched with another value ("Cannot set
+        # NUMBA_NUM_THREADS to a different value once the threads have been launched": a
+        # full test run after a campaign test)
+        blas = {k: v for k, v in SINGLE_THREAD_ENV.items() if k != "NUMBA_NUM_THREADS"}
+        saved = {k: os.environ.get(k) for k in blas}
+        os.environ.update(blas)
         try:
             self.cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True,
                                         dashboard_address=dashboard, env=dict(SINGLE_THREAD_ENV),
@@ -129,6 +138,12 @@ class Runner:
         except Exception:
             self.close()
             raise
+        finally:
+            for k, v in saved.items():
+                if v is None:
+                    os.environ.pop(k, None)
+                else:
+                    os.environ[k] = v
         where = self.client.dashboard_link if has_dashboard else "not available (install bokeh for it)"
         self.say(f"{self.prog}: LocalCluster of {n} worker process(es), 1 thread each; dashboard: {where}")
         return self
