@@ -343,7 +343,8 @@ def analyze(directory: Path, *, warmup_s: float = 20.0, window_before: int = 100
                    demod_worker_restarts=final["demod_worker_restarts"],
                    latency_ms_p99_final=final.get("latency_ms_p99"),
                    reopens=(final["acquisition"]["reopens_left"], final["acquisition"]["reopens_right"]),
-                   resyncs=final["acquisition"]["resyncs"])
+                   resyncs=final["acquisition"]["resyncs"],
+                   catch_ups=final["acquisition"].get("catch_ups", 0))  # a late reader skipped its backlog
     # -- frames dropped only during faults (after the warm-up; the end of a run is not a fault:
     #    its drops, if any, are stop_dropped and reported apart)
     # the sampler's clock started with the daemon's process; uptime_s from the Daemon object

@@ -141,6 +141,25 @@ class Camera(abc.ABC):
         """Fire one software trigger (only with ``trigger="software"``)."""
         raise CameraError(f"{type(self).__name__} has no software trigger")
 
+    def skip_to(self, until_ns: int, timeout_s: float = 1.0,
+                max_frames: int = 1 << 16) -> tuple[int, Frame | None]:
+        """Discard the frames this camera has waiting whose ``timestamp_ns`` (ns, device
+        clock) is below ``until_ns``: a reader that has fallen behind catches up with its
+        partner camera. Returns (frames discarded, the first frame not older, or None when
+        none came within ``timeout_s`` s of a read or ``max_frames`` were discarded).
+        The default reads and drops; backends that can skip without delivering images
+        override it. Raises what :meth:`read` raises, except :class:`CameraTimeout`."""
+        n = 0
+        while n < max_frames:
+            try:
+                frame = self.read(timeout_s=timeout_s)
+            except CameraTimeout:
+                return n, None
+            if frame.timestamp_ns >= until_ns:
+                return n, frame
+            n += 1
+        return n, None
+
     @property
     def settings(self) -> CameraSettings | None:
         return getattr(self, "_settings", None)

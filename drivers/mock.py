@@ -54,6 +54,8 @@ class CameraStats:
     dropped_fault: int = 0
     """frames lost to injected drop/stall/vanish faults"""
     duplicated: int = 0
+    skipped: int = 0
+    """frames discarded unread by :meth:`MockCamera.skip_to` (a reader catching up)"""
 
 
 @dataclass
@@ -369,6 +371,28 @@ class MockRig(StereoPairSource):
         c.stats.delivered += 1
         return Frame(c.name, self._frame_id(c, n), self.trigger_time_ns(n), img)
 
+    def _skip_to(self, c: _CamState, until_ns: int, timeout_s: float,
+                 max_frames: int) -> tuple[int, Frame | None]:
+        """:meth:`Camera.skip_to` without rendering the discarded frames: the triggers
+        waiting for camera ``c`` (its queue, or with ``pace = false`` the next ones, faults
+        applied) whose time is below ``until_ns`` are counted in ``stats.skipped``."""
+        n_skipped = 0
+        try:
+            while n_skipped < max_frames:
+                if self.pace:
+                    n = self._next_index(c, timeout_s)
+                else:
+                    with self._lock:
+                        n = self._next_index(c, timeout_s)
+                if self.trigger_time_ns(n) >= until_ns:
+                    c.queue.appendleft(n)  # the first one kept: read next
+                    return n_skipped, self._read(c, timeout_s)
+                n_skipped += 1
+                c.stats.skipped += 1
+        except CameraTimeout:
+            pass
+        return n_skipped, None
+
 
     # ----------------------------------------------------------------- pairs at once
     def pair_capable(self) -> bool:
@@ -459,6 +483,10 @@ class MockCamera(Camera):
 
     def read(self, timeout_s: float = 1.0) -> Frame:
         return self.rig._read(self._c, timeout_s)
+
+    def skip_to(self, until_ns: int, timeout_s: float = 1.0,
+                max_frames: int = 1 << 16) -> tuple[int, Frame | None]:
+        return self.rig._skip_to(self._c, until_ns, timeout_s, max_frames)
 
     def stop(self) -> None:
         self.rig._stop(self._c)

@@ -29,6 +29,13 @@ may reuse the buffer on the next read). Camera faults never end the worker:
   ``reopen_backoff_max_s``; ``open_failures_<side>``, ``reopens_<side>``). A reopened
   camera's frame ids may restart: the pairer re-learns the alignment from timestamps.
 
+A reader that falls behind its partner by more than pairing absorbs (``max_pending``) would
+never pair again while the lag lasts; the pairer then asks it to catch up
+(:meth:`StereoPairer.take_catch_up`): before its next read it discards its camera's backlog up
+to the other camera's newest frame (``Camera.skip_to``), the frames counted unpaired
+(``skipped``) and the catch-up said in one log line (at most one a second, the rest counted
+into the next).
+
 Counters are published into the ring's ``aux`` words (shared memory), so the consumer
 reads them with :meth:`AcquisitionStats.from_ring` whether the worker is a thread or a
 process; ``heartbeat_ns`` (``time.monotonic_ns``) shows that the worker is alive.
@@ -51,7 +58,7 @@ import numpy as np
 
 from iscd.core.config import config_section
 from iscd.drivers.base import Camera, CameraError, CameraLost, CameraSettings, CameraTimeout, Frame, StereoPairSource
-from iscd.rig.pairing import UNPAIRED_WHY, StereoPairer
+from iscd.rig.pairing import UNPAIRED_WHY, CatchUp, StereoPairer
 from iscd.rig.ringbuffer import RingError, StereoRing
 
 log = logging.getLogger(__name__)
@@ -93,7 +100,9 @@ class AcquisitionOptions:
                             "absorbs (each waiting frame holds a copy of its image, 256 KiB at "
                             "512x512 8-bit)", lo=1, hi=4096)
     resync_after: int = _opt(8, "failed frames in a row before re-learning the id "
-                             "alignment (0 = never)", lo=0)
+                             "alignment, and frames of a camera in a row that came after all "
+                             "the other's waiting frames before its reader skips its backlog "
+                             "(0 = neither)", lo=0)
     reopen_backoff_s: float = _opt(0.05, "first wait before reopening a lost camera, s",
                                    lo=0)
     reopen_backoff_max_s: float = _opt(2.0, "longest wait between reopen attempts, s", lo=0)
@@ -128,6 +137,8 @@ class AcquisitionStats:
     duplicates_right: int = 0
     out_of_order: int = 0
     resyncs: int = 0
+    catch_ups: int = 0
+    """times a late camera's reader skipped its backlog (the frames are in ``unpaired_*``)"""
     timeouts_left: int = 0
     timeouts_right: int = 0
     errors_left: int = 0
@@ -199,6 +210,28 @@ class PairingReport:
         self._seen = self._now()
         self.said = 0
         """lines written so far"""
+        self._t_catch_up: float | None = None
+        self._quiet_catch_ups = [0, 0]  # catch-ups and frames skipped since the last such line
+
+    def caught_up(self, side: str, skipped: int, cu: CatchUp) -> bool:
+        """Camera ``side``'s reader skipped ``skipped`` frames (``cu``: what was asked): one
+        line, at most one every :attr:`every_s` (those in between are counted into the
+        next). True when it wrote a line."""
+        t = self.clock()
+        self._quiet_catch_ups[0] += 1
+        self._quiet_catch_ups[1] += skipped
+        if self._t_catch_up is not None and t - self._t_catch_up < self.every_s:
+            return False
+        n, frames = self._quiet_catch_ups
+        self._t_catch_up, self._quiet_catch_ups = t, [0, 0]
+        more = (f" ({n - 1} more catch-ups, {frames - skipped} frames, since the last such line)"
+                if n > 1 else "")
+        log.warning("pairing: the %s camera's frames came %.3f s after the other camera's (more than "
+                    "pairing absorbs: [acquisition] max_pending = %d frames); skipped %d of them "
+                    "to re-anchor on the other camera's newest frame%s",
+                    side, cu.lag_ns / 1e9, self.pairer.max_pending, skipped, more)
+        self.said += 1
+        return True
 
     def _now(self) -> tuple[int, ...]:
         c, why = self.pairer.counters, self.pairer.unpaired_why
@@ -454,7 +487,9 @@ class Acquisition:
                     backoff = opt.reopen_backoff_s
                 continue
             try:
-                frame = cam.read(timeout_s=opt.read_timeout_s)
+                frame = self._next_frame(side, cam)
+                if frame is None:
+                    continue
             except CameraTimeout:
                 self._bump(f"timeouts_{side}")
                 continue
@@ -478,6 +513,22 @@ class Acquisition:
                 continue
             errors_in_row = 0
             self._handle(side, frame, time.monotonic_ns())
+
+    def _next_frame(self, side: str, cam: Camera) -> Frame | None:
+        """The camera's next frame for the pairer; first, if the pairer asked this camera to
+        catch up, its backlog skipped (counted and said; None if no frame followed it within
+        the read timeout). Raises what ``cam.read`` raises."""
+        timeout_s = self.options.read_timeout_s
+        with self._lock:
+            cu = self.pairer.take_catch_up(side)  # type: ignore[arg-type]
+        if cu is None:
+            return cam.read(timeout_s=timeout_s)
+        n, frame = cam.skip_to(cu.until_ns, timeout_s=timeout_s, max_frames=cu.max_frames)
+        with self._lock:
+            self.pairer.skipped(side, n)  # type: ignore[arg-type]
+            self.pairing_report.caught_up(side, n, cu)
+            self._publish()
+        return frame
 
     def _lost(self, side: str, why: str) -> None:
         self._bump(f"lost_{side}")
@@ -523,6 +574,7 @@ class Acquisition:
         st.frames_left, st.frames_right = c.frames_left, c.frames_right
         st.unpaired_left, st.unpaired_right = c.unpaired_left, c.unpaired_right
         st.id_mismatch, st.out_of_order, st.resyncs = c.id_mismatch, c.out_of_order, c.resyncs
+        st.catch_ups = c.catch_ups
         st.duplicates_left, st.duplicates_right = c.duplicates_left, c.duplicates_right
         st.frames_left += st.bad_frames_left
         st.frames_right += st.bad_frames_right

@@ -32,10 +32,30 @@ timestamps agree; if the last ``resync_after // 2`` (at least 2) timestamp match
 the same non-zero shift, it adopts it and pairing resumes. Pair ids (:attr:`StereoPair.frame_id`)
 are the left camera's frame ids, shifted where needed so that they keep increasing across a
 left camera restart.
+
+Catching up: a camera whose frames are delivered later than the other's by more than pairing
+absorbs (a starved reader thread, a deep driver queue) has its every frame arrive after the
+other camera has already given up its partner (``window``, ``max_pending``); as long as that
+lag lasts no pair forms, and ids and timestamps both agree, so the resync above has nothing to
+re-learn. After ``resync_after`` frames in a row of one camera that came after every frame the
+other camera still holds (by timestamp), unless that camera is closing the gap (its lag to the
+other camera's newest frame shrank by at least one frame for every two of its frames in the
+run: a reader draining a backlog, which then pairs within twice the lag), the pairer asks that
+camera's reader to skip its backlog up to the other camera's newest frame
+(:meth:`StereoPairer.take_catch_up`, :class:`CatchUp`): both re-anchor on their newest frames
+(re-anchoring on the other's oldest waiting one would leave the lag at ``max_pending``, still
+too long while the other camera moves on). The reader discards those frames
+(``Camera.skip_to``) and reports them (:meth:`StereoPairer.skipped`): they are counted unpaired
+(``skipped``); the other camera's frames older than the new anchor go as ``overtaken``, and
+pairing resumes with the next frame. So a lag that lasts is paired again after at most
+``resync_after + 1`` of the late camera's reads. Lags of more than
+:data:`MAX_CATCH_UP_FRAMES` are taken for clocks that disagree, not a late reader, and left
+alone.
 """
 
 from __future__ import annotations
 
+import math
 from collections import deque
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
@@ -67,12 +87,33 @@ class StereoPair:
         return self.right.timestamp_ns - self.left.timestamp_ns
 
 
-UNPAIRED_WHY = ("window", "max_pending", "late", "overtaken", "end")
+UNPAIRED_WHY = ("window", "max_pending", "late", "overtaken", "end", "skipped")
 """Why frames went unpaired (:attr:`StereoPairer.unpaired_why`): ``window``: the other camera
 got ``window`` frames past it without its partner; ``max_pending``: more than
 ``max_pending`` frames of its camera waited (the oldest goes); ``late``: it came after a
 later pair had gone out; ``overtaken``: it waited while a later pair went out; ``end``:
-still waiting at :meth:`StereoPairer.flush`."""
+still waiting at :meth:`StereoPairer.flush`; ``skipped``: discarded unread by its camera's
+reader catching up (:meth:`StereoPairer.skipped`)."""
+
+MAX_CATCH_UP_FRAMES = 1 << 16
+"""The longest lag, frames, that a catch-up skips (65 s at 1000 fps: longer than any driver
+queue); beyond it the two cameras' timestamps are taken to disagree (a clock reset), not a
+reader to be late."""
+
+
+@dataclass(frozen=True)
+class CatchUp:
+    """What a late camera's reader should skip (:meth:`StereoPairer.take_catch_up`).
+
+    until_ns: discard this camera's frames with a timestamp below it (ns, this camera's
+      clock): the other camera's newest frame, less the timestamp tolerance.
+    max_frames: at most this many (the lag in frames, plus the pairing window).
+    lag_ns: how far behind the frame that triggered it was, ns.
+    """
+
+    until_ns: int
+    max_frames: int
+    lag_ns: int
 
 
 @dataclass
@@ -89,6 +130,8 @@ class PairingCounters:
     duplicates_right: int = 0
     out_of_order: int = 0
     resyncs: int = 0
+    catch_ups: int = 0
+    """times a late camera skipped its backlog (its frames are in ``unpaired_*``)"""
 
     @property
     def duplicates(self) -> int:
@@ -112,6 +155,9 @@ class _SideState:
     recent_set: set[int] = field(default_factory=set)
     max_seen: int | None = None
     history: deque[tuple[int, int]] = field(default_factory=deque)  # (camera id, ts_ns)
+    behind: int = 0  # frames in a row that came after every frame the other camera holds
+    behind_lag0_ns: int = 0  # the first of them: its lag to the other camera's newest frame
+    catch_up: CatchUp | None = None  # asked of this camera's reader, not yet taken
 
 
 class StereoPairer:
@@ -122,7 +168,9 @@ class StereoPairer:
     ts_offset_ns: initial right-minus-left clock offset, ns; ``None`` learns it.
     window: a pending frame is dropped once the other camera is ``window`` frames past it.
     max_pending: at most this many frames wait per camera (a stalled partner camera).
-    resync_after: consecutive failures before re-learning the id alignment (0: never).
+    resync_after: consecutive failures before re-learning the id alignment, and frames of
+      one camera in a row, each later than all the other camera's waiting frames, before
+      that camera is asked to catch up (0: neither).
     history: recent (id, timestamp) pairs kept per camera for that.
     retain: called on a frame that must wait for its partner; return a frame that stays
       valid (e.g. with a copied image: drivers may reuse a frame's buffer on the next read).
@@ -200,16 +248,36 @@ class StereoPairer:
             me.max_seen = pid
         if self._last_emitted is not None and pid <= self._last_emitted:
             self._count(f"unpaired_{side}", why="late")  # its pair can no longer go out in order
+            self._check_behind(side, frame)
             return self._failed()
 
         partner = other.pending.pop(pid, None)
         if partner is None:
             me.pending[pid] = self._retain(frame) if self._retain else frame
             expired = self._expire(side)
+            self._check_behind(side, frame)
             return self._failed() if expired else []
         left, right = (frame, partner) if side == "left" else (partner, frame)
         pair = self._try_pair(pid, left, right)
         return [pair] if pair is not None else self._failed()
+
+    def take_catch_up(self, side: Side) -> CatchUp | None:
+        """What camera ``side``'s reader should skip before its next read (see the module
+        docstring, "Catching up"), or None; each request is returned once. The reader
+        reports what it discarded with :meth:`skipped`."""
+        st = self._s[side]
+        cu, st.catch_up = st.catch_up, None
+        return cu
+
+    def skipped(self, side: Side, n: int) -> None:
+        """Camera ``side``'s reader discarded ``n`` frames unread to catch up: they count as
+        its frames and as unpaired (``skipped``)."""
+        if side not in _OTHER or n < 0:
+            raise ValueError(f"skipped({side!r}, {n}): side must be 'left' or 'right', n >= 0")
+        c = self.counters
+        setattr(c, f"frames_{side}", getattr(c, f"frames_{side}") + n)
+        self._count(f"unpaired_{side}", n, why="skipped")
+        c.catch_ups += 1
 
     def flush(self) -> None:
         """End of stream: count every pending frame as unpaired."""
@@ -248,6 +316,8 @@ class StereoPairer:
             self._count(f"unpaired_{side}", len(old), why="overtaken")
         self._last_emitted = pid
         self._fail_run = 0
+        for st in self._s.values():
+            st.behind = 0
         self.counters.pairs += 1
         return StereoPair(pid, left, right)
 
@@ -270,6 +340,46 @@ class StereoPairer:
             self._count(f"unpaired_{s}", len(drop) - n_win, why="max_pending")
             n += len(drop)
         return n
+
+    def _check_behind(self, side: Side, frame: Frame) -> None:
+        """``frame`` of camera ``side`` found no partner: if it is older (timestamp, beyond
+        the tolerance) than every frame the other camera still holds, its partner is gone;
+        ``resync_after`` such frames in a row ask this camera to catch up."""
+        me, ot = self._s[side], self._s[_OTHER[side]]
+        if not self.resync_after or self._offset is None or not ot.pending or me.catch_up is not None:
+            return
+        off = self._offset if side == "left" else -self._offset  # other's clock -> this one's
+        oldest = ot.pending[min(ot.pending)]
+        if oldest.timestamp_ns - off - int(frame.timestamp_ns) <= self.ts_tolerance_ns:
+            me.behind = 0  # the partner may still be waiting (or only this one was lost)
+            return
+        t_other = ot.history[-1][1] - off  # the other camera's newest frame
+        lag = round(t_other - int(frame.timestamp_ns))
+        me.behind += 1
+        if me.behind == 1:
+            me.behind_lag0_ns = lag
+        if me.behind < self.resync_after:
+            return
+        period = self._frame_period_ns(me)
+        frames = math.ceil(lag / period) if period else MAX_CATCH_UP_FRAMES + 1
+        if frames > MAX_CATCH_UP_FRAMES:
+            return  # not a late reader: clocks that disagree
+        if (me.behind_lag0_ns - lag) / period >= me.behind / 2:
+            return  # closing the gap fast enough: it will pair within twice the first lag
+        me.catch_up = CatchUp(until_ns=round(t_other - self.ts_tolerance_ns),
+                              max_frames=frames + self.window, lag_ns=round(lag))
+        me.behind = 0
+
+    @staticmethod
+    def _frame_period_ns(st: _SideState) -> float | None:
+        """The shortest timestamp step per frame id in the camera's recent frames, ns."""
+        best = None
+        h = list(st.history)
+        for (i0, t0), (i1, t1) in zip(h, h[1:]):
+            if i1 > i0 and t1 > t0:
+                p = (t1 - t0) / (i1 - i0)
+                best = p if best is None else min(best, p)
+        return best
 
     def _failed(self) -> list[StereoPair]:
         """Note a failure; every ``resync_after`` failures in a row, try to re-align ids."""
