@@ -119,6 +119,9 @@ class AirInterface(PacketFraming):
     @classmethod
     def from_config(cls, tx: object) -> "AirInterface":
         """From a :class:`iscd.core.config.TransmitterConfig`."""
+        if tx.rows * tx.cols == 0:  # type: ignore[attr-defined]
+            raise AirInterfaceError('transmitter rows and cols are "auto": only the receiver infers '
+                                    "them; a packet's geometry needs the numbers")
         return cls(levels=tx.levels, n_leds=tx.rows * tx.cols,  # type: ignore[attr-defined]
                    training_symbols=tx.training_symbols,  # type: ignore[attr-defined]
                    data_symbols=tx.data_symbols, idle_symbols=tx.idle_symbols)  # type: ignore[attr-defined]

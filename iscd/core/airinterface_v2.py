@@ -571,6 +571,9 @@ def from_config(tx: object) -> AirInterface | AirInterfaceV2:
     """
     if getattr(tx, "air_interface", "v1") != "v2":
         return AirInterface.from_config(tx)
+    if tx.rows * tx.cols == 0:  # type: ignore[attr-defined]
+        raise AirInterfaceError('transmitter rows and cols are "auto": only the receiver infers '
+                                "them; a packet's geometry needs the numbers")
     kw = dict(levels=tx.levels, rows=tx.rows, cols=tx.cols,  # type: ignore[attr-defined]
               training_symbols=tx.training_symbols, fec=tx.fec,  # type: ignore[attr-defined]
               idle_symbols=tx.idle_symbols)  # type: ignore[attr-defined]

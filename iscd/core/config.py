@@ -27,8 +27,12 @@ class ConfigError(ValueError):
 
 
 def _check(lo: float | None = None, hi: float | None = None, lo_open: bool = False,
-           choices: tuple[Any, ...] | None = None, doc: str = "") -> dict[str, Any]:
-    return {"lo": lo, "hi": hi, "lo_open": lo_open, "choices": choices, "doc": doc}
+           choices: tuple[Any, ...] | None = None, doc: str = "", auto: bool = False) -> dict[str, Any]:
+    return {"lo": lo, "hi": hi, "lo_open": lo_open, "choices": choices, "doc": doc, "auto": auto}
+
+
+AUTO = 0
+"""An integer key that takes ``"auto"`` (``[transmitter] rows``, ``cols``) holds this for it."""
 
 
 def _f(default: Any, **kw: Any) -> Any:
@@ -45,8 +49,10 @@ FEC_NAMES = ("none", "rs255_239", "rs255_223", "rs255_191")
 class TransmitterConfig:
     """The LED transmitter and its air interface (SPEC section 3, table 4.1)."""
 
-    rows: int = _f(8, lo=1, hi=64, doc="LED array rows")
-    cols: int = _f(8, lo=1, hi=64, doc="LED array columns")
+    rows: int = _f(8, lo=0, hi=64, auto=True,
+                   doc='LED array rows; "auto" (or 0, with cols): the receiver infers the array\'s shape '
+                       "from the lit spots (docs/air-interface.md); the simulator and the board need numbers")
+    cols: int = _f(8, lo=0, hi=64, auto=True, doc='LED array columns; "auto" (or 0) as rows')
     pitch_m: float = _f(0.06, lo=0, lo_open=True, doc="centre-to-centre LED spacing, m")
     levels: int = _f(8, choices=(2, 4, 8, 16, 32), doc="M, PWM levels (2 = OOK)")
     symbol_rate_hz: float = _f(500.0, lo=1, doc="f_sym, symbols per second")
@@ -69,7 +75,10 @@ class TransmitterConfig:
                               "(else F is the fewest symbol times that hold it)")
 
     def __post_init__(self) -> None:
-        if self.air_interface != "v2":
+        if (self.rows == AUTO) != (self.cols == AUTO):
+            raise ConfigError('transmitter.rows, transmitter.cols: "auto" (0) for both or for neither, '
+                              f"got {self.rows} x {self.cols}")
+        if self.air_interface != "v2" or self.shape_auto:
             return
         for key in ("training_symbols", "data_symbols", "idle_symbols"):
             if getattr(self, key) > 0xFFFF:
@@ -83,6 +92,11 @@ class TransmitterConfig:
         except AirInterfaceError as e:
             key = "payload_len" if self.payload_len else "data_symbols"
             raise ConfigError(f"transmitter.{key}: {e}") from None
+
+    @property
+    def shape_auto(self) -> bool:
+        """rows = cols = "auto": the receiver infers the array's shape (n_leds is then 0)."""
+        return self.rows == AUTO
 
     @property
     def n_leds(self) -> int:
@@ -453,6 +467,8 @@ def _convert(key: str, tp: Any, value: Any, meta: dict[str, Any]) -> Any:
         if not isinstance(value, bool):
             raise ConfigError(f"{key}: expected true or false, got {value!r}")
         out: Any = value
+    elif tp is int and meta.get("auto") and value == "auto":
+        return AUTO
     elif tp is int:
         if isinstance(value, bool) or not isinstance(value, int):
             raise ConfigError(f"{key}: expected an integer, got {value!r}")
@@ -505,8 +521,14 @@ def build_section(cls: type, table: dict[str, Any], prefix: str) -> Any:
         raise ConfigError(f"{prefix}: {e}") from None
 
 
-def config_from_dict(data: dict[str, Any]) -> Config:
-    """Build a :class:`Config` from parsed TOML (``tomllib.loads`` output)."""
+def config_from_dict(data: dict[str, Any], *, receiver: bool = False) -> Config:
+    """Build a :class:`Config` from parsed TOML (``tomllib.loads`` output).
+
+    ``receiver``: the config of a receiver alone (``iscd replay``): without a
+    ``[transmitter]`` table the array's shape is left to the receiver (rows = cols =
+    "auto") and v1 packets are read with the SPEC's defaults (M = 8, K = 40, F = 600);
+    otherwise (the simulator, the mock rig, the board also read the table) a missing table
+    is the default 8x8 transmitter."""
     sections: dict[str, Any] = {}
     owned: dict[str, Any] = {}
     fields = {f.name: f for f in dataclasses.fields(Config) if f.name != "owned"}
@@ -523,6 +545,8 @@ def config_from_dict(data: dict[str, Any]) -> Config:
         else:
             known = ", ".join(sorted([*fields, *SECTION_NAMES]))
             raise ConfigError(f"{name}: unknown section (known sections: {known})")
+    if receiver and "transmitter" not in sections:
+        sections["transmitter"] = TransmitterConfig(rows=AUTO, cols=AUTO)
     cfg = Config(**sections, owned=owned)
     _cross_check(cfg)
     return cfg
@@ -540,19 +564,20 @@ def _cross_check(cfg: Config) -> None:
             f"(transmitter.symbol_rate_hz = {t.symbol_rate_hz:g}); symbols could not be decoded")
 
 
-def loads(text: str, source: str = "<string>") -> Config:
-    """Parse TOML text into a :class:`Config`."""
+def loads(text: str, source: str = "<string>", *, receiver: bool = False) -> Config:
+    """Parse TOML text into a :class:`Config` (``receiver``: :func:`config_from_dict`)."""
     try:
         data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as e:
         raise ConfigError(f"{source}: not valid TOML: {e}") from None
     except RecursionError:  # arrays/tables nested thousands deep
         raise ConfigError(f"{source}: not valid TOML: nested too deeply") from None
-    return config_from_dict(data)
+    return config_from_dict(data, receiver=receiver)
 
 
-def load(path: str | Path | None = None) -> Config:
-    """Load a config file; ``None`` gives the embedded default (the mock rig)."""
+def load(path: str | Path | None = None, *, receiver: bool = False) -> Config:
+    """Load a config file; ``None`` gives the embedded default (the mock rig).
+    ``receiver``: the config of a receiver alone (:func:`config_from_dict`)."""
     if path is None:
         return default_config()
     p = Path(path)
@@ -563,7 +588,7 @@ def load(path: str | Path | None = None) -> Config:
     except (OSError, UnicodeDecodeError) as e:
         raise ConfigError(f"{p}: cannot read config file: {e}") from None
     try:
-        return loads(text, str(p))
+        return loads(text, str(p), receiver=receiver)
     except ConfigError as e:
         msg = str(e)
         raise ConfigError(msg if msg.startswith(str(p)) else f"{p}: {msg}") from None

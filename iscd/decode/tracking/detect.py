@@ -24,6 +24,7 @@ All coordinates are in px, x right and y down, pixel centres at integers.
 from __future__ import annotations
 
 import functools
+import math
 from dataclasses import dataclass, replace
 from functools import cached_property
 
@@ -401,6 +402,212 @@ def fit_grid(act: np.ndarray, rows: int, cols: int, region: tuple[int, int, int,
                    score=float(-neg(v)), spot_px=float(spot))
 
 
+# --------------------------------------------------------------------------- the array's shape
+MAX_GRID_SIDE = 64
+"""Largest rows or cols :func:`infer_grid` reports (the PHY header's and the config's limit)."""
+
+MIN_GRID_PITCH_PX = 2.5
+"""Least pitch :func:`infer_grid` resolves, px: closer spots merge in the lit map (an 8x8
+array of 6 cm pitch at 84 m with the chapter 4 cameras)."""
+
+SPOT_LEVELS = (0.4, 0.55, 0.7)
+"""Cuts of the lit map, shares of its robust peak, that :func:`infer_grid` tries: a spot is
+a connected region above the cut. Between two LEDs 4.2 px apart the lit map falls to
+10-25 % of a spot's peak, 3 px apart (an 8x8 array at 70 m) to about 50 %."""
+
+MIN_GRID_FILL = 0.75
+"""Least share of an inferred grid's points with a spot within :data:`GRID_MATCH_PITCH` of
+a pitch: a few LEDs that stayed dark over the window are allowed, a scatter is no grid."""
+
+GRID_MATCH_PITCH = 0.35
+"""A spot belongs to a grid point within this share of a pitch."""
+
+
+@dataclass(frozen=True)
+class GridShape:
+    """An LED grid inferred from the spots of its lit LEDs (:func:`infer_grid`).
+
+    rows, cols: the layout. pitch_px: LED spacing, px (0 for one LED). origin: (x, y) of the
+    top-left grid point, px in the map's coordinates. spots: centroids found. fill: share of
+    the grid points with a spot.
+    """
+
+    rows: int
+    cols: int
+    pitch_px: float
+    origin: tuple[float, float]
+    spots: int
+    fill: float
+
+
+def lit_map(frames: np.ndarray) -> np.ndarray:
+    """Any-lit map: temporal maximum minus minimum, (H, W) float32, DN.
+
+    Every LED that was lit at some level in the window shows with its brightest spot,
+    whatever its PWM levels were on average (a light map, :func:`light_map`, weighs a
+    mostly dim LED less); a steady light shows only its noise and vibration.
+
+    Parameters
+    ----------
+    frames : ndarray
+        (n, H, W) frames, DN.
+
+    Returns
+    -------
+    ndarray of float32
+        (H, W) lit map, DN.
+    """
+    f = np.asarray(frames)
+    return f.max(axis=0).astype(np.float32) - f.min(axis=0).astype(np.float32)
+
+
+def spot_centroids(lit: np.ndarray, level: float = SPOT_LEVELS[0]) -> np.ndarray:
+    """Centroids of the separate lit spots of a lit map.
+
+    The map less its median, smoothed (Gaussian 0.5 px), is cut at ``level`` times its
+    robust peak (the 90th percentile of its 3x3 local maxima above half the highest, so a
+    few saturated spots or one hot pixel do not set it); each connected region above it is
+    one spot, its centroid weighted by the light above the cut.
+
+    Parameters
+    ----------
+    lit : ndarray
+        (h, w) lit map (:func:`lit_map`) of the region holding the source, DN.
+    level : float
+        The cut, share of the robust peak.
+
+    Returns
+    -------
+    ndarray
+        (n, 2) float64 spot centroids (x, y), px in the map's coordinates (n = 0 if none).
+    """
+    a = np.asarray(lit, dtype=np.float64)
+    if a.ndim != 2 or a.size == 0:
+        return np.zeros((0, 2))
+    a = np.clip(a - np.median(a), 0.0, None)
+    sm = ndimage.gaussian_filter(a, 0.5)
+    top = float(sm.max())
+    if top <= 0:
+        return np.zeros((0, 2))
+    peaks = sm[(sm == ndimage.maximum_filter(sm, size=3)) & (sm >= 0.5 * top)]
+    thr = level * float(np.percentile(peaks, 90))
+    lab, n = ndimage.label(sm > thr)
+    if n == 0:
+        return np.zeros((0, 2))
+    w = np.where(lab > 0, sm - thr, 0.0)
+    idx = np.arange(1, n + 1)
+    tot = ndimage.sum(w, lab, idx)
+    yy, xx = np.indices(sm.shape, dtype=np.float64)
+    cx = ndimage.sum(w * xx, lab, idx) / tot
+    cy = ndimage.sum(w * yy, lab, idx) / tot
+    return np.stack([cx, cy], axis=1)
+
+
+def _lattice_1d(v: np.ndarray, pitch: float) -> tuple[int, float, float, np.ndarray]:
+    """Spots' coordinates ``v`` (px) along one axis on a lattice of about ``pitch`` px.
+
+    The coordinates are clustered (a gap over half a pitch starts a new lattice line);
+    each gap between consecutive lines is a whole number of pitches (at least one), rounded
+    gap by gap, so that a pitch slightly off does not add up over many lines; the lines'
+    positions against their indices give the pitch (least squares).
+
+    Returns
+    -------
+    tuple
+        (lines n, fitted pitch px or nan for one line, position of line 0 px, (len(v),)
+        int lattice index of each coordinate).
+    """
+    order = np.argsort(v)
+    vs = v[order]
+    cut = np.concatenate([[0], np.flatnonzero(np.diff(vs) > 0.5 * pitch) + 1, [len(vs)]])
+    centres = np.array([vs[a:b].mean() for a, b in zip(cut[:-1], cut[1:])])
+    steps = np.maximum(1, np.rint(np.diff(centres) / pitch))
+    k = np.concatenate([[0.0], np.cumsum(steps)])
+    idx = np.empty(len(v), dtype=np.int64)
+    for j, (a, b) in enumerate(zip(cut[:-1], cut[1:])):
+        idx[order[a:b]] = int(k[j])
+    n = int(k[-1]) + 1
+    if n == 1:
+        return 1, math.nan, float(centres[0]), idx
+    A = np.stack([np.ones_like(k), k], axis=1)
+    (a0, p), *_ = np.linalg.lstsq(A, centres, rcond=None)
+    return n, float(p), float(a0), idx
+
+
+def infer_grid(lit: np.ndarray, *, min_pitch_px: float = MIN_GRID_PITCH_PX) -> GridShape | None:
+    """The rows x cols grid (row-major, axis aligned) of the spots of a lit map.
+
+    For each cut of :data:`SPOT_LEVELS`:
+
+    1. :func:`spot_centroids`: one centroid per lit spot.
+    2. Pitch: the median distance of each spot to its nearest neighbour (most spots of a
+       grid have one a pitch away, whatever few are dark).
+    3. The centroids' x and their y are put on lattices of that pitch (each coordinate's
+       lattice index rounded from the leftmost / topmost spot; least squares line of
+       coordinate against index): cols and rows are the index ranges, so a dark LED --
+       even a whole dark inner column -- leaves the shape as it is. The pitch is the mean
+       of the two axes' fits (the grid is square).
+    4. Accepted if every spot is within :data:`GRID_MATCH_PITCH` of a pitch of its grid
+       point (a stray light in the region makes it no grid) and at least
+       :data:`MIN_GRID_FILL` of the grid points have a spot.
+
+    The accepted grid of the most spots wins (spots that touch at a low cut are one spot,
+    and a grid of merged spots is a coarser grid, never a finer one).
+
+    Parameters
+    ----------
+    lit : ndarray
+        (h, w) lit map (:func:`lit_map`) of the region holding the source, DN.
+    min_pitch_px : float
+        Spots closer than this are one spot (no grid is inferred finer), px.
+
+    Returns
+    -------
+    GridShape or None
+        The grid (origin px in the map's coordinates); one spot gives 1x1 with pitch 0 (an
+        array too far to resolve is one spot too: :func:`detect_auto` tells them apart);
+        None when nothing is lit or the spots make no grid.
+    """
+    best: GridShape | None = None
+    for level in SPOT_LEVELS:
+        g = _grid_of_spots(spot_centroids(lit, level), min_pitch_px)
+        if g is not None and (best is None or g.spots > best.spots):
+            best = g
+    return best
+
+
+def _grid_of_spots(pts: np.ndarray, min_pitch_px: float) -> GridShape | None:
+    """Steps 2-4 of :func:`infer_grid` on spot centroids ``pts`` (n, 2) px."""
+    n = len(pts)
+    if n == 0:
+        return None
+    if n == 1:
+        return GridShape(1, 1, 0.0, (float(pts[0, 0]), float(pts[0, 1])), 1, 1.0)
+    d = np.sqrt(((pts[:, None, :] - pts[None, :, :]) ** 2).sum(-1))
+    np.fill_diagonal(d, np.inf)
+    p0 = float(np.median(d.min(axis=1)))
+    if not p0 >= min_pitch_px:
+        return None
+    cols, px, _, ix = _lattice_1d(pts[:, 0], p0)
+    rows, py, _, iy = _lattice_1d(pts[:, 1], p0)
+    ps = [p for p in (px, py) if math.isfinite(p)]
+    pitch = float(np.mean(ps)) if ps else p0
+    if not (pitch >= min_pitch_px and abs(pitch - p0) <= 0.25 * p0):
+        return None
+    if rows > MAX_GRID_SIDE or cols > MAX_GRID_SIDE:
+        return None
+    # the grid through the spots: origin from every spot's lattice index
+    ox = float(np.mean(pts[:, 0] - ix * pitch))
+    oy = float(np.mean(pts[:, 1] - iy * pitch))
+    off = np.hypot(pts[:, 0] - ox - ix * pitch, pts[:, 1] - oy - iy * pitch)
+    if (off > GRID_MATCH_PITCH * pitch).any():
+        return None
+    fill = len({(int(a), int(b)) for a, b in zip(ix, iy)}) / (rows * cols)
+    if fill < MIN_GRID_FILL:
+        return None
+    return GridShape(rows, cols, pitch, (ox, oy), n, float(fill))
+
+
 MAX_SINGLE_CANDIDATES = 6
 """Active blobs a one-LED detection looks at (strongest first)."""
 
@@ -566,6 +773,119 @@ def detect_array(frames: np.ndarray, rows: int, cols: int, *, exclude: list[tupl
         by1 = max(b.bbox[3] for b in g) + 3
         try:
             fit = fit_grid(light, rows, cols, region=(bx0, by0, bx1, by1))
+        except ValueError:
+            continue
+        if best is None or fit.score > best.score:
+            best = fit
+    return best
+
+
+MIN_ONE_LED_CORRELATION = 0.6
+"""Least :func:`halves_correlation` of a spot taken for one LED: one LED's light changes in
+every pixel of its spot together (0.99 at 50 m still; with 0.5 px RMS rig vibration, which
+moves light between the halves, 0.94 at 20 m and 0.81 at 60 m); the merged spot of an array
+too far to resolve (halves of LEDs each sending their own data) less (8x8 at 80 and 90 m:
+0.38, 0.39; 4x4 at 100 m: -0.02). Measured on 64 rendered frames, PWM-8, seed 3."""
+
+
+def halves_correlation(frames: np.ndarray, box: tuple[int, int, int, int]) -> float:
+    """How much the two halves of a spot change together: the least Pearson correlation,
+    over the frames, of the summed light in the left and right halves of ``box`` and in its
+    top and bottom halves.
+
+    Parameters
+    ----------
+    frames : ndarray
+        (n, H, W) frames, DN.
+    box : (int, int, int, int)
+        The spot's (x0, y0, x1, y1), px (x1, y1 exclusive).
+
+    Returns
+    -------
+    float
+        The correlation (1 for one LED without noise; 1.0 when the box is too small to
+        halve or a half does not change).
+    """
+    f = np.asarray(frames)
+    H, W = f.shape[1:]
+    x0, y0, x1, y1 = max(0, box[0]), max(0, box[1]), min(W, box[2]), min(H, box[3])
+    sub = f[:, y0:y1, x0:x1].astype(np.float64)
+    out = 1.0
+    for axis in (2, 1):
+        m = sub.shape[axis]
+        if m < 2:
+            continue
+        a = np.take(sub, np.arange(m // 2), axis=axis).sum(axis=(1, 2))
+        b = np.take(sub, np.arange(m - m // 2, m), axis=axis).sum(axis=(1, 2))
+        if a.std() > 0 and b.std() > 0:
+            out = min(out, float(np.corrcoef(a, b)[0, 1]))
+    return out
+
+
+def detect_auto(frames: np.ndarray, *, exclude: list[tuple[int, int, int, int]] | None = None,
+                ) -> GridFit | None:
+    """Find a transmitter of unknown shape (an array of any rows x cols, or one LED).
+
+    As :func:`detect_array`, but each of the (at most 3) strongest groups of active blobs
+    gets its shape from the spots of its lit map (:func:`lit_map`, :func:`infer_grid`):
+    the group's box (3 px around its blobs) holds the source. A group of one spot is one
+    LED: it must change its light (:func:`flux_modulation`), and in all of its spot
+    together (:func:`halves_correlation`: an array too far to resolve is one spot too, but
+    its halves send different data); an array's grid is then fitted
+    exactly as :func:`detect_array` fits a configured one (:func:`fit_grid`), refitted from
+    the inferred pitch and origin if the two disagree by more than 15 %. The group with the
+    best grid score wins.
+
+    Parameters
+    ----------
+    frames : ndarray
+        (n, H, W) frames, DN, n >= 8, that include symbol changes.
+    exclude : list of (int, int, int, int), optional
+        (x0, y0, x1, y1) px boxes of candidates already rejected; blobs centred inside
+        them are ignored.
+
+    Returns
+    -------
+    GridFit or None
+        The best fit (``rows`` and ``cols`` inferred), px; None if nothing blinks or no
+        group makes a grid.
+    """
+    act = activity_map(frames)
+    mean = frames.mean(axis=0, dtype=np.float32)
+    blobs = find_blobs(act, mean)
+    if exclude:
+        blobs = [b for b in blobs if not any(e[0] <= b.x < e[2] and e[1] <= b.y < e[3] for e in exclude)]
+    if not blobs:
+        return None
+    light = mean - frames.min(axis=0).astype(np.float32)
+    lit = lit_map(frames)
+    H, W = lit.shape
+    size = max(max(b.bbox[2] - b.bbox[0], b.bbox[3] - b.bbox[1]) for b in blobs[:MAX_GRID_SIDE])
+    best: GridFit | None = None
+    for g in group_blobs(blobs, max_gap=max(3.0, 2.0 * size))[:3]:
+        pad = 3
+        x0 = max(0, min(b.bbox[0] for b in g) - pad)
+        y0 = max(0, min(b.bbox[1] for b in g) - pad)
+        x1 = min(W, max(b.bbox[2] for b in g) + pad)
+        y1 = min(H, max(b.bbox[3] for b in g) + pad)
+        if x1 - x0 < 2 or y1 - y0 < 2:
+            continue
+        shape = infer_grid(lit[y0:y1, x0:x1])
+        if shape is None:
+            continue
+        try:
+            if shape.rows * shape.cols == 1:
+                box = (x0 + pad, y0 + pad, x1 - pad, y1 - pad)
+                if flux_modulation(frames, box, mean=mean) < MIN_FLUX_MODULATION or \
+                        halves_correlation(frames, box) < MIN_ONE_LED_CORRELATION:
+                    continue  # a steady light, or an array too far to resolve
+                fit = fit_grid(light, 1, 1, region=(x0, y0, x1, y1))
+            else:
+                fit = fit_grid(light, shape.rows, shape.cols, region=(x0, y0, x1, y1))
+                if abs(fit.pitch_px - shape.pitch_px) > 0.15 * shape.pitch_px:
+                    fit = fit_grid(light, shape.rows, shape.cols, region=(x0, y0, x1, y1),
+                                   pitch_guess=shape.pitch_px,
+                                   origin_guess=(x0 + shape.origin[0], y0 + shape.origin[1]))
         except ValueError:
             continue
         if best is None or fit.score > best.score:
