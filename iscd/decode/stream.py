@@ -14,6 +14,12 @@ and returns JSON-ready records (SPEC section 7). It holds no threads and does no
 A candidate that blinks but never sends a header within ``verify_packets`` packet
 durations (a flickering lamp) is excluded and acquisition starts again; a steady light
 never shows in the temporal gradient at all.
+
+With ``[transmitter] rows = cols = "auto"`` (``iscd replay`` of a config without a
+``[transmitter]`` table) the array's shape is not configured: each acquisition infers it
+from the lit spots (:func:`iscd.decode.tracking.detect.detect_auto`), v1 packets are read
+with the config's (or the SPEC's) M, K, F, and a v2 PHY header that names another shape
+restarts acquisition with the header's shape (``shape_mismatches``).
 """
 
 from __future__ import annotations
@@ -36,7 +42,8 @@ from iscd.core.records import RangeFilteredRecord, RangeLedsRecord, RangeRecord
 from iscd.decode.pipe import PipeDemodWorker as DemodWorker
 from iscd.decode.tracking.follow_kernel import follow_and_measure_compiled
 from iscd.decode.tracking.luminance import PixelBackground, area_sigma, follow_and_measure, grid_sample, patch_half
-from iscd.decode.tracking.detect import GridFit, detect_array, light_map, match_stereo, track_box, track_on_light
+from iscd.decode.tracking.detect import (GridFit, detect_array, detect_auto, light_map, match_stereo, track_box,
+                                         track_on_light)
 from iscd.decode.tracking.track_kernel import LightAccumulator, track_on_light_compiled
 from iscd.decode.tracking import path_kernel  # noqa: F401  (its kernels warm up with the others)
 from iscd.decode.tracking.trajectory import PATH_REACH_PX, follow_path
@@ -141,6 +148,10 @@ class _Track:
     prev_frame: float = math.nan
     disparity0: float = 0.0
     """right x - left x of the array's centre at acquisition, px (one LED's growth)"""
+    shape_confirmed: bool = False
+    """auto shape: a packet was delivered, or a v2 PHY header named the tracked shape"""
+    unconfirmed_bad: int = 0
+    """auto shape: v1 packets failed while the shape is not confirmed"""
 
 
 class StreamDecoder:
@@ -184,11 +195,20 @@ class StreamDecoder:
         """(left, right) (F, N, 2) LED centres px followed in the last block decoded."""
         self.kalman = (RangeKalman(accel_psd=rs.accel_psd, gate=rs.kalman_gate)
                        if self.ranger is not None and rs.kalman else None)
-        self.air = AirInterface.from_config(cfg.transmitter)
+        self.shape_auto = cfg.transmitter.shape_auto
+        """the array's shape is inferred at each acquisition ([transmitter] rows = cols = "auto")"""
+        self._shape_hint: tuple[int, int] | None = None
+        """auto shape: the (rows, cols) a v2 PHY header named, for the next acquisitions"""
+        self._hint_tries = 0
+        """acquisition attempts left with ``_shape_hint`` (then the shape is inferred again)"""
+        self._reacquire = False
+        """auto shape: drop the track at the next step (a PHY header named another shape)"""
+        self.tx = cfg.transmitter
+        """the transmitter the packets are read with: the config's, or with an auto shape
+        the config's M, K, F (v1) and the shape of the track (one LED until the first)"""
+        self._set_shape(*((1, 1) if self.shape_auto else (cfg.transmitter.rows, cfg.transmitter.cols)))
+        self.air = AirInterface.from_config(self.tx)
         self.rx_cfg = receiver_config(cfg)
-        self.rows, self.cols = cfg.transmitter.rows, cfg.transmitter.cols
-        self._use = grid_sample(self.rows, self.cols)
-        """the LEDs whose centroids steer the following (fixed by the array's shape)"""
         self.fps = cfg.camera.fps
         self.packet_frames = self.air.period_symbols * self.fps / cfg.transmitter.symbol_rate_hz
         self.track: _Track | None = None
@@ -229,22 +249,68 @@ class StreamDecoder:
                                          "packets_ok": 0, "packets_bad": 0, "ranges": 0,
                                          "frames_decoded": 0, "assembler_resets": 0,
                                          "ranging_skipped": 0, "led_ranges_shed": 0,
-                                         "demod_worker_restarts": 0, "following_resets": 0}
+                                         "demod_worker_restarts": 0, "following_resets": 0,
+                                         "shape_mismatches": 0, "shape_retries": 0}
+
+    def _set_shape(self, rows: int, cols: int) -> None:
+        """The array's shape (of the config, or inferred at acquisition) and what follows
+        from it: the LEDs that steer the following, the transmitter the packets are read
+        with (auto shape: v1 geometry; v2 packets bring their own)."""
+        if (int(rows), int(cols)) != (getattr(self, "rows", rows), getattr(self, "cols", cols)):
+            # per-LED state of the last track
+            self._lum_floor = [None, None]
+            self._path_end = [None, None]
+            self._followed = [None, None]
+        self.rows, self.cols = int(rows), int(cols)
+        self._use = grid_sample(self.rows, self.cols)
+        """the LEDs whose centroids steer the following (fixed by the array's shape)"""
+        if self.shape_auto:
+            self.tx = replace(self.cfg.transmitter, rows=self.rows, cols=self.cols, air_interface="v1")
 
     # ------------------------------------------------------------------ demodulation hook
     def _make_assembler(self) -> PacketAssembler:
-        return PacketAssembler(self.cfg.transmitter, fps=self.fps, exposure_s=self.cfg.camera.exposure_s,
+        return PacketAssembler(self.tx, fps=self.fps, exposure_s=self.cfg.camera.exposure_s,
                                cfg=self.rx_cfg)
 
     def _records(self, packets: list[Packet]) -> list[dict]:
         out: list[dict] = []
         for pkt in packets:
             self.counters["packets_ok" if pkt.crc_ok else "packets_bad"] += 1
+            if self.shape_auto and self.track is not None and not self._reacquire:
+                self._check_shape(self.track, pkt)
             if self.track is not None:
                 self.track.last_header_frame = int(pkt.frame)
                 self.track.frames_since_header = 0
             out.append(_jsonable(pkt.record(self.tx_index)))
         return out
+
+    AUTO_BAD_PACKETS = 3
+    """Auto shape: v1 packets that fail in a row, none delivered and no v2 header read on
+    the track, before the shape is inferred again (a wrong shape reads no header)."""
+
+    def _check_shape(self, tr: _Track, pkt: Packet) -> None:
+        """Auto shape: the packet's word on the inferred shape. A v2 PHY header is read
+        whenever rows x cols is the LED count tracked; if it names another arrangement of
+        as many LEDs the LED order is not the one tracked: acquisition restarts with the
+        header's shape (``shape_mismatches``). A track whose first
+        :attr:`AUTO_BAD_PACKETS` packets all fail as v1 restarts acquisition too
+        (``shape_retries``)."""
+        if pkt.shape is not None and pkt.shape != (self.rows, self.cols):
+            self.counters["shape_mismatches"] += 1
+            log.warning("the PHY header says %dx%d LEDs, the array was inferred %dx%d: re-acquiring",
+                        *pkt.shape, self.rows, self.cols)
+            self._shape_hint = pkt.shape
+            self._hint_tries = self.HINT_TRIES
+            self._reacquire = True
+        elif pkt.crc_ok or pkt.shape is not None:
+            tr.shape_confirmed = True
+        elif not tr.shape_confirmed:
+            tr.unconfirmed_bad += 1
+            if tr.unconfirmed_bad >= self.AUTO_BAD_PACKETS:
+                self.counters["shape_retries"] += 1
+                log.warning("%d packets failed on the inferred %dx%d array: inferring its shape again",
+                            tr.unconfirmed_bad, self.rows, self.cols)
+                self._reacquire = True
 
     def wait_ready(self, timeout_s: float = 300.0) -> bool:
         """Wait until the demodulation worker has started and loaded (or compiled) its
@@ -268,7 +334,7 @@ class StreamDecoder:
         if self._worker is None:
             self.assembler = self._make_assembler()
         else:
-            self._pending.append((self._worker.submit("new", self.cfg.transmitter, self.fps,
+            self._pending.append((self._worker.submit("new", self.tx, self.fps,
                                                       self.cfg.camera.exposure_s, self.rx_cfg), 0))
 
     def _demod(self, frame_ids: np.ndarray, t_s: np.ndarray, lum_l: np.ndarray, lum_r: np.ndarray) -> list[dict]:
@@ -345,6 +411,8 @@ class StreamDecoder:
         if n == 0:
             return pending
         records: list[dict] = pending
+        if self._reacquire:
+            self.restart()
         if self.track is None:
             got = self._acquire(frame_ids, t_s, left, right)
             if got is None:
@@ -524,6 +592,7 @@ class StreamDecoder:
         """Drop the track and every per-track buffer: acquisition starts again (the daemon
         calls it after a decoding error so that one bad block cannot wedge the decoder)."""
         self.track = None
+        self._reacquire = False
         self._deferred = None
         self._blk_l.clear()
         self._blk_r.clear()
@@ -806,15 +875,27 @@ class StreamDecoder:
         self._acq_ids.clear()
         now = int(meta[-1, 0])
         self.excluded = [(b, until) for b, until in self.excluded if until > now]
-        fl = detect_array(L, self.rows, self.cols, exclude=[b for b, _ in self.excluded])
+        exclude = [b for b, _ in self.excluded]
+        if self.shape_auto and self._shape_hint is None:
+            fl = detect_auto(L, exclude=exclude)  # the right camera looks for the same shape
+        else:
+            fl = detect_array(L, *(self._shape_hint or (self.rows, self.cols)), exclude=exclude)
+            self._hint_tries -= 1
+            if self._hint_tries <= 0:
+                self._shape_hint = None
         if fl is None:
             return None
-        fr = detect_array(R, self.rows, self.cols)
+        fr = detect_array(R, fl.rows, fl.cols)
         cands = [fr] if fr is not None else []
         fr = match_stereo(fl, cands, max_dy=3.0 + 0.5 * fl.spot_px) if cands else None
         if fr is None:
             log.debug("transmitter seen in the left camera at %s but not matched in the right", fl.center)
             return None
+        if self.shape_auto:
+            if (fl.rows, fl.cols) != (self.rows, self.cols) or self.counters["acquisitions"] == 0:
+                log.info("transmitter's shape inferred: %dx%d LEDs, pitch %.2f px", fl.rows, fl.cols, fl.pitch_px)
+            self._set_shape(fl.rows, fl.cols)
+            self._shape_hint = None
         self._followed = [None, None]
         self._lit_light = None
         self._backgrounds = None
@@ -833,7 +914,13 @@ class StreamDecoder:
                  *fl.center, *fr.center, fl.pitch_px)
         return meta[:, 0].astype(np.int64), meta[:, 1], L, R
 
+    HINT_TRIES = 4
+    """Acquisition attempts with the shape a PHY header named before inferring it again."""
+
     def _retrack(self, frame_ids: np.ndarray, left: np.ndarray, right: np.ndarray) -> None:
+        if self._reacquire:
+            self.restart()
+            return
         tr = self.track
         assert tr is not None
         H, W = left.shape[1:]

@@ -259,8 +259,8 @@ def _replay_stereo(inp: ReplayInputs, out: str | Path, warn: Warn, rotate_bytes:
     with session:
         if session.n_pairs == 0:
             raise UserError(f"{inp.left}: the recording holds no whole pair")
-        if inp.config:
-            cfg = C.load(inp.config)
+        if inp.config:  # the receiver's own config (no [transmitter]: the shape is inferred)
+            cfg = C.load(inp.config, receiver=True)
         else:
             text = session.config_text()
             if text is None:
@@ -325,8 +325,9 @@ def _replay_pair(inp: ReplayInputs, out: str | Path, warn: Warn, progress: Progr
 
     lpath, rpath, cfg_path, cal_path = resolve(inp)
     if cfg_path is None:
-        raise UserError("--config is required (the transmitter's rows, cols and levels must be known)")
-    cfg = C.load(cfg_path)
+        raise UserError("--config is required (the cameras' fps and exposure must be known; without a "
+                        "[transmitter] table the receiver infers the array's shape)")
+    cfg = C.load(cfg_path, receiver=True)
     try:
         if cal_path:
             load_calibration(cal_path)  # fail early, before the recordings

@@ -29,7 +29,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("left", help="left-camera recording (or a simulate output folder, or an 'iscd run --record' "
                                 "run folder or file)")
     p.add_argument("right", nargs="?", help="right-camera recording")
-    p.add_argument("--config", help="TOML config with the [transmitter] the recording shows")
+    p.add_argument("--config", help="TOML config with the [camera] (and the [transmitter]) the recording shows; "
+                                    "without a [transmitter] table the receiver infers the array's shape and "
+                                    "reads v1 packets with the SPEC's M, K, F (v2 packets say their own)")
     add_calibration_options(p, "the recording's image size")
     p.add_argument("--allow-mismatch", action="store_true",
                    help="decode even when the recording's size or frame rate differ from [camera] "

@@ -65,6 +65,8 @@ class Packet:
     margins: np.ndarray | None = field(default=None, repr=False)
     version: int = 1
     """air interface version (2: a PHY header was read; its fields are in :attr:`quality`)"""
+    shape: tuple[int, int] | None = None
+    """v2: the array's (rows, cols) as its PHY header said (None for v1)"""
 
     def record(self, tx: int = 0) -> dict[str, Any]:
         """The SPEC section 7 JSON record (``payload_hex`` is empty when the CRC failed).
@@ -338,7 +340,8 @@ class PacketAssembler:
         pkt = Packet(frame=base + res.first_frame, t_s=self._frame_time(res.u0),
                      u0_frames=base + res.u0, crc_ok=res.crc_ok,
                      payload=res.raw if res.crc_ok else None, levels=res.levels, raw=res.raw,
-                     quality=q, margins=res.margins, version=res.version)
+                     quality=q, margins=res.margins, version=res.version,
+                     shape=(res.air.rows, res.air.cols) if isinstance(res.air, AirInterfaceV2) else None)
         self.stats["packets_ok" if res.crc_ok else "packets_bad"] += 1
         return pkt
 
