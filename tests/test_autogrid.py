@@ -14,10 +14,14 @@ All scenes from the simulator with fixed seeds.
 
 from __future__ import annotations
 
+import json
 from functools import lru_cache
+from pathlib import Path
 
 import numpy as np
 import pytest
+
+from fakes import cli
 
 from iscd.core.airinterface import AirInterface, AirInterfaceError
 from iscd.core.airinterface_v2 import AirInterfaceV2
@@ -26,6 +30,7 @@ from iscd.decode.comms.packets import Packet
 from iscd.decode.stream import StreamDecoder, _Track
 from iscd.decode.tracking.detect import GridFit, detect_array, detect_auto, infer_grid, lit_map
 from iscd.eval.suites import chapter4_cfg
+from iscd.recording.iscr import IscrWriter
 from iscd.sim.presets import override
 from iscd.sim.scene import Scene
 from iscd.sim.transmitter import ArraySource
@@ -250,3 +255,35 @@ def test_v1_and_v2_of_other_shapes_in_one_replay_without_transmitter_config() ->
     assert [r.get("version", 1) for r in recs] == [1, 2, 2]
     assert dec.counters["acquisitions"] == 2 and dec.counters["packets_bad"] == 0
     assert dec.counters["shape_mismatches"] == dec.counters["shape_retries"] == 0
+
+
+def test_iscd_replay_with_a_config_without_transmitter(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """``iscd replay LEFT RIGHT --config rx.toml`` (cameras only) of a rendered 4x8 PWM-16 v2
+    recording at 40 m (two 600-byte packets, 556 frame pairs): both payloads delivered; the
+    stats say one acquisition and no shape mismatch."""
+    rng = np.random.default_rng(8)
+    v2 = AirInterfaceV2(levels=16, rows=4, cols=8, fec="rs255_223", payload_len=600)
+    payloads = [rng.integers(0, 256, 600, dtype=np.uint8).tobytes() for _ in range(2)]
+    lv = np.concatenate([v2.packets(payloads), np.ones((50, 32), np.uint8)])
+    sc = _scene(4, 8, 16, 40.0, lv, 6)
+    n = lv.shape[0] * 2
+    paths = [tmp_path / "left.iscr", tmp_path / "right.iscr"]
+    writers = [IscrWriter(p, width=W, height=H, camera=c, fps=1000.0, exposure_s=1e-3)
+               for p, c in zip(paths, ("left", "right"))]
+    L, R = np.empty((H, W), np.uint8), np.empty((H, W), np.uint8)
+    for k in range(n):
+        sc.render_pair_into(k, L, R)
+        writers[0].append(k, k * 1_000_000, L)
+        writers[1].append(k, k * 1_000_000, R)
+    for w in writers:
+        w.close()
+    (tmp_path / "rx.toml").write_text(RX_TOML)
+    out = tmp_path / "out.jsonl"
+    rc, _, err = cli(capsys, "replay", str(paths[0]), str(paths[1]), "--config", str(tmp_path / "rx.toml"),
+                     "--out", str(out))
+    assert rc == 0, err
+    recs = [json.loads(line) for line in out.read_text().splitlines()]
+    pk = [r for r in recs if r["type"] == "packet"]
+    assert [bytes.fromhex(r["payload_hex"]) for r in pk] == payloads and all(r["version"] == 2 for r in pk)
+    stats = [r for r in recs if r["type"] == "stats"][-1]
+    assert stats["acquisitions"] == 1 and stats["shape_mismatches"] == 0

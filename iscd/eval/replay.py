@@ -17,6 +17,7 @@ Bad input raises :class:`~iscd.core.errors.UserError` with one line naming the p
 
 from __future__ import annotations
 
+import dataclasses
 import time
 import warnings
 from dataclasses import dataclass
@@ -407,6 +408,11 @@ def score_against_truth(packets: list[dict[str, Any]], truth_dir: str | Path, cf
     except (OSError, KeyError, ValueError) as e:
         raise UserError(f"{truth_dir}: cannot read the truth (truth.npz, truth.json): {e}") from None
     tx = cfg.transmitter
+    if tx.shape_auto:  # the receiver inferred the shape; the truth knows it
+        if not truth.meta.get("rows") or not truth.meta.get("cols"):
+            raise UserError(f"{truth_dir}: the truth does not say the array's rows and cols "
+                            "(the replay's config has none)")
+        tx = dataclasses.replace(tx, rows=int(truth.meta["rows"]), cols=int(truth.meta["cols"]), air_interface="v1")
     air = AirInterface.from_config(tx)
     n = whole_packets(truth, air.packet_symbols, cfg.camera.fps, cfg.camera.exposure_s)
     res = CommsResult(mode=ReceiverMode("replay"), levels=tx.levels, n_leds=tx.n_leds,
