@@ -42,6 +42,7 @@ from iscd.core.records import RangeFilteredRecord, RangeLedsRecord, RangeRecord
 from iscd.decode.pipe import PipeDemodWorker as DemodWorker
 from iscd.decode.tracking.follow_kernel import follow_and_measure_compiled
 from iscd.decode.tracking.luminance import PixelBackground, area_sigma, follow_and_measure, grid_sample, patch_half
+from iscd.decode.tracking.partner import find_partner, reference_series
 from iscd.decode.tracking.detect import (GridFit, detect_array, detect_auto, light_map, match_stereo, track_box,
                                          track_on_light)
 from iscd.decode.tracking.track_kernel import LightAccumulator, track_on_light_compiled
@@ -245,7 +246,7 @@ class StreamDecoder:
         """per camera, the box light of a lit LED (following ignores LEDs far below it)"""
         self._win: tuple[tuple[int, int, int, int], tuple[int, int, int, int]] = ((0, 0, 0, 0), (0, 0, 0, 0))
         self._new_assembler()
-        self.counters: dict[str, int] = {"acquisitions": 0, "losses": 0, "rejected_candidates": 0,
+        self.counters: dict[str, int] = {"acquisitions": 0, "guided_acquisitions": 0, "losses": 0, "rejected_candidates": 0,
                                          "packets_ok": 0, "packets_bad": 0, "ranges": 0,
                                          "frames_decoded": 0, "assembler_resets": 0,
                                          "ranging_skipped": 0, "led_ranges_shed": 0,
@@ -887,10 +888,18 @@ class StreamDecoder:
             return None
         fr = detect_array(R, fl.rows, fl.cols)
         cands = [fr] if fr is not None else []
-        fr = match_stereo(fl, cands, max_dy=3.0 + 0.5 * fl.spot_px) if cands else None
+        max_dy = 3.0 + 0.5 * fl.spot_px
+        fr = match_stereo(fl, cands, max_dy=max_dy) if cands else None
         if fr is None:
-            log.debug("transmitter seen in the left camera at %s but not matched in the right", fl.center)
-            return None
+            # the right camera's own search found nothing or something else (the HDR pair's
+            # f/8 camera sees a far LED a few DN above a textured scene): look along the
+            # epipolar band for the left's light over these frames
+            fr = find_partner(R, fl, reference_series(L, fl), max_dy=max_dy)
+            if fr is None:
+                log.debug("transmitter seen in the left camera at %s but not found in the right", fl.center)
+                return None
+            self.counters["guided_acquisitions"] += 1
+            log.info("transmitter found in the right camera by the left's light (correlation %.2f)", fr.score)
         if self.shape_auto:
             if (fl.rows, fl.cols) != (self.rows, self.cols) or self.counters["acquisitions"] == 0:
                 log.info("transmitter's shape inferred: %dx%d LEDs, pitch %.2f px", fl.rows, fl.cols, fl.pitch_px)
