@@ -69,6 +69,9 @@ def check_stereo_config(cfg: Any) -> str | None:
     rig = cfg.rig
     link = emulated_board_link(cfg)  # ConfigError for a board that cannot be emulated
     if rig.stereo_url:
+        if rig.scheme == "mock" and getattr(cfg.transmitter, "shape_auto", False):
+            raise ConfigError('transmitter.rows, transmitter.cols: "auto" is for a receiver of real cameras '
+                              "or a replay; the mock rig renders the transmitter and needs its numbers")
         return link
     b = urls.backend(rig.scheme)
     left, right = rig.camera_urls

@@ -465,3 +465,15 @@ def test_devices_env_path_skips_a_file_that_is_not_gentl(tmp_path: Path, monkeyp
     path = str(tmp_path) + (os.pathsep + sim if sim else "")
     monkeypatch.setenv(gc.ENV_VAR, path)
     assert gc.find_producers() == ([sim] if sim else [])
+
+
+def test_run_auto_shape_on_the_mock_rig_is_one_line_exit_2(tmp_path: Path, no_daemon: None,
+                                                           capsys: pytest.CaptureFixture[str]) -> None:
+    """The mock rig renders the transmitter: rows = cols = "auto" (a receiver's setting) cannot
+    drive it. Before: both cameras failed to open in the acquisition process, the daemon ran
+    on decoding nothing and exited 0."""
+    cfg = tmp_path / "auto.toml"
+    cfg.write_text('[transmitter]\nrows = "auto"\ncols = "auto"\n')
+    rc, _, err = cli(capsys, "run", "--config", str(cfg), "--duration", "2")
+    assert rc == 2
+    assert '"auto"' in one_error_line(err, "run")
