@@ -176,17 +176,18 @@ def find_partner(frames: np.ndarray, ref: GridFit, series: np.ndarray, *, max_dy
     dx = float(dxs[ix]) + _vertex(score[iy, ix - 1:ix + 2] if 0 < ix < dxs.size - 1 else None)
     dy = float(dys[iy]) + _vertex(score[iy - 1:iy + 2, ix] if 0 < iy < dys.size - 1 else None)
     guess = ref.shifted(dx, dy)
-    if ref.rows * ref.cols > 1:  # an array keeps the reference's pitch (the same lens)
-        return GridFit(guess.origin, ref.pitch_px, ref.rows, ref.cols, score=best, spot_px=ref.spot_px)
-    # one LED: the centroid of the other camera's light around the shift
+    # the grid fitted to the other camera's light where the shift says it is (as the
+    # camera's own detection fits it, :func:`iscd.decode.tracking.detect.detect_array`)
     lm = light_map(np.ascontiguousarray(f))
     try:
-        fit = fit_grid(lm, 1, 1, region=guess.bbox(margin=2.0))
+        one = ref.rows * ref.cols == 1  # (one LED: a tight box, its centroid; texture stays out)
+        fit = fit_grid(lm, ref.rows, ref.cols, region=guess.bbox(margin=2.0 if one else 3.0))
     except ValueError:
         fit = guess
-    if np.hypot(fit.center[0] - guess.center[0], fit.center[1] - guess.center[1]) > 1.0:
-        fit = guess  # (texture in the box pulled the centroid away)
-    return GridFit(fit.origin, 0.0, 1, 1, score=best, spot_px=max(fit.spot_px, ref.spot_px))
+    if np.hypot(fit.center[0] - guess.center[0], fit.center[1] - guess.center[1]) > 1.0 or \
+            (ref.pitch_px > 0 and abs(fit.pitch_px - ref.pitch_px) > 0.15 * ref.pitch_px):
+        fit = guess  # (texture in the box pulled the fit away)
+    return GridFit(fit.origin, fit.pitch_px, ref.rows, ref.cols, score=best, spot_px=max(fit.spot_px, ref.spot_px))
 
 
 def _vertex(y3: np.ndarray | None) -> float:
