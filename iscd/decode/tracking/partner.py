@@ -120,18 +120,22 @@ def find_partner(frames: np.ndarray, ref: GridFit, series: np.ndarray, *, max_dy
     Returns
     -------
     GridFit or None
-        The fit in the other camera, px: the reference's shape and pitch at the best shift
-        (to sub-pixel by a parabola through the scores), one LED's centre then taken from
-        the other camera's light map; ``score`` the correlation. None when no shift
-        qualifies.
+        The fit in the other camera, px; ``score`` the correlation. One LED: the centroid
+        of the correlation peak. An array: the grid fitted to the other camera's light
+        map at the best shift (to sub-pixel by a parabola through the scores). None when no
+        shift qualifies.
     """
     f = np.asarray(frames)
     n, H, W = f.shape
     s = np.asarray(series, dtype=np.float64)
     if s.ndim != 2 or s.shape[0] != n or s.shape[1] != ref.rows * ref.cols:
         raise ValueError(f"series: expected ({n}, {ref.rows * ref.cols}), got {s.shape}")
-    zs = _zscore_series(s)
-    if zs is None or n < 8:
+    if n < 8:
+        return None
+    # frame-to-frame changes: a symbol changes every few frames, while vibration moves
+    # texture smoothly (its slow series correlate with anything over few degrees of freedom)
+    zs = _zscore_series(np.diff(s, axis=0))
+    if zs is None:
         return None
     sig = sigma_px if sigma_px is not None else max(0.7, ref.spot_px / 2.5)
     # the band of candidate shifts: dx in -max_disparity .. +1, dy in -max_dy .. +max_dy
@@ -146,7 +150,8 @@ def find_partner(frames: np.ndarray, ref: GridFit, series: np.ndarray, *, max_dy
     x0, y0, x1, y1 = max(0, x0), max(0, y0), min(W, x1), min(H, y1)
     if x1 - x0 < 3 or y1 - y0 < 3:
         return None
-    sub = ndimage.gaussian_filter(f[:, y0:y1, x0:x1].astype(np.float32), (0, sig, sig), mode="nearest")
+    sub = np.diff(ndimage.gaussian_filter(f[:, y0:y1, x0:x1].astype(np.float32), (0, sig, sig), mode="nearest"),
+                  axis=0)
     sub -= sub.mean(axis=0, keepdims=True)
     rms = np.sqrt((sub * sub).mean(axis=0))
     zr = sub / np.maximum(rms, 1e-6)[None]  # (n, h, w); a constant pixel correlates 0
@@ -155,7 +160,7 @@ def find_partner(frames: np.ndarray, ref: GridFit, series: np.ndarray, *, max_dy
     score = np.zeros((dys.size, dxs.size))
     count = np.zeros_like(score)
     for i in range(zs.shape[1]):
-        cmap = np.tensordot(zs[:, i], zr, axes=(0, 0)) / n  # (h, w) Pearson correlation
+        cmap = np.tensordot(zs[:, i], zr, axes=(0, 0)) / (n - 1)  # (h, w) Pearson correlation
         xi = np.rint(c[i, 0] + dxs - x0).astype(np.int64)
         yi = np.rint(c[i, 1] + dys - y0).astype(np.int64)
         okx = (xi >= 0) & (xi < w)
@@ -176,18 +181,37 @@ def find_partner(frames: np.ndarray, ref: GridFit, series: np.ndarray, *, max_dy
     dx = float(dxs[ix]) + _vertex(score[iy, ix - 1:ix + 2] if 0 < ix < dxs.size - 1 else None)
     dy = float(dys[iy]) + _vertex(score[iy - 1:iy + 2, ix] if 0 < iy < dys.size - 1 else None)
     guess = ref.shifted(dx, dy)
-    # the grid fitted to the other camera's light where the shift says it is (as the
-    # camera's own detection fits it, :func:`iscd.decode.tracking.detect.detect_array`)
+    if ref.rows * ref.cols == 1:
+        # one LED: the centroid of the correlation peak (the light map's centroid would be
+        # pulled by texture that vibration moves; the correlation is not)
+        cx, cy = _peak_centroid(score, iy, ix)  # (shift index j samples pixel rint(c) + shift j)
+        return GridFit((float(np.rint(c[0, 0])) + dxs[0] + cx, float(np.rint(c[0, 1])) + dys[0] + cy), 0.0, 1, 1,
+                       score=best,
+                       spot_px=ref.spot_px)
+    # an array: the grid fitted to the other camera's light where the shift says it is (as
+    # the camera's own detection fits it, :func:`iscd.decode.tracking.detect.detect_array`)
     lm = light_map(np.ascontiguousarray(f))
     try:
-        one = ref.rows * ref.cols == 1  # (one LED: a tight box, its centroid; texture stays out)
-        fit = fit_grid(lm, ref.rows, ref.cols, region=guess.bbox(margin=2.0 if one else 3.0))
+        fit = fit_grid(lm, ref.rows, ref.cols, region=guess.bbox(margin=3.0))
     except ValueError:
         fit = guess
     if np.hypot(fit.center[0] - guess.center[0], fit.center[1] - guess.center[1]) > 1.0 or \
-            (ref.pitch_px > 0 and abs(fit.pitch_px - ref.pitch_px) > 0.15 * ref.pitch_px):
+            abs(fit.pitch_px - ref.pitch_px) > 0.15 * ref.pitch_px:
         fit = guess  # (texture in the box pulled the fit away)
     return GridFit(fit.origin, fit.pitch_px, ref.rows, ref.cols, score=best, spot_px=max(fit.spot_px, ref.spot_px))
+
+
+def _peak_centroid(score: np.ndarray, iy: int, ix: int, half: int = 2) -> tuple[float, float]:
+    """(x, y) index-space centroid of ``score`` above half its peak within ``half`` cells of
+    the peak at (iy, ix)."""
+    y0, y1 = max(0, iy - half), min(score.shape[0], iy + half + 1)
+    x0, x1 = max(0, ix - half), min(score.shape[1], ix + half + 1)
+    w = np.clip(score[y0:y1, x0:x1] - 0.5 * score[iy, ix], 0.0, None)
+    tot = float(w.sum())
+    if tot <= 0:
+        return float(ix), float(iy)
+    yy, xx = np.mgrid[y0:y1, x0:x1]
+    return float((w * xx).sum() / tot), float((w * yy).sum() / tot)
 
 
 def _vertex(y3: np.ndarray | None) -> float:
