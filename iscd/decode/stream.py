@@ -43,9 +43,9 @@ from iscd.decode.pipe import PipeDemodWorker as DemodWorker
 from iscd.decode.tracking.follow_kernel import follow_and_measure_compiled
 from iscd.decode.tracking.luminance import PixelBackground, area_sigma, follow_and_measure, grid_sample, patch_half
 from iscd.decode.tracking.partner import find_partner, reference_series
-from iscd.decode.tracking.detect import (GridFit, detect_array, detect_auto, light_map, match_stereo, track_box,
+from iscd.decode.tracking.detect import (GridFit, square_grid, detect_array, detect_auto, light_map, match_stereo, track_box,
                                          track_on_light)
-from iscd.decode.tracking.track_kernel import LightAccumulator, track_on_light_compiled
+from iscd.decode.tracking.track_kernel import LightAccumulator, square_grid_compiled, track_on_light_compiled
 from iscd.decode.tracking import path_kernel  # noqa: F401  (its kernels warm up with the others)
 from iscd.decode.tracking.trajectory import PATH_REACH_PX, follow_path
 from iscd.decode.comms.packets import Packet, PacketAssembler
@@ -670,6 +670,12 @@ class StreamDecoder:
             if prev is not None and prev.shape == first.shape[1:] and \
                     float(np.abs(prev.mean(0) - first[0].mean(0)).max()) <= limit:
                 start = prev  # where the LEDs were in the last frame
+                if self.rows * self.cols > 1:
+                    # put back on the array's square grid: carried from block to block, each
+                    # LED's position would keep its own errors (a centroid pulled by the
+                    # neighbours' light, by texture, by the clip to max_px) and they add up
+                    # (an 8x8 closing to 25 m: its edge columns 1-7 px off before)
+                    start = (square_grid_compiled if self.compiled else square_grid)(prev, self.rows, self.cols)
             else:
                 start = self.led_centres(side, frame_ids)
             starts.append(start)

@@ -111,6 +111,33 @@ class GridFit:
                        self.score, self.spot_px)
 
 
+def square_grid(centres: np.ndarray, rows: int, cols: int) -> np.ndarray:
+    """The square, axis-aligned grid nearest to an array's LED centres, px.
+
+    The model of :class:`GridFit` (an origin and one pitch, row-major LED order), fitted by
+    least squares in closed form: with each LED's column c and row r,
+    p = sum((c - c_mean)(x - x_mean) + (r - r_mean)(y - y_mean)) / sum((c - c_mean)^2 + (r - r_mean)^2),
+    the grid centred on the centres' mean. The reference of
+    :func:`iscd.decode.tracking.track_kernel.square_grid_compiled`.
+
+    Parameters
+    ----------
+    centres : ndarray
+        (rows * cols, 2) LED centres (x, y), px.
+    rows, cols : int
+        The array's shape (more than one LED).
+
+    Returns
+    -------
+    ndarray
+        (rows * cols, 2) the grid's LED centres, px.
+    """
+    g = _grid_index(rows, cols) - np.array([(cols - 1) / 2, (rows - 1) / 2])
+    m = centres.mean(axis=0)
+    p = float((g * (centres - m)).sum() / (g * g).sum())
+    return m + p * g
+
+
 @dataclass(frozen=True)
 class Blob:
     """A connected active region: centroid (x, y) px, area px², peak activity, bbox."""

@@ -10,7 +10,8 @@ in float32; ``tests/test_frame_kernels.py``).
 
 :func:`track_on_light_compiled` is :func:`iscd.decode.tracking.detect.track_on_light` (the grid
 search on that map: median removed, Gaussian smoothing, 75 candidate grids sampled
-bilinearly) in compiled loops.
+bilinearly) in compiled loops; :func:`square_grid_compiled` is
+:func:`iscd.decode.tracking.detect.square_grid` (an array's centres put back on a square grid).
 """
 
 from __future__ import annotations
@@ -433,3 +434,35 @@ def track_on_light_compiled(light: np.ndarray, prev: GridFit, x0: int, y0: int) 
     k = int(np.argmax(score))
     return replace(prev, origin=(float(ox[k] + x0), float(oy[k] + y0)), pitch_px=float(p[k]),
                    score=float(score[k]))
+
+
+@njit
+def square_grid_compiled(centres: np.ndarray, rows: int, cols: int) -> np.ndarray:
+    """:func:`iscd.decode.tracking.detect.square_grid` in one loop (the same closed form):
+    (rows * cols, 2) centres (x, y), px, onto the nearest square grid, px."""
+    n = rows * cols
+    mx = 0.0
+    my = 0.0
+    for i in range(n):
+        mx += centres[i, 0]
+        my += centres[i, 1]
+    mx /= n
+    my /= n
+    hc = (cols - 1) / 2.0
+    hr = (rows - 1) / 2.0
+    num = 0.0
+    den = 0.0
+    for i in range(n):
+        gc = float(i % cols) - hc
+        gr = float(i // cols) - hr
+        num += gc * (centres[i, 0] - mx) + gr * (centres[i, 1] - my)
+        den += gc * gc + gr * gr
+    p = num / den if den > 0 else 0.0
+    out = np.empty((n, 2))
+    for i in range(n):
+        out[i, 0] = mx + p * (float(i % cols) - hc)
+        out[i, 1] = my + p * (float(i // cols) - hr)
+    return out
+
+
+register_warm(square_grid_compiled, lambda: (np.zeros((4, 2)), 2, 2))
