@@ -1044,7 +1044,7 @@ def _demodulate(L: np.ndarray, u_guess: float, air: AirInterface, e: float,
             models = [_fit(L, clock, e, lev, 0, P, M, st, cfg)]
         if cfg.decision_directed and fixed_clock is None:
             clock, _ = refine_clock(L, clock, e, lev, 0, _track(segs, models), p_prior, p_sigma,
-                                    timing_sigma=ts)
+                                    timing_sigma=ts, search_ends=True)
         # after the packet: idle (level 1) if the packets have gaps, else the next header
         # (level M) or, when the transmission stops, darkness (level 1)
         edge = (0,) if air.idle_symbols else (0, M - 1)
