@@ -883,29 +883,27 @@ class StreamDecoder:
         now = int(meta[-1, 0])
         self.excluded = [(b, until) for b, until in self.excluded if until > now]
         exclude = [b for b, _ in self.excluded]
-        if self.shape_auto and self._shape_hint is None:
-            fl = detect_auto(L, exclude=exclude)  # the right camera looks for the same shape
-        else:
-            fl = detect_array(L, *(self._shape_hint or (self.rows, self.cols)), exclude=exclude)
+        shape = self._shape_hint or (self.rows, self.cols)
+        auto = self.shape_auto and self._shape_hint is None
+        if not auto:
             self._hint_tries -= 1
             if self._hint_tries <= 0:
                 self._shape_hint = None
-        if fl is None:
-            return None
-        fr = detect_array(R, fl.rows, fl.cols)
-        cands = [fr] if fr is not None else []
-        max_dy = 3.0 + 0.5 * fl.spot_px
-        fr = match_stereo(fl, cands, max_dy=max_dy) if cands else None
-        if fr is None:
-            # the right camera's own search found nothing or something else (the HDR pair's
-            # f/8 camera sees a far LED a few DN above a textured scene): look along the
-            # epipolar band for the left's light over these frames
-            fr = find_partner(R, fl, reference_series(L, fl), max_dy=max_dy)
-            if fr is None:
-                log.debug("transmitter seen in the left camera at %s but not found in the right", fl.center)
+        found = None
+        for _ in range(self.ACQUIRE_CANDIDATES):
+            # the left camera's best candidate; one that the right camera does not confirm
+            # is left out and the next one tried on the same frames (so that a packet whose
+            # header is in them is not lost to a distractor)
+            fl = detect_auto(L, exclude=exclude) if auto else detect_array(L, *shape, exclude=exclude)
+            if fl is None:
                 return None
-            self.counters["guided_acquisitions"] += 1
-            log.info("transmitter found in the right camera by the left's light (correlation %.2f)", fr.score)
+            found = self._partner(fl, L, R)
+            if found is not None:
+                break
+            exclude = exclude + [fl.bbox(margin=2.0)]
+        if found is None:
+            return None
+        fl, fr = found
         if self.shape_auto:
             if (fl.rows, fl.cols) != (self.rows, self.cols) or self.counters["acquisitions"] == 0:
                 log.info("transmitter's shape inferred: %dx%d LEDs, pitch %.2f px", fl.rows, fl.cols, fl.pitch_px)
@@ -928,6 +926,28 @@ class StreamDecoder:
         log.info("transmitter acquired: left %.1f,%.1f right %.1f,%.1f pitch %.2f px",
                  *fl.center, *fr.center, fl.pitch_px)
         return meta[:, 0].astype(np.int64), meta[:, 1], L, R
+
+    ACQUIRE_CANDIDATES = 3
+    """Left-camera candidates tried on one acquisition's frames before the next frames."""
+
+    def _partner(self, fl: GridFit, L: np.ndarray, R: np.ndarray) -> tuple[GridFit, GridFit] | None:
+        """(left, right) fits of the transmitter the left camera found as ``fl``: the right
+        camera's own detection when it pairs with it, else the right camera searched for the
+        left's light (:func:`iscd.decode.tracking.partner.find_partner`); None if neither."""
+        fr = detect_array(R, fl.rows, fl.cols)
+        max_dy = 3.0 + 0.5 * fl.spot_px
+        fr = match_stereo(fl, [fr], max_dy=max_dy) if fr is not None else None
+        if fr is None:
+            # the right camera's own search found nothing or something else (the HDR pair's
+            # f/8 camera sees a far LED a few DN above a textured scene): look along the
+            # epipolar band for the left's light over these frames
+            fr = find_partner(R, fl, reference_series(L, fl), max_dy=max_dy)
+            if fr is None:
+                log.debug("transmitter seen in the left camera at %s but not found in the right", fl.center)
+                return None
+            self.counters["guided_acquisitions"] += 1
+            log.info("transmitter found in the right camera by the left's light (correlation %.2f)", fr.score)
+        return fl, fr
 
     HINT_TRIES = 4
     """Acquisition attempts with the shape a PHY header named before inferring it again."""

@@ -789,8 +789,10 @@ def detect_array(frames: np.ndarray, rows: int, cols: int, *, exclude: list[tupl
         pad = 3
         return fit_grid(light, 1, 1, region=(b.bbox[0] - pad, b.bbox[1] - pad, b.bbox[2] + pad, b.bbox[3] + pad))
     # group blobs of one array: LEDs of an array are at most ~a pitch apart; a pitch is at
-    # most about the size of the largest blob's spot
-    size = max(max(b.bbox[2] - b.bbox[0], b.bbox[3] - b.bbox[1]) for b in blobs[:n])
+    # most about the size of a blob's spot -- the median blob's (the largest may be a big
+    # blinking lamp elsewhere: a 93 px one merged a randomized scene's 13 blobs into one
+    # group, and the grid fitted over all of them, pitch 41 px, hid the array)
+    size = float(np.median([max(b.bbox[2] - b.bbox[0], b.bbox[3] - b.bbox[1]) for b in blobs[:n]]))
     groups = group_blobs(blobs, max_gap=max(3.0, 2.0 * size))
     best: GridFit | None = None
     for g in groups[:3]:
