@@ -308,6 +308,14 @@ def _median(xs: Sequence[float]) -> float:
     return float("nan") if not n else (s[n // 2] if n % 2 else 0.5 * (s[n // 2 - 1] + s[n // 2]))
 
 
+def daemon_start_s(stats: Sequence[dict[str, Any]], samples: Sequence[dict[str, Any]]) -> float:
+    """The sampler's time (s since the daemon's process started) of the daemon's uptime 0:
+    the first sample that holds the first acquisition process (0 if none does)."""
+    pid = next((s["acquisition"]["pid"] for s in stats if (s.get("acquisition") or {}).get("pid")), None)
+    return next((float(x["t"]) for x in samples if pid is not None and any(p["pid"] == pid for p in x["procs"])),
+                0.0)
+
+
 def analyze(directory: Path, *, warmup_s: float = 20.0, window_before: int = 1000, window_after: int = 5000,
             rss_mb: float = 40.0, cpu_cores: float = 0.2) -> int:
     faults = json.loads((directory / "faults.json").read_text())
@@ -347,8 +355,12 @@ def analyze(directory: Path, *, warmup_s: float = 20.0, window_before: int = 100
                    catch_ups=final["acquisition"].get("catch_ups", 0))  # a late reader skipped its backlog
     # -- frames dropped only during faults (after the warm-up; the end of a run is not a fault:
     #    its drops, if any, are stop_dropped and reported apart)
-    # the sampler's clock started with the daemon's process; uptime_s from the Daemon object
-    t_start_off = 0.0
+    # the sampler's clock started with the daemon's process; uptime_s from the Daemon object,
+    # which starts after the kernels are loaded (or compiled: 156 s once, from a new source
+    # path) and spawns the acquisition process at once: the first sample holding that process
+    # is uptime 0, to a sample period
+    t_start_off = daemon_start_s(stats, samples)
+    summary["daemon_start_s"] = t_start_off
     t_warm = next((s["frame"] for s in stats if s.get("acquiring_s", s["uptime_s"]) >= warmup_s), None)
     in_f = out_f = warm_drop = 0
     outside: list[tuple[int, int, int]] = []
@@ -428,7 +440,7 @@ def analyze(directory: Path, *, warmup_s: float = 20.0, window_before: int = 100
     # -- resources flat
     # after the warm-up, and not the last 5 s (the stop: the children leave one by one)
     t_last = samples[-1]["t"] if samples else 0.0
-    late = [s for s in samples if warmup_s + 10 <= s["t"] <= t_last - 5 and s["n_procs"] > 0]
+    late = [s for s in samples if t_start_off + warmup_s + 10 <= s["t"] <= t_last - 5 and s["n_procs"] > 0]
     if len(late) >= 10:
         k = max(2, len(late) // 5)
         a, b = late[:k], late[-k:]
