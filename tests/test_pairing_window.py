@@ -43,6 +43,11 @@ buffer_frames = 2000
 """
 
 
+CATCH_UP_8 = "[acquisition]\ncatch_up_after = 8\n"
+"""The catch-up asked after 8 late frames (the default is 250: these tests hold a reader back
+for good, so the threshold only moves where pairing resumes)."""
+
+
 class _Run:
     """The mock rig's two cameras opened and started, an :class:`Acquisition` on a ring with
     the config's ``[acquisition]``, and a fake clock for its pairing report. ``pace``: the
@@ -158,6 +163,7 @@ frame = 1000
 offset = 3
 [acquisition]
 resync_after = 0
+catch_up_after = 0
 """)
     times: list[float] = []
 
@@ -203,7 +209,7 @@ def test_a_reader_that_stays_behind_catches_up(late: str, lag: int, caplog) -> N
     first pair. The skipped frames count as unpaired (``skipped``), one catch-up, one line
     saying it."""
     early = "left" if late == "right" else "right"
-    run = _Run("")
+    run = _Run(CATCH_UP_8)
     try:
         with caplog.at_level(logging.WARNING, logger="iscd.rig.acquisition"):
             run.read(early, lag)
@@ -246,7 +252,7 @@ def test_a_paced_camera_whose_reader_stays_behind_catches_up(fake_clock, caplog)
     from iscd.drivers import mock
 
     fake_clock.install(mock)
-    run = _Run("", pace=True)
+    run = _Run(CATCH_UP_8, pace=True)
     try:
         with caplog.at_level(logging.WARNING, logger="iscd.rig.acquisition"):
             run.read("left", 300)
@@ -266,7 +272,7 @@ def test_a_paced_camera_whose_reader_stays_behind_catches_up(fake_clock, caplog)
 def test_a_lag_pairing_absorbs_needs_no_catch_up() -> None:
     """A reader that stays 40 frames behind (less than ``max_pending = 64``) loses nothing:
     its partners wait, every trigger is paired, no catch-up."""
-    run = _Run("")
+    run = _Run(CATCH_UP_8)
     try:
         run.read("left", 40)
         run.alternate(500)
@@ -282,7 +288,7 @@ def test_pairing_recovers_after_every_skew(caplog) -> None:
     """The right reader held back again and again (300, 100, 70 frames, 1 s of alternating
     reads between): pairing comes back each time within 8 + 1 late reads, one catch-up each,
     at most one catch-up line a second (the clock is the left camera's frames)."""
-    run = _Run("")
+    run = _Run(CATCH_UP_8)
     starts = []
     try:
         with caplog.at_level(logging.WARNING, logger="iscd.rig.acquisition"):
@@ -351,7 +357,7 @@ def test_no_catch_up_when_the_clocks_disagree(guard: bool, monkeypatch) -> None:
     if not guard:
         monkeypatch.setattr(pairing, "MAX_CATCH_UP_FRAMES", 10**9)
     img = np.zeros((2, 2), np.uint8)
-    p = pairing.StereoPairer(ts_tolerance_ns=250_000)
+    p = pairing.StereoPairer(ts_tolerance_ns=250_000, catch_up_after=8)
     jump = 600 * 10**9
     assert jump // 1_000_000 > 1 << 16
 

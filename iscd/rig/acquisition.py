@@ -100,9 +100,11 @@ class AcquisitionOptions:
                             "absorbs (each waiting frame holds a copy of its image, 256 KiB at "
                             "512x512 8-bit)", lo=1, hi=4096)
     resync_after: int = _opt(8, "failed frames in a row before re-learning the id "
-                             "alignment, and frames of a camera in a row that came after all "
-                             "the other's waiting frames before its reader skips its backlog "
-                             "(0 = neither)", lo=0)
+                             "alignment (0 = never)", lo=0)
+    catch_up_after: int = _opt(250, "frames of a camera in a row that came after all the other's "
+                               "waiting frames before its reader skips its backlog (0 = never; "
+                               "a reader that was held up drains its backlog itself before that)",
+                               lo=0)
     reopen_backoff_s: float = _opt(0.05, "first wait before reopening a lost camera, s",
                                    lo=0)
     reopen_backoff_max_s: float = _opt(2.0, "longest wait between reopen attempts, s", lo=0)
@@ -290,6 +292,7 @@ class Acquisition:
             ts_tolerance_ns=tol,
             ts_offset_ns=None if opt.learn_ts_offset else round(opt.ts_offset_s * 1e9),
             window=opt.pair_window, max_pending=opt.max_pending, resync_after=opt.resync_after,
+            catch_up_after=opt.catch_up_after,
             retain=_retain if opt.copy_frames else None)
         self.pairing_report = PairingReport(self.pairer)
         self._stats = AcquisitionStats(pid=os.getpid())

@@ -37,8 +37,8 @@ Catching up: a camera whose frames are delivered later than the other's by more 
 absorbs (a starved reader thread, a deep driver queue) has its every frame arrive after the
 other camera has already given up its partner (``window``, ``max_pending``); as long as that
 lag lasts no pair forms, and ids and timestamps both agree, so the resync above has nothing to
-re-learn. After ``resync_after`` frames in a row of one camera that came after every frame the
-other camera still holds (by timestamp), unless that camera is closing the gap (its lag to the
+re-learn. After ``catch_up_after`` (250) frames in a row of one camera that came after every
+frame the other camera still holds (by timestamp), unless that camera is closing the gap (its lag to the
 other camera's newest frame shrank by at least one frame for every two of its frames in the
 run: a reader draining a backlog, which then pairs within twice the lag), the pairer asks that
 camera's reader to skip its backlog up to the other camera's newest frame
@@ -48,7 +48,9 @@ too long while the other camera moves on). The reader discards those frames
 (``Camera.skip_to``) and reports them (:meth:`StereoPairer.skipped`): they are counted unpaired
 (``skipped``); the other camera's frames older than the new anchor go as ``overtaken``, and
 pairing resumes with the next frame. So a lag that lasts is paired again after at most
-``resync_after + 1`` of the late camera's reads. Lags of more than
+``catch_up_after + 1`` of the late camera's reads (a shorter run asked too soon: with 8, a CI
+run's short soak skipped 64-73 frames seven times in 75 s on lags of 65-74 ms that a
+descheduled reader was draining itself). Lags of more than
 :data:`MAX_CATCH_UP_FRAMES` are taken for clocks that disagree, not a late reader, and left
 alone.
 """
@@ -168,9 +170,12 @@ class StereoPairer:
     ts_offset_ns: initial right-minus-left clock offset, ns; ``None`` learns it.
     window: a pending frame is dropped once the other camera is ``window`` frames past it.
     max_pending: at most this many frames wait per camera (a stalled partner camera).
-    resync_after: consecutive failures before re-learning the id alignment, and frames of
-      one camera in a row, each later than all the other camera's waiting frames, before
-      that camera is asked to catch up (0: neither).
+    resync_after: consecutive failures before re-learning the id alignment (0: never).
+    catch_up_after: frames of one camera in a row, each later than all the other camera's
+      waiting frames, before that camera is asked to catch up (0: never). 250 (a quarter of
+      a second at 1000 fps): a reader that was descheduled for a while drains its backlog
+      by itself within that (a CI run's short soak with 8 here skipped 64-73 frames seven
+      times in 75 s, on lags of 65-74 ms that were passing).
     history: recent (id, timestamp) pairs kept per camera for that.
     retain: called on a frame that must wait for its partner; return a frame that stays
       valid (e.g. with a copied image: drivers may reuse a frame's buffer on the next read).
@@ -180,11 +185,13 @@ class StereoPairer:
     def __init__(self, *, ts_tolerance_ns: int = 250_000, ts_offset_ns: int | None = 0,
                  window: int = 16, max_pending: int = 64, resync_after: int = 8,
                  history: int = 64, retain: Callable[[Frame], Frame] | None = None,
-                 clock_gain: float = 1.0 / 16) -> None:
+                 clock_gain: float = 1.0 / 16, catch_up_after: int = 250) -> None:
         if ts_tolerance_ns < 0:
             raise ValueError(f"ts_tolerance_ns must be >= 0, got {ts_tolerance_ns}")
         if window < 1 or max_pending < 1:
             raise ValueError(f"window and max_pending must be >= 1, got {window}, {max_pending}")
+        if catch_up_after < 0:
+            raise ValueError(f"catch_up_after must be >= 0, got {catch_up_after}")
         if resync_after < 0 or history < 2:
             raise ValueError(f"resync_after must be >= 0 and history >= 2, got "
                              f"{resync_after}, {history}")
@@ -195,6 +202,7 @@ class StereoPairer:
         self.window = int(window)
         self.max_pending = int(max_pending)
         self.resync_after = int(resync_after)
+        self.catch_up_after = int(catch_up_after)
         self._recent_len = max(4 * self.window, self.max_pending + self.window)
         self._retain = retain
         self._gain = float(clock_gain)
@@ -344,9 +352,9 @@ class StereoPairer:
     def _check_behind(self, side: Side, frame: Frame) -> None:
         """``frame`` of camera ``side`` found no partner: if it is older (timestamp, beyond
         the tolerance) than every frame the other camera still holds, its partner is gone;
-        ``resync_after`` such frames in a row ask this camera to catch up."""
+        ``catch_up_after`` such frames in a row ask this camera to catch up."""
         me, ot = self._s[side], self._s[_OTHER[side]]
-        if not self.resync_after or self._offset is None or not ot.pending or me.catch_up is not None:
+        if not self.catch_up_after or self._offset is None or not ot.pending or me.catch_up is not None:
             return
         off = self._offset if side == "left" else -self._offset  # other's clock -> this one's
         oldest = ot.pending[min(ot.pending)]
@@ -358,7 +366,7 @@ class StereoPairer:
         me.behind += 1
         if me.behind == 1:
             me.behind_lag0_ns = lag
-        if me.behind < self.resync_after:
+        if me.behind < self.catch_up_after:
             return
         period = self._frame_period_ns(me)
         frames = math.ceil(lag / period) if period else MAX_CATCH_UP_FRAMES + 1
