@@ -890,6 +890,7 @@ class StreamDecoder:
             if self._hint_tries <= 0:
                 self._shape_hint = None
         found = None
+        own_right: dict[tuple[int, int], GridFit | None] = {}  # the right's own search, once a shape
         for _ in range(self.ACQUIRE_CANDIDATES):
             # the left camera's best candidate; one that the right camera does not confirm
             # is left out and the next one tried on the same frames (so that a packet whose
@@ -897,7 +898,7 @@ class StreamDecoder:
             fl = detect_auto(L, exclude=exclude) if auto else detect_array(L, *shape, exclude=exclude)
             if fl is None:
                 return None
-            found = self._partner(fl, L, R)
+            found = self._partner(fl, L, R, own_right)
             if found is not None:
                 break
             exclude = exclude + [fl.bbox(margin=2.0)]
@@ -930,11 +931,16 @@ class StreamDecoder:
     ACQUIRE_CANDIDATES = 3
     """Left-camera candidates tried on one acquisition's frames before the next frames."""
 
-    def _partner(self, fl: GridFit, L: np.ndarray, R: np.ndarray) -> tuple[GridFit, GridFit] | None:
+    def _partner(self, fl: GridFit, L: np.ndarray, R: np.ndarray,
+                 own_right: dict[tuple[int, int], GridFit | None]) -> tuple[GridFit, GridFit] | None:
         """(left, right) fits of the transmitter the left camera found as ``fl``: the right
         camera's own detection when it pairs with it, else the right camera searched for the
-        left's light (:func:`iscd.decode.tracking.partner.find_partner`); None if neither."""
-        fr = detect_array(R, fl.rows, fl.cols)
+        left's light (:func:`iscd.decode.tracking.partner.find_partner`); None if neither.
+        ``own_right`` holds the right camera's own detection per shape for these frames (it
+        does not depend on the left's candidate: run once however many candidates are tried)."""
+        if (fl.rows, fl.cols) not in own_right:
+            own_right[(fl.rows, fl.cols)] = detect_array(R, fl.rows, fl.cols)
+        fr = own_right[(fl.rows, fl.cols)]
         max_dy = 3.0 + 0.5 * fl.spot_px
         fr = match_stereo(fl, [fr], max_dy=max_dy) if fr is not None else None
         if fr is None:
