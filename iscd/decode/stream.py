@@ -79,6 +79,8 @@ class PipelineSettings:
     background_rise_dn: float = field(default=0.25, metadata={"lo": 0, "doc": "how fast the per-pixel background follows a background that brightens, DN per block"})
     background_one_led: bool = field(default=True, metadata={"doc": "the per-pixel background (as background) whenever the transmitter is one LED: measured on a moving car's randomized scenes it delivered more packets (4 seed sets, docs/eval.md), and one LED's static suites (SER, range errors) are unchanged; an array keeps background's setting (its neighbours' light under a pixel cost static f/4 receivers packets)"})
     follow_passes: int = field(default=3, metadata={"lo": 0, "hi": 8, "doc": "further following passes per block along the LEDs' path (their lit frames' centres smoothed in time), while the path moves more than path_settle_px; dark and dimly lit frames are measured on the path; 0 = one pass from the last block's end (before issue 12)"})
+    max_transmitters: int = field(default=1, metadata={"lo": 1, "hi": 16, "doc": "transmitters decoded at once (each its own tracking, timing, channel, packets, ranging, and a tx index once its first packet is valid); 1 = the one strongest, as before; > 1: iscd.decode.multi.MultiDecoder (docs/receiver.md)"})
+    search_every_frames: int = field(default=256, metadata={"lo": 8, "hi": 100000, "doc": "with max_transmitters > 1 and a transmitter tracked: look for another one every this many frames (each look reads acquire_frames whole frames)"})
     path_settle_px: float = field(default=0.5, metadata={"lo": 0.05, "hi": 5.0, "doc": "no further following pass once the path is within this of where the last pass started, px"})
 
 
@@ -215,6 +217,16 @@ class StreamDecoder:
         self.track: _Track | None = None
         self.excluded: list[tuple[tuple[int, int, int, int], int]] = []
         """(bbox, until frame id) of rejected candidates."""
+        self.extra_exclude: tuple[list[tuple[int, int, int, int]], list[tuple[int, int, int, int]]] = ([], [])
+        """(left, right) boxes (x0, y0, x1, y1) px that acquisition leaves out besides its own
+        rejected candidates: the transmitters other decoders track
+        (:class:`iscd.decode.multi.MultiDecoder` sets them before each block)."""
+        self.attempts = 0
+        """detection attempts made (each on ``acquire_frames`` frames)"""
+        self.keep_acquired = False
+        self.acquired: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = None
+        """with ``keep_acquired``: the (ids, t_s, left, right) frames of the last successful
+        detection, for the caller to take (another transmitter may be among them)"""
         # room for a detection attempt's frames plus one more block of any size up to
         # acquire_frames: a block that does not divide acquire_frames loses none of the
         # frames collected since the last attempt (a first header among them)
@@ -881,8 +893,9 @@ class StreamDecoder:
         self._acq_r.clear()
         self._acq_ids.clear()
         now = int(meta[-1, 0])
+        self.attempts += 1
         self.excluded = [(b, until) for b, until in self.excluded if until > now]
-        exclude = [b for b, _ in self.excluded]
+        exclude = [b for b, _ in self.excluded] + list(self.extra_exclude[0])
         shape = self._shape_hint or (self.rows, self.cols)
         auto = self.shape_auto and self._shape_hint is None
         if not auto:
@@ -926,7 +939,10 @@ class StreamDecoder:
             self.kalman.reset()
         log.info("transmitter acquired: left %.1f,%.1f right %.1f,%.1f pitch %.2f px",
                  *fl.center, *fr.center, fl.pitch_px)
-        return meta[:, 0].astype(np.int64), meta[:, 1], L, R
+        got = meta[:, 0].astype(np.int64), meta[:, 1], L, R
+        if self.keep_acquired:
+            self.acquired = got
+        return got
 
     ACQUIRE_CANDIDATES = 3
     """Left-camera candidates tried on one acquisition's frames before the next frames."""
@@ -939,7 +955,8 @@ class StreamDecoder:
         ``own_right`` holds the right camera's own detection per shape for these frames (it
         does not depend on the left's candidate: run once however many candidates are tried)."""
         if (fl.rows, fl.cols) not in own_right:
-            own_right[(fl.rows, fl.cols)] = detect_array(R, fl.rows, fl.cols)
+            own_right[(fl.rows, fl.cols)] = detect_array(R, fl.rows, fl.cols,
+                                                         exclude=list(self.extra_exclude[1]) or None)
         fr = own_right[(fl.rows, fl.cols)]
         max_dy = 3.0 + 0.5 * fl.spot_px
         fr = match_stereo(fl, [fr], max_dy=max_dy) if fr is not None else None
