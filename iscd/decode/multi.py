@@ -450,3 +450,12 @@ def _same_place(a: Any, b: Any) -> bool:
         if d > max(4.0, fa.pitch_px, fb.pitch_px):
             return False
     return True
+
+
+def make_decoder(cfg: Config, calibration: StereoCalibration | None = None, **kw: Any) -> StreamDecoder | MultiDecoder:
+    """The decoder a config asks for: a :class:`MultiDecoder` when ``[tracking]
+    max_transmitters`` > 1, else the one-transmitter :class:`StreamDecoder` (``kw``: their
+    common keywords, ``async_demod`` and ``compiled``)."""
+    if section(cfg, PipelineSettings).max_transmitters > 1:
+        return MultiDecoder(cfg, calibration, **kw)
+    return StreamDecoder(cfg, calibration, **kw)

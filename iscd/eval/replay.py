@@ -252,7 +252,7 @@ def _replay_stereo(inp: ReplayInputs, out: str | Path, warn: Warn, rotate_bytes:
     overload policy shed on a block, from its block note, shed again)."""
     from iscd.calibration.io import CalibrationError, load_calibration
     from iscd.core import config as C
-    from iscd.decode.stream import StreamDecoder
+    from iscd.decode.multi import make_decoder
     from iscd.outputs.jsonl import JsonlWriter
     from iscd.recording.pairs import open_stereo
 
@@ -274,7 +274,7 @@ def _replay_stereo(inp: ReplayInputs, out: str | Path, warn: Warn, rotate_bytes:
             raise UserError(str(e)) from None
         _check_mismatch(session, cfg, inp.left, inp.allow_mismatch, warn)
         fps = float(cfg.camera.fps)
-        dec = StreamDecoder(cfg, cal)
+        dec = make_decoder(cfg, cal)
         t0 = time.perf_counter()
         last = prev = None
         gaps = 0
@@ -312,14 +312,15 @@ def _stats(dec: Any, *, frame: int, t_s: float, frames_in: int, dropped: int, pa
         latency_ms_p50=None, latency_ms_p99=None,
         extra={"wall_s": round(wall, 3), "pairs_per_s": round(pairs / wall, 1) if wall > 0 else None,
                **(mode or {}),
-               **{k: v for k, v in dec.counters.items() if k not in ("packets_ok", "packets_bad")}}).to_json()
+               **{k: v for k, v in dec.counters.items() if k not in ("packets_ok", "packets_bad")},
+               **({"transmitters": dec.transmitters()} if hasattr(dec, "transmitters") else {})}).to_json()
 
 
 def _replay_pair(inp: ReplayInputs, out: str | Path, warn: Warn, progress: Progress | None,
                  calibration: CalibrationLoader, rotate_bytes: int) -> ReplayResult:
     from iscd.calibration.io import CalibrationError, load_calibration
     from iscd.core import config as C
-    from iscd.decode.stream import StreamDecoder
+    from iscd.decode.multi import make_decoder
     from iscd.outputs.jsonl import JsonlWriter
     from iscd.recording import RecordingError, open_recording
     from iscd.recording.base import match_frames
@@ -344,7 +345,7 @@ def _replay_pair(inp: ReplayInputs, out: str | Path, warn: Warn, progress: Progr
         raise UserError(f"{lpath} and {rpath} share no frame ids: not a stereo pair")
     unpaired = (left.n_frames - li.size) + (right.n_frames - ri.size)
     fps = left.fps or cfg.camera.fps
-    dec = StreamDecoder(cfg, cal)
+    dec = make_decoder(cfg, cal)
     t0 = time.perf_counter()
     block = inp.block
     with JsonlWriter(out, rotate_bytes=rotate_bytes) as sink:

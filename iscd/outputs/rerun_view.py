@@ -194,9 +194,11 @@ class RerunView(Output):
 
     @_guarded
     def log_images(self, frame: int, t_s: float, left: np.ndarray | None, right: np.ndarray | None,
-                   boxes_left: np.ndarray | None = None, boxes_right: np.ndarray | None = None) -> bool:
+                   boxes_left: np.ndarray | None = None, boxes_right: np.ndarray | None = None,
+                   *, labels: list[str] | None = None) -> bool:
         """Log a left/right image pair and LED boxes (N, 4: x0, y0, x1, y1 in px) if
-        :meth:`want_image`; True when logged. Images: 2-D grey (uint8/uint16) or 3-D colour."""
+        :meth:`want_image`; True when logged. Images: 2-D grey (uint8/uint16) or 3-D colour.
+        ``labels``: one per box (several transmitters: ``"tx 1"``)."""
         if not self.want_image(frame):
             return False
         import rerun as rr
@@ -211,7 +213,8 @@ class RerunView(Output):
             if boxes is not None:
                 b = np.asarray(boxes, dtype=np.float64).reshape(-1, 4) * (sx, sy, sx, sy)
                 self._rec.log(f"{side}/leds", rr.Boxes2D(array=b, array_format=rr.Box2DFormat.XYXY,
-                                                          class_ids=np.arange(len(b))))
+                                                          class_ids=np.arange(len(b)),
+                                                          labels=labels if labels and len(labels) == len(b) else None))
         self.images_logged += 1
         return True
 

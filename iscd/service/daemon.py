@@ -294,7 +294,7 @@ class _Run:
     def _build(self) -> None:
         """The parts that hold resources (processes, shared memory, files, sockets)."""
         from iscd.calibration.io import load_calibration
-        from iscd.decode.stream import StreamDecoder
+        from iscd.decode.multi import make_decoder
         from iscd.drivers.registry import make_stereo, settings_from_config
         from iscd.outputs import Outputs
         from iscd.rig.acquisition import AcquisitionProcess
@@ -305,7 +305,7 @@ class _Run:
         daemon, cfg, st = self.daemon, self.cfg, self.st
         cal = load_calibration(daemon.calibration_path) if daemon.calibration_path else None
         # packets are demodulated in a worker process: no GIL shared with the frame loop
-        self.decoder = StreamDecoder(cfg, cal, async_demod="process")
+        self.decoder = make_decoder(cfg, cal, async_demod="process")
         H, W = cfg.camera.height, cfg.camera.width
         dtype = np.uint8 if cfg.camera.bit_depth == 8 else np.uint16
         self.ring = StereoRing.create(height=H, width=W, capacity=capacity_for(st.ring_ms, cfg.camera.fps),
@@ -537,13 +537,17 @@ class _Run:
         if view.want_image(self.last_frame) and not images:
             self.overload.shed_images()
         elif view.want_image(self.last_frame):
-            tr = decoder.track
-            boxes_l = boxes_r = None
-            if tr is not None:
-                boxes_l = np.array([tr.left.bbox(2)], float)
-                boxes_r = np.array([tr.right.bbox(2)], float)
+            tracks = decoder.tracks() if hasattr(decoder, "tracks") else (
+                [(0, decoder.track)] if decoder.track is not None else [])
+            boxes_l = boxes_r = labels = None
+            if tracks:
+                boxes_l = np.array([tr.left.bbox(2) for _, tr in tracks], float)
+                boxes_r = np.array([tr.right.bbox(2) for _, tr in tracks], float)
+                z = {d["tx"]: d["z_m"] for d in decoder.transmitters()} if hasattr(decoder, "transmitters") else {}
+                labels = [f"tx {tx}" + (f" {z[tx]:.1f} m" if z.get(tx) is not None else "") for tx, _ in tracks]
             b = self.blocks
-            view.log_images(self.last_frame, float(b.t_s[n - 1]), b.left[n - 1], b.right[n - 1], boxes_l, boxes_r)
+            view.log_images(self.last_frame, float(b.t_s[n - 1]), b.left[n - 1], b.right[n - 1], boxes_l, boxes_r,
+                            labels=labels)
 
     def finish_decoder(self) -> list[dict]:
         """decoder.finish(), but without waiting on a demodulation backlog for more than
@@ -613,6 +617,10 @@ class _Run:
                "device_fps": [a.fps_mhz_left / 1000 or None, a.fps_mhz_right / 1000 or None],
                "device_fps_mismatch": self.fps_mismatch,
                "demod_worker_restarts": decoder.counters.get("demod_worker_restarts", 0)}
+        if hasattr(decoder, "transmitters"):  # several transmitters: each one's own figures
+            rec["transmitters"] = decoder.transmitters()
+            rec.update({k: decoder.counters[k] for k in ("transmitters_confirmed", "transmitters_lost",
+                                                         "candidate_records_dropped", "search_attempts")})
         rec.update(self.outputs.counters())  # output_errors and each output's own counters
         if self.control is not None:
             rec.update(self.control.counters())  # control_commands, control_refused
