@@ -107,6 +107,10 @@ class MultiDecoder:
         """frame id from which the searcher takes frames again (while something is tracked)"""
         self._last_id: int | None = None
         self._deferred: list[_Slot] = []
+        self._excluded: list[tuple[tuple[int, int, int, int], int]] = []
+        """(left box, until frame id) of rejected candidates, for every searcher"""
+        self._rejections: list[tuple[tuple[int, int, int, int], int]] = []
+        """(box, times) of places rejected (exclusion back-off)"""
         self._search_block: tuple | None = None
         """a block pushed with defer=True, for the searcher in finish_block"""
         self._new_slot()
@@ -193,6 +197,30 @@ class MultiDecoder:
         s.held = []
         return out
 
+    BACKOFF_MAX = 16
+    """A place rejected again is left out twice as long each time, up to this many times
+    ``exclude_packets`` (a PWM-dimmed tail light stays in view: trying it again every
+    ``exclude_packets`` would track it a quarter of the time)."""
+
+    def _back_off(self, s: _Slot, now: int) -> None:
+        """The candidate ``s`` just rejected: lengthen its exclusion if its place was
+        rejected before (its centre inside an earlier rejection's box)."""
+        box, until = s.dec.excluded[-1]
+        cx, cy = (box[0] + box[2]) / 2, (box[1] + box[3]) / 2
+        n = 1
+        for i, (b, k) in enumerate(self._rejections):
+            if b[0] <= cx < b[2] and b[1] <= cy < b[3]:
+                n = k + 1
+                del self._rejections[i]
+                break
+        self._rejections.append((box, n))
+        self._rejections = self._rejections[-64:]
+        self.own["candidates_rejected"] += 1
+        factor = min(2 ** (n - 1), self.BACKOFF_MAX)
+        until = now + factor * (until - now)
+        s.dec.excluded[-1] = (box, until)
+        self._excluded.append((box, until))  # for every searcher, whichever slot it is
+
     def _track_ended(self, s: _Slot, last_frame: int) -> None:
         """The slot's track is gone (lost, rejected, restarted)."""
         if s.tx is None:
@@ -219,7 +247,9 @@ class MultiDecoder:
             if tr is not None:
                 for fit, out in ((tr.left, left), (tr.right, right)):
                     out.append(fit.bbox(max(4.0, fit.pitch_px, fit.spot_px)))
-            left += [b for b, _ in o.dec.excluded]
+        now = self._last_id if self._last_id is not None else 0
+        self._excluded = [(b, until) for b, until in self._excluded if until > now]
+        left += [b for b, _ in self._excluded]
         return left, right
 
     def push(self, frame_ids: np.ndarray, t_s: np.ndarray, left: np.ndarray, right: np.ndarray,
@@ -248,7 +278,10 @@ class MultiDecoder:
     def _push_slot(self, s: _Slot, frame_ids, t_s, left, right, *, defer: bool = False, **kw: Any) -> list[dict]:
         had = s.dec.track is not None
         acq = s.dec.counters["acquisitions"]
+        rejected = s.dec.counters["rejected_candidates"]
         recs = s.dec.push(frame_ids, t_s, left, right, defer=defer, **kw)
+        if s.dec.counters["rejected_candidates"] != rejected and s.dec.excluded:
+            self._back_off(s, int(frame_ids[-1]))
         if defer and s.dec.track is not None:
             self._deferred.append(s)
         out = self._route(s, recs)
