@@ -169,14 +169,115 @@ class OpticsConfig:
 
 @dataclass(frozen=True)
 class DistractorConfig:
-    """A steady light that is not a transmitter (street lamp, reflection)."""
+    """A light that is not a transmitter (street lamp, reflection, PWM-dimmed tail light):
+    steady, flickering (sine) or blinking (square wave); it never carries data."""
 
     x_m: float = _f(2.0, doc="lateral position, m (right positive)")
     y_m: float = _f(-1.0, doc="vertical position, m (down positive)")
     z_m: float = _f(40.0, lo=0, lo_open=True, doc="distance, m")
     diameter_m: float = _f(0.2, lo=0, lo_open=True, doc="diameter, m")
-    brightness_dn: float = _f(200.0, lo=0, doc="grey level at f/4")
-    flicker_hz: float = _f(0.0, lo=0, doc="0 = steady; 100 = mains-driven lamp")
+    brightness_dn: float = _f(200.0, lo=0, doc="grey level at f/4 (sine: the mean; square: "
+                              "while on)")
+    flicker_hz: float = _f(0.0, lo=0, doc="0 = steady; 100 = mains-driven lamp; 100-2000 = a "
+                           "PWM-dimmed LED lamp (waveform = square), Hz")
+    waveform: str = _f("sine", choices=("sine", "square"),
+                       doc="flicker_hz > 0: sine, 1 - cos(2 pi f t + phi) (mean brightness_dn), "
+                           "or square, on for the first duty of each period 1/f (PWM dimming)")
+    duty: float = _f(0.5, lo=0, hi=1, doc="square only: on-fraction of each period, 0..1")
+
+
+@dataclass(frozen=True)
+class ExtraTransmitterConfig:
+    """A further transmitter of the simulated scene (``[[scene.transmitters]]``), beside the
+    main one (``[transmitter]`` + ``[scene]``). Keys left out (None) take the main
+    transmitter's value (``[transmitter]``); it runs on its own LED clock and sends its own
+    packets (docs/simulator.md, "Several transmitters and blinkers")."""
+
+    rows: int = _f(1, lo=1, hi=64, doc="LED array rows")
+    cols: int = _f(1, lo=1, hi=64, doc="LED array columns")
+    levels: int | None = _f(None, choices=(2, 4, 8, 16, 32),
+                            doc="M, PWM levels (2 = OOK); default: the main transmitter's")
+    training_symbols: int | None = _f(None, lo=0, doc="K; default: the main transmitter's")
+    data_symbols: int | None = _f(None, lo=1, doc="F; default: the main transmitter's")
+    idle_symbols: int | None = _f(None, lo=0, doc="G; default: the main transmitter's")
+    air_interface: str | None = _f(None, choices=("v1", "v2"),
+                                   doc="v1 or v2; default: the main transmitter's")
+    fec: str | None = _f(None, choices=FEC_NAMES, doc="v2 only: code mode; default: the main "
+                         "transmitter's")
+    payload_len: int | None = _f(None, lo=0, hi=0xFFFFFF,
+                                 doc="v2 only: payload bytes; default: the main transmitter's")
+    pitch_m: float | None = _f(None, lo=0, lo_open=True,
+                               doc="LED spacing, m; default: the main transmitter's")
+    led_diameter_m: float | None = _f(None, lo=0, lo_open=True,
+                                      doc="LED diameter, m; default: the main transmitter's")
+    radiance_dn: float | None = _f(None, lo=0, lo_open=True,
+                                   doc="grey level of a fully-on LED at f/4 and 1 ms; default: "
+                                       "the main transmitter's")
+    lateral_m: float = _f(0.0, doc="array centre, lateral offset from the left camera axis, m "
+                          "(right positive)")
+    vertical_m: float = _f(0.0, doc="array centre, vertical offset, m (down positive)")
+    distance_m: float = _f(30.0, lo=0, lo_open=True, doc="initial distance Z, m")
+    speed_mps: float = _f(0.0, doc="closing speed, m/s (stops at scene.min_distance_m)")
+    lateral_speed_mps: float = _f(0.0, doc="lateral speed relative to the rig, m/s")
+    led_drift_ppm: float = _f(0.0, doc="its LED clock's rate error against the cameras, ppm")
+    led_phase_s: float = _f(-1.0, doc="its LED symbol clock offset at t = 0, s; < 0 = random "
+                            "(seeded by scene.seed and the entry's index)")
+    seed: int | None = _f(None, doc="seed of its random payloads; default: scene.seed + "
+                          "4096 (index + 1), index = 0 for the first entry")
+    payload_source: str = _f("random", choices=("random", "text", "hex", "file"),
+                             doc="random payloads per packet (seeded by seed), or a fixed one")
+    payload_value: str = _f("", doc="the text, hex string or file path of a fixed payload")
+    start_s: float = _f(0.0, lo=0, doc="it is in view (lit) from this camera time on, s")
+    stop_s: float | None = _f(None, lo=0, lo_open=True,
+                              doc="... until this camera time, s; default: never leaves")
+
+    @property
+    def n_leds(self) -> int:
+        return self.rows * self.cols
+
+    def payload_seed(self, scene_seed: int, index: int) -> int:
+        """The seed of its random payloads: ``seed``, or ``scene_seed + 4096 (index + 1)``.
+
+        Parameters
+        ----------
+        scene_seed : int
+            ``scene.seed``.
+        index : int
+            Its index in ``scene.transmitters`` (0-based).
+
+        Returns
+        -------
+        int
+        """
+        return int(self.seed) if self.seed is not None else int(scene_seed) + 4096 * (index + 1)
+
+    def transmitter(self, main: "TransmitterConfig", index: int) -> "TransmitterConfig":
+        """Its effective :class:`TransmitterConfig`: the main transmitter's with this entry's
+        keys (symbol rate and PWM carrier are the main transmitter's).
+
+        Parameters
+        ----------
+        main : TransmitterConfig
+            ``[transmitter]``.
+        index : int
+            Its index in ``scene.transmitters`` (for error messages).
+
+        Raises
+        ------
+        ConfigError
+            Naming the key, e.g. ``scene.transmitters[1].data_symbols: ...``.
+        """
+        keys = {k: getattr(self, k) for k in (
+            "levels", "training_symbols", "data_symbols", "idle_symbols", "air_interface", "fec",
+            "payload_len", "pitch_m", "led_diameter_m", "radiance_dn")}
+        keys = {k: v for k, v in keys.items() if v is not None}
+        try:
+            return dataclasses.replace(main, rows=self.rows, cols=self.cols, **keys)
+        except ConfigError as e:
+            msg = str(e)
+            pre = f"scene.transmitters[{index}]."
+            raise ConfigError(msg.replace("transmitter.", pre) if msg.startswith("transmitter.")
+                              else pre.rstrip(".") + ": " + msg) from None
 
 
 @dataclass(frozen=True)
@@ -207,7 +308,10 @@ class SceneConfig:
     background_dn: float = _f(40.0, lo=0, doc="mean background grey level at f/4")
     background_contrast: float = _f(0.35, lo=0, hi=2, doc="texture: relative RMS contrast")
     background_distance_m: float = _f(150.0, lo=0, lo_open=True, doc="background distance, m")
-    distractors: list[DistractorConfig] = _f([], doc="steady lights")
+    distractors: list[DistractorConfig] = _f([], doc="lights that are not transmitters: steady, "
+                                             "flickering (sine) or blinking (square)")
+    transmitters: list[ExtraTransmitterConfig] = _f(
+        [], doc="further transmitters beside the main one ([[scene.transmitters]])")
     seed: int = _f(1, doc="random seed of the scene (noise, texture, phases, payloads)")
     randomized_seed: int = _f(-1, doc="informational: the iscd.sim.randomize seed that drew "
                               "this config (-1 = not randomized)")
@@ -217,6 +321,10 @@ class SceneConfig:
             raise ConfigError(
                 f"scene.engine_wander_hz: {self.engine_wander_hz:g} Hz must be below "
                 f"scene.engine_hz = {self.engine_hz:g} Hz (the frequency must stay > 0)")
+        for i, t in enumerate(self.transmitters):
+            if t.stop_s is not None and t.stop_s <= t.start_s:
+                raise ConfigError(f"scene.transmitters[{i}].stop_s: {t.stop_s:g} s must be after "
+                                  f"start_s = {t.start_s:g} s")
 
 
 @dataclass(frozen=True)
@@ -562,6 +670,9 @@ def _cross_check(cfg: Config) -> None:
         raise ConfigError(
             f"camera.fps: {c.fps:g} frames/s is below 2 frames per symbol "
             f"(transmitter.symbol_rate_hz = {t.symbol_rate_hz:g}); symbols could not be decoded")
+    if not t.shape_auto:
+        for i, ex in enumerate(cfg.scene.transmitters):
+            ex.transmitter(t, i)  # ConfigError naming scene.transmitters[i].key
 
 
 def loads(text: str, source: str = "<string>", *, receiver: bool = False) -> Config:

@@ -7,7 +7,9 @@ disparity d_bg = f_px b / Z_bg (right(u) = left(u + d_bg)). ``flat`` is a consta
 ``background_dn``, ``none`` is black.
 
 Distractors are disks like LEDs (same optics) at their own 3-D position; ``flicker_hz`` > 0
-modulates them as (1 - cos(2 pi f t + phi)) (mean = brightness_dn), integrated exactly
+modulates them as (1 - cos(2 pi f t + phi)) (``waveform = "sine"``, mean = brightness_dn) or
+as a square wave on for the first ``duty`` of each period 1/f (``waveform = "square"``: a
+PWM-dimmed LED lamp, brightness_dn while on, mean duty brightness_dn), integrated exactly
 over the exposure (:func:`flicker_gain`). They never carry data.
 """
 
@@ -107,12 +109,16 @@ def background_pair(kind: str, shape: tuple[int, int], mean_dn: float, disparity
 
 def flicker_gain(d: DistractorConfig, t0_s: np.ndarray, exposure_s: float,
                  phase_rad: float = 0.0) -> np.ndarray:
-    """Mean of (1 - cos(2 pi f t + phi)) over [t0, t0 + exposure] (1 for a steady light).
+    """Mean of the distractor's modulation over [t0, t0 + exposure] (1 for a steady light).
+
+    ``waveform = "sine"``: 1 - cos(2 pi f t + phi) (0-2, mean 1). ``"square"``: 1 while
+    frac(f t + phi / (2 pi)) < duty, else 0 (0-1, mean ``duty``): the on-fraction of the
+    exposure, :func:`square_on_fraction`.
 
     Parameters
     ----------
     d : DistractorConfig
-        The distractor; its ``flicker_hz`` is f, Hz (<= 0: steady).
+        The distractor; its ``flicker_hz`` is f, Hz (<= 0: steady), ``waveform``, ``duty``.
     t0_s : ndarray
         Exposure start times, s (camera clock).
     exposure_s : float
@@ -123,11 +129,51 @@ def flicker_gain(d: DistractorConfig, t0_s: np.ndarray, exposure_s: float,
     Returns
     -------
     ndarray of float64
-        Gain on ``brightness_dn`` (0-2, mean 1), the shape of ``t0_s``.
+        Gain on ``brightness_dn``, the shape of ``t0_s``.
     """
     t0 = np.asarray(t0_s, dtype=np.float64)
     if d.flicker_hz <= 0:
         return np.ones_like(t0)
+    if d.waveform == "square":
+        return square_on_fraction(t0, exposure_s, d.flicker_hz, d.duty,
+                                  phase_rad / (2 * np.pi * d.flicker_hz))
     w = 2 * np.pi * d.flicker_hz
     return 1.0 - (np.sin(w * (t0 + exposure_s) + phase_rad) - np.sin(w * t0 + phase_rad)) / (
         w * exposure_s)
+
+
+def square_on_fraction(t0_s: np.ndarray, exposure_s: float, freq_hz: float, duty: float,
+                       offset_s: float = 0.0) -> np.ndarray:
+    """On-fraction of [t0, t0 + exposure] of a square wave of period P = 1/f that is on
+    for the first ``duty`` P of each period, periods starting at t = k P - offset_s.
+
+    Exact: C(t) = floor(t'/P) duty P + min(t' - floor(t'/P) P, duty P), t' = t + offset_s,
+    is the on-time since t' = 0; the fraction is (C(t0 + e) - C(t0)) / e.
+
+    Parameters
+    ----------
+    t0_s : ndarray
+        Exposure start times, s.
+    exposure_s : float
+        Exposure time e, s (> 0).
+    freq_hz : float
+        f, Hz (> 0).
+    duty : float
+        On-fraction of a period, 0..1.
+    offset_s : float
+        Time shift of the wave, s.
+
+    Returns
+    -------
+    ndarray of float64
+        On-fractions 0..1, the shape of ``t0_s``.
+    """
+    P = 1.0 / float(freq_hz)
+    on = float(duty) * P
+
+    def cum(t: np.ndarray) -> np.ndarray:
+        k = np.floor(t / P)
+        return k * on + np.minimum(t - k * P, on)
+
+    t0 = np.asarray(t0_s, dtype=np.float64) + offset_s
+    return np.clip((cum(t0 + exposure_s) - cum(t0)) / exposure_s, 0.0, 1.0)

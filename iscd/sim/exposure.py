@@ -218,6 +218,43 @@ def on_time(t0_cam: np.ndarray, exposure_s: float, clock: LedClock,
     return (gb - ga) / clock.rate
 
 
+def on_time_window(a_cam: np.ndarray, b_cam: np.ndarray, clock: LedClock,
+                   duty_of: "callable[[int, int], np.ndarray]") -> np.ndarray:  # type: ignore[valid-type]
+    """Integrated on-time (s, camera clock) of every LED in windows [a, b] of their own
+    length (e.g. an exposure clipped to the interval in which a transmitter is in view);
+    a window with b <= a integrates nothing.
+
+    Parameters
+    ----------
+    a_cam, b_cam : ndarray
+        (F,) window starts and ends, s (camera clock).
+    clock : LedClock
+        The transmitter's clock.
+    duty_of : callable
+        ``duty_of(k0, k1)``: (k1 - k0, N) PWM duties (0..1) of symbols k0..k1-1.
+
+    Returns
+    -------
+    ndarray of float64
+        (F, N) on-times, s.
+    """
+    a = np.asarray(a_cam, dtype=np.float64).reshape(-1)
+    b = np.maximum(np.asarray(b_cam, dtype=np.float64).reshape(-1), a)
+    T = clock.symbol_period_s
+    if a.size == 0:
+        return np.zeros((0, duty_of(0, 1).shape[1]))
+    ua, ub = clock.led_time(a), clock.led_time(b)
+    k0 = int(np.floor(ua.min() / T))
+    k1 = int(np.floor(ub.max() / T)) + 1
+    d = duty_of(k0, k1)
+    cum = symbol_cumsum(d, clock)
+    ga = cumulative_on_time(ua, d, k0, clock, cum)
+    gb = cumulative_on_time(ub, d, k0, clock, cum)
+    out = (gb - ga) / clock.rate
+    out[b <= a] = 0.0
+    return out
+
+
 def brute_force_on_time(t0_cam: float, exposure_s: float, clock: LedClock,
                         duty_of: "callable[[int, int], np.ndarray]",  # type: ignore[valid-type]
                         samples_per_pwm_period: int = 400) -> np.ndarray:

@@ -19,10 +19,19 @@ a power-law glare adds glare-only source sets to a window, and blooming adds one
     left, right = scene.render_pair(n)            # uint8 (H, W) each
     scene.render_pair_into(n, out_l, out_r)        # no allocation
     truth = scene.truth(np.arange(0, 2000))        # per-frame and per-symbol ground truth
+    truths = scene.truths(np.arange(0, 2000))      # one Truth per transmitter (0 = main)
+
+Several transmitters (``[[scene.transmitters]]`` beside the main ``[transmitter]``): each
+has its own geometry, LED clock and packets; their LEDs are further source sets of the same
+render windows (sources whose windows overlap share one window, so background and noise are
+counted once), with the vibration and jitter of the whole image. A transmitter with
+``start_s``/``stop_s`` contributes nothing (no window) to frames whose exposure lies outside
+that interval, and only the light inside it to the frames that straddle an end.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 from dataclasses import dataclass, field
@@ -32,18 +41,19 @@ import cv2
 import numpy as np
 
 from iscd.core.airinterface import AirInterface, duty
-from iscd.core.airinterface_v2 import AirInterfaceV2
-from iscd.core.config import Config, OpticsConfig, to_dict
+from iscd.core.airinterface_v2 import AirInterfaceV2, from_config
+from iscd.core.config import (Config, ConfigError, OpticsConfig, PayloadConfig, SceneConfig,
+                              TransmitterConfig, to_dict)
 from iscd.sim import kernels
 from iscd.sim.background import background_pair, flicker_gain
-from iscd.sim.exposure import LedClock, on_time
+from iscd.sim.exposure import LedClock, on_time, on_time_window
 from iscd.sim.geometry import (Jitter, StereoGeometry, distance, lateral, led_offsets,
                                 make_vibration, project_rig, vibration_margin)
 from iscd.sim.optics import (PIXEL_VAR, ZERO_TABLE, Canvas, Footprint, SpotProfile, SpotTable,
                              TableCache, diffuser_disks, footprint, gaussian_profile,
                              glare_components, moffat_components, render, source_box)
 from iscd.sim.sensor import SensorModel, bloom_coefficients
-from iscd.sim.transmitter import LevelSource, PacketSource
+from iscd.sim.transmitter import LevelSource, PacketSource, fixed_payload
 from iscd.sim.truth import Truth
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -53,6 +63,46 @@ REF_F_NUMBER = 4.0
 """radiance_dn, background_dn and brightness_dn are grey levels at f/4 ..."""
 REF_EXPOSURE_S = 1e-3
 """... and 1 ms exposure; the signal scales as (4/N)^2 * exposure_s / 1 ms."""
+
+
+@dataclass
+class _Tx:
+    """One transmitter of the scene: index 0 is the main one (``[transmitter]`` +
+    ``[scene]``), 1.. the ``[[scene.transmitters]]`` in order."""
+
+    index: int
+    tx: TransmitterConfig  # its effective transmitter config (rows, cols, levels, ...)
+    scene: SceneConfig  # its position, motion and LED clock keys (the rest: the main scene's)
+    source: LevelSource  # what its LEDs send
+    clock: LedClock  # its LED clock
+    offsets: np.ndarray  # (N, 2) LED offsets from the array centre, m
+    start_s: float = 0.0  # in view from this camera time on, s
+    stop_s: float = math.inf  # ... until this one, s
+    payload_seed: int = 0  # seed of its random payloads
+
+    @property
+    def grid(self) -> tuple[int, int]:
+        """(rows, cols) of its LED array."""
+        return (self.tx.rows, self.tx.cols)
+
+    @property
+    def windowed(self) -> bool:
+        """True when it is in view only part of the time (start_s > 0 or a stop_s)."""
+        return self.start_s > 0 or math.isfinite(self.stop_s)
+
+    @property
+    def suffix(self) -> str:
+        """Suffix of its per-frame state keys: '' for the main one, '@k' for extra k."""
+        return "" if self.index == 0 else f"@{self.index}"
+
+    def duty_of(self, k0: int, k1: int) -> np.ndarray:
+        """(k1 - k0, N) PWM duties (0..1) of its symbols k0..k1-1."""
+        n, m = self.tx.n_leds, self.tx.levels
+        lv = np.asarray(self.source.levels(k0, k1))
+        if lv.shape != (k1 - k0, n):
+            raise ValueError(f"level source returned shape {lv.shape} for symbols {k0}..{k1}, "
+                             f"expected ({k1 - k0}, {n})")
+        return duty(np.clip(lv, 1, m), m)
 
 
 @dataclass
@@ -171,7 +221,9 @@ class Scene:
     (the same frames, see :mod:`iscd.sim.kernels` for the tolerance).
 
     Frames are always 8-bit (``camera.bit_depth`` is ignored). ``truth()`` holds (F, N)
-    float64 arrays: query long runs in chunks.
+    float64 arrays: query long runs in chunks. ``truths()`` gives one :class:`Truth` per
+    transmitter (0 = the main one, then ``[[scene.transmitters]]`` in order; ``level_source``
+    replaces the main one's levels only).
     """
 
     CHUNK = 512
@@ -205,6 +257,9 @@ class Scene:
         self.clock = LedClock(T, tx.pwm_hz, phase, sc.led_drift_ppm)
         self.offsets = led_offsets(tx)
         self.grid = (tx.rows, tx.cols)
+        self.txs: list[_Tx] = [_Tx(0, tx, sc, self.source, self.clock, self.offsets,
+                                   payload_seed=sc.seed)]
+        self.txs += [self._extra_tx(i) for i in range(len(sc.transmitters))]
         self.sensor = SensorModel.from_config(cfg.sensor, 8, noise=noise)
         sm = self.sensor
         self._sensor32 = kernels.sensor_constants(sm.gain_dn_per_e, sm.read_dn, sm.dark_dn,
@@ -236,6 +291,37 @@ class Scene:
         self.flicker_phase = rng.uniform(0, 2 * np.pi, size=len(self.flicker))
         self._build_backgrounds(rng, max(1, bank_size if noise else 1))
         self._chunks: dict[int, dict[str, np.ndarray]] = {}
+
+    def _extra_tx(self, i: int) -> _Tx:
+        """Transmitter ``scene.transmitters[i]`` (index i + 1): its config, packets, clock
+        (a random phase drawn from its own stream, seeded by (scene.seed, i + 1))."""
+        main, sc = self.cfg.transmitter, self.cfg.scene
+        ex = sc.transmitters[i]
+        txc = ex.transmitter(main, i)
+        air = from_config(txc)
+        try:
+            payload = fixed_payload(PayloadConfig(ex.payload_source, ex.payload_value),
+                                    air.payload_bytes)
+        except ConfigError as e:
+            raise ConfigError(str(e).replace("payload.value",
+                                             f"scene.transmitters[{i}].payload_value")) from None
+        seed = ex.payload_seed(sc.seed, i)
+        T = 1.0 / txc.symbol_rate_hz
+        rng = np.random.default_rng([self.seed, 0x5CE, i + 1])
+        phase = ex.led_phase_s if ex.led_phase_s >= 0 else float(rng.uniform(0.0, T))
+        tsc = dataclasses.replace(sc, distance_m=ex.distance_m, lateral_m=ex.lateral_m,
+                                  vertical_m=ex.vertical_m, speed_mps=ex.speed_mps,
+                                  lateral_speed_mps=ex.lateral_speed_mps,
+                                  led_drift_ppm=ex.led_drift_ppm, led_phase_s=phase,
+                                  distractors=[], transmitters=[])
+        return _Tx(i + 1, txc, tsc, PacketSource(air, payload, seed=seed),
+                   LedClock(T, txc.pwm_hz, phase, ex.led_drift_ppm), led_offsets(txc),
+                   ex.start_s, math.inf if ex.stop_s is None else ex.stop_s, seed)
+
+    @property
+    def n_transmitters(self) -> int:
+        """Transmitters in the scene: 1 (the main one) + len(scene.transmitters)."""
+        return len(self.txs)
 
     # ------------------------------------------------------------------ static parts
     def _distractor_sources(self, c: _Camera, ds: list, gains: np.ndarray | None = None
@@ -326,31 +412,69 @@ class Scene:
             raise ValueError("frame indices must be >= 0")
         t0 = f / self.fps
         tm = t0 + self.exposure_s / 2
-        z = distance(tm, self.cfg.scene)
         vib = self.vibration(tm)
         sl = vib + self.cams[0].jitter(f)
         sr = vib + self.cams[1].jitter(f)
-        sc = self.cfg.scene
-        X = lateral(tm, sc)[:, None] + self.offsets[None, :, 0]
-        Y = sc.vertical_m + self.offsets[:, 1]
+        return {"frames": f, "t_s": t0, "vib": vib, "shift_left": sl, "shift_right": sr,
+                **self._tx_state(self.txs[0], t0, tm, sl, sr)}
+
+    def _tx_state(self, t: _Tx, t0: np.ndarray, tm: np.ndarray, sl: np.ndarray,
+                  sr: np.ndarray) -> dict[str, np.ndarray]:
+        """Per-frame state of transmitter ``t`` for exposure starts ``t0`` (F,) s,
+        mid-exposures ``tm`` (F,) s and image shifts ``sl``, ``sr`` (F, 2) px: ``z_m`` (F,) m,
+        ``u_left``, ``v_left``, ``u_right``, ``v_right`` (F, N) px, ``on_fraction`` (F, N)
+        0..1 (the light inside its ``start_s``..``stop_s`` only) and ``present`` (F,) bool
+        (the exposure overlaps that interval)."""
+        sc = t.scene
+        z = distance(tm, sc)
+        X = lateral(tm, sc)[:, None] + t.offsets[None, :, 0]
+        Y = sc.vertical_m + t.offsets[:, 1]
         if self.rig is None:
             ul, ur, v = self.geometry.project(X, Y[None, :], z[:, None])
             vl = vr = v
         else:
             ul, vl, ur, vr = project_rig(self.rig, X, Y[None, :], z[:, None])
-        on = on_time(t0, self.exposure_s, self.clock, self._duty_of) / self.exposure_s
-        return {"frames": f, "t_s": t0, "z_m": z, "vib": vib,
-                "shift_left": sl, "shift_right": sr,
-                "u_left": ul + sl[:, :1], "v_left": vl + sl[:, 1:],
+        if t.windowed:
+            a = np.clip(t0, t.start_s, t.stop_s)
+            b = np.clip(t0 + self.exposure_s, t.start_s, t.stop_s)
+            on = on_time_window(a, b, t.clock, t.duty_of) / self.exposure_s
+            present = b > a
+        else:
+            on = on_time(t0, self.exposure_s, t.clock, t.duty_of) / self.exposure_s
+            present = np.ones(t0.shape, bool)
+        return {"z_m": z, "u_left": ul + sl[:, :1], "v_left": vl + sl[:, 1:],
                 "u_right": ur + sr[:, :1], "v_right": vr + sr[:, 1:],
-                "on_fraction": np.clip(on, 0.0, 1.0)}
+                "on_fraction": np.clip(on, 0.0, 1.0), "present": present}
 
     def _duty_of(self, k0: int, k1: int) -> np.ndarray:
-        lv = np.asarray(self.source.levels(k0, k1))
-        if lv.shape != (k1 - k0, self.n_leds):
-            raise ValueError(f"level source returned shape {lv.shape} for symbols {k0}..{k1}, "
-                             f"expected ({k1 - k0}, {self.n_leds})")
-        return duty(np.clip(lv, 1, self.levels_m), self.levels_m)
+        """(k1 - k0, N) PWM duties of the main transmitter's symbols k0..k1-1."""
+        return self.txs[0].duty_of(k0, k1)
+
+    def distractor_gains(self, frames: np.ndarray | range) -> np.ndarray:
+        """(F, D) gain of every distractor (``scene.distractors`` order) on its
+        ``brightness_dn`` in each frame's exposure: 1 for a steady one, the exposure mean of
+        its sine (0-2) or its square wave's on-fraction (0-1) for a flickering one.
+
+        Parameters
+        ----------
+        frames : array_like of int or range
+            Frame indices, >= 0.
+
+        Returns
+        -------
+        ndarray of float64
+            (F, D) gains.
+        """
+        f = np.asarray(frames, dtype=np.int64).reshape(-1)
+        t0 = f / self.fps
+        ds = self.cfg.scene.distractors
+        out = np.ones((f.size, len(ds)))
+        j = 0
+        for i, d in enumerate(ds):
+            if d.flicker_hz > 0:
+                out[:, i] = flicker_gain(d, t0, self.exposure_s, self.flicker_phase[j])
+                j += 1
+        return out
 
     def _chunk(self, n: int) -> tuple[dict[str, np.ndarray], int]:
         c, i = divmod(n, self.CHUNK)
@@ -360,9 +484,23 @@ class Scene:
                 self._chunks.pop(next(iter(self._chunks)))
             st = self.frame_state(np.arange(c * self.CHUNK, (c + 1) * self.CHUNK))
             st["radius"] = self.led_radius_fn(st["z_m"])
+            tm = st["t_s"] + self.exposure_s / 2
+            for t in self.txs[1:]:
+                k = t.suffix
+                for name, val in self._tx_state(t, st["t_s"], tm, st["shift_left"],
+                                                st["shift_right"]).items():
+                    st[name + k] = val
+                st["radius" + k] = self.geometry.focal_px * t.tx.led_diameter_m / (
+                    2.0 * st["z_m" + k])
             for side in ("left", "right"):
-                st["pose_" + side] = _pose_runs(st["u_" + side], st["v_" + side], st["radius"],
-                                                c * self.CHUNK)
+                u, v = st["u_" + side], st["v_" + side]
+                if len(self.txs) > 1:  # a new pose when any transmitter moves or comes/goes
+                    ex = [t.suffix for t in self.txs[1:]]
+                    u = np.hstack([u, *[st["u_" + side + k] for k in ex],
+                                   *[st["radius" + k][:, None] for k in ex],
+                                   *[st["present" + k][:, None].astype(float) for k in ex]])
+                    v = np.hstack([v, *[st["v_" + side + k] for k in ex]])
+                st["pose_" + side] = _pose_runs(u, v, st["radius"], c * self.CHUNK)
             st["bank"] = _bank_sequence(self.seed, c, self.CHUNK, self.cams[0].bank.shape[0])
             if self.flicker:
                 st["flicker"] = np.stack([flicker_gain(d, st["t_s"], self.exposure_s, ph)
@@ -460,14 +598,14 @@ class Scene:
             if g.empty:
                 continue
             if self.bloom_reach:
-                self._window_bloom(c, g, st, i, oy, ox, seed + gi, out)
+                self._window_bloom(c, g, st, i, oy, ox, _window_seed(seed, gi), out)
                 continue
             for sq in g.head:
                 kernels.add_sources(g.acc, sq is g.sets[0], sq.kern, sq.ix, sq.iy,
                                     st[sq.key][i, sq.cols], sq.c_amp, sq.c_core, sq.c_flux,
                                     sq.gy, sq.gxt, sq.grid_q)
             if noise:  # the draws of SensorModel.expose (same seed, same stream)
-                cv2.setRNGSeed((seed + gi) & 0x7FFFFFFF)
+                cv2.setRNGSeed(_window_seed(seed, gi) & 0x7FFFFFFF)
                 cv2.randn(g.z, 0.0, 1.0)
             if g.bg_at != (oy, ox):  # contiguous copies of the window's background and PRNU
                 h, w = g.z.shape
@@ -506,28 +644,42 @@ class Scene:
         run = int(st["pose_" + pre][i])
         if run == c.plan_run:
             return c.plan
-        u, v = st["u_" + pre][i], st["v_" + pre][i]
-        radius = float(st["radius"][i])
-        key = (radius, u.tobytes(), v.tobytes())
+        poses = self._poses(c, st, i)
+        key = tuple((t.index, r, u.tobytes(), v.tobytes()) for t, u, v, r in poses)
         if c.plan_key != key:
-            c.plan = self._build_plan(c, u, v, radius)
+            c.plan = self._build_plan(c, poses)
             c.plan_key = key
         c.plan_run = run
         return c.plan
 
-    def _build_plan(self, c: _Camera, u: np.ndarray, v: np.ndarray, radius: float
+    def _poses(self, c: _Camera, st: dict[str, np.ndarray], i: int
+               ) -> list[tuple[_Tx, np.ndarray, np.ndarray, float]]:
+        """(transmitter, u, v, radius) in camera ``c`` at frame row ``i`` of every
+        transmitter in view (u, v: (N,) px; radius px), the main one first."""
+        pre = "left" if c.idx == 0 else "right"
+        out = []
+        for t in self.txs:
+            k = t.suffix
+            if t.index and not st["present" + k][i]:
+                continue
+            out.append((t, st["u_" + pre + k][i], st["v_" + pre + k][i],
+                        float(st["radius" + k][i])))
+        return out
+
+    def _build_plan(self, c: _Camera, poses: list[tuple[_Tx, np.ndarray, np.ndarray, float]]
                     ) -> list[_GroupPlan]:
-        """Group the sources (LED array, flickering distractors) into windows as
+        """Group the sources (LED arrays, flickering distractors) into windows as
         :meth:`_render_camera_ref` does and precompute their footprints."""
-        one = np.ones(u.size)
         info = {}
         sources = []
-        for j, sh in enumerate(self._shapes(c, radius)):
-            led = _Source(u, v, one, sh.tab, one, sh.glare_sigma, sh.glare_half, self.grid,
-                          slot=(0, j))
-            info[id(led)] = ("on_fraction", slice(None),
-                             self.cfg.transmitter.radiance_dn * c.gain, sh)  # type: ignore[attr-defined]
-            sources.append(led)
+        for t, u, v, radius in poses:
+            one = np.ones(u.size)
+            for j, sh in enumerate(self._shapes(c, radius)):
+                led = _Source(u, v, one, sh.tab, one, sh.glare_sigma, sh.glare_half, t.grid,
+                              slot=(-t.index, j))
+                info[id(led)] = ("on_fraction" + t.suffix, slice(None),
+                                 t.tx.radiance_dn * c.gain, sh)  # type: ignore[attr-defined]
+                sources.append(led)
         for j, (d, parts) in enumerate(zip(self.flicker, self._distractor_sources(
                 c, self.flicker, np.ones(len(self.flicker))))):
             R = self.geometry.focal_px * d.diameter_m / (2 * d.z_m)
@@ -564,13 +716,14 @@ class Scene:
             np.copyto(out, bank[k, oy:oy + H, ox:ox + W])
         else:
             np.copyto(out, bank[k])
-        pre = "u_left" if c.idx == 0 else "u_right"
-        u = st[pre][i]
-        v = st["v_left" if c.idx == 0 else "v_right"][i]
-        amp = st["on_fraction"][i] * (self.cfg.transmitter.radiance_dn * c.gain)  # type: ignore[attr-defined]
-        sources = self._make_sources(c, u, v, amp, float(st["radius"][i]))
-        for led in sources:
-            led.grid = self.grid
+        sources: list[_Source] = []
+        for t, u, v, radius in self._poses(c, st, i):
+            amp = st["on_fraction" + t.suffix][i] * (t.tx.radiance_dn * c.gain)  # type: ignore[attr-defined]
+            parts = self._make_sources(c, u, v, amp, radius)
+            for j, led in enumerate(parts):
+                led.grid = t.grid
+                led.slot = (-t.index, j)
+            sources += parts
         if self.flicker:
             for parts in self._distractor_sources(c, self.flicker, st["flicker"][i]):
                 sources += parts
@@ -591,11 +744,13 @@ class Scene:
             sig = np.add(acc[Y0 - y0:Y1 - y0, X0 - x0:X1 - x0],
                          c.bg[oy + Y0:oy + Y1, ox + X0:ox + X1], dtype=np.float32)
             self.sensor.expose(sig, c.prnu[oy + Y0:oy + Y1, ox + X0:ox + X1],
-                               seed + gi if self.noise else None, out[Y0:Y1, X0:X1])
+                               _window_seed(seed, gi) if self.noise else None,
+                               out[Y0:Y1, X0:X1])
 
     # ------------------------------------------------------------------ truth
     def truth(self, frames: np.ndarray | range) -> Truth:
-        """Ground truth of ``frames`` (ascending frame indices), see :class:`Truth`.
+        """Ground truth of the main transmitter for ``frames`` (ascending frame indices),
+        see :class:`Truth` (:meth:`truths` for every transmitter).
 
         Parameters
         ----------
@@ -606,12 +761,39 @@ class Scene:
         -------
         Truth
         """
-        f = np.asarray(frames, dtype=np.int64).reshape(-1)
-        if f.size == 0:
-            raise ValueError("truth of no frames")
-        f = np.unique(f)
+        f = _frames(frames)
+        return self._truth(self.txs[0], f, self.frame_state(f))
+
+    def truths(self, frames: np.ndarray | range) -> list[Truth]:
+        """Ground truth of every transmitter for ``frames``: index 0 the main one (equal to
+        :meth:`truth`), then ``scene.transmitters`` in config order. Each has its own
+        ``levels``, packets and ``payloads``, LED centres (px, per camera), ``z_m`` (m),
+        ``on_fraction`` and ``present`` (F,) (the exposure overlaps its ``start_s``..
+        ``stop_s``; all True for the main one); ``meta["tx_index"]`` is the index.
+
+        Parameters
+        ----------
+        frames : array_like of int or range
+            Frame indices, >= 0 (sorted and deduplicated; at least one).
+
+        Returns
+        -------
+        list of Truth
+            ``n_transmitters`` truths.
+        """
+        f = _frames(frames)
         st = self.frame_state(f)
-        clk = self.clock
+        out = [self._truth(self.txs[0], f, st)]
+        tm = st["t_s"] + self.exposure_s / 2
+        for t in self.txs[1:]:
+            s2 = self._tx_state(t, st["t_s"], tm, st["shift_left"], st["shift_right"])
+            s2.update({k: st[k] for k in ("t_s", "shift_left", "shift_right")})
+            out.append(self._truth(t, f, s2))
+        return out
+
+    def _truth(self, t: _Tx, f: np.ndarray, st: dict[str, np.ndarray]) -> Truth:
+        """The :class:`Truth` of transmitter ``t`` from its per-frame state ``st``."""
+        clk = t.clock
         T = clk.symbol_period_s
         ua = clk.led_time(st["t_s"])
         ub = clk.led_time(st["t_s"] + self.exposure_s)
@@ -621,10 +803,10 @@ class Scene:
         kmid = np.floor(clk.led_time(st["t_s"] + self.exposure_s / 2) / T).astype(np.int64)
         k0, k1 = int(ka.min()), int(kb.max()) + 1
         sym = np.arange(k0, k1)
-        levels = self.source.levels(k0, k1)
+        src = t.source
+        levels = src.levels(k0, k1)
         p_idx = np.zeros(0, np.int64)
         payloads: list[bytes] = []
-        src = self.source
         if isinstance(src, PacketSource):
             P = src.period
             lo, hi = max(k0, 0) // P, max(k1 - 1, 0) // P
@@ -642,18 +824,19 @@ class Scene:
             symbol_index=sym, symbol_t_s=clk.symbol_start_cam(sym), levels=levels,
             packet_index=p_idx, packet_start_symbol=p_start,
             packet_t_s=clk.symbol_start_cam(p_start) if p_start.size else np.zeros(0),
-            payloads=payloads, meta=self.meta())
+            payloads=payloads, meta=self.meta() if t.index == 0 else self.tx_meta(t.index),
+            present=st["present"])
 
     def meta(self) -> dict:
-        """Scalars of the scene (JSON-ready), as stored in truth.json."""
+        """Scalars of the scene and its main transmitter (JSON-ready), as stored in
+        truth.json."""
         tx, cam = self.cfg.transmitter, self.cfg.camera
         ds = []
         for d in self.cfg.scene.distractors:
             ul, ur, v = self.geometry.project(d.x_m, d.y_m, d.z_m)
             ds.append({"u_left": float(ul), "u_right": float(ur), "v": float(v),
                        "diameter_px": self.geometry.focal_px * d.diameter_m / d.z_m,
-                       "flicker_hz": d.flicker_hz})
-        air = getattr(self.source, "air", None)
+                       "flicker_hz": d.flicker_hz, "waveform": d.waveform, "duty": d.duty})
         return {
             "focal_px": self.geometry.focal_px, "baseline_m": cam.baseline_m,
             "cx": self.geometry.cx, "cy": self.geometry.cy, "width": self.width,
@@ -662,12 +845,44 @@ class Scene:
             "symbol_rate_hz": tx.symbol_rate_hz, "pwm_hz": tx.pwm_hz,
             "led_phase_s": self.clock.phase_s, "led_drift_ppm": self.clock.drift_ppm,
             "seed": self.cfg.scene.seed, "noise": self.noise,
-            "packet_symbols": air.period_symbols if isinstance(air, (AirInterface, AirInterfaceV2)) else None,
-            "payload_bytes": air.payload_bytes if isinstance(air, (AirInterface, AirInterfaceV2)) else None,
-            "air_interface": "v2" if isinstance(air, AirInterfaceV2) else "v1" if isinstance(air, AirInterface) else None,
-            **({"fec": air.fec} if isinstance(air, AirInterfaceV2) else {}),
+            **_air_meta(self.source),
+            "tx_index": 0, "n_transmitters": len(self.txs),
             "distractors": ds, "config": to_dict(self.cfg),
         }
+
+    def tx_meta(self, index: int) -> dict:
+        """Scalars of transmitter ``index`` (0 = the main one, :meth:`meta`; k >= 1:
+        ``scene.transmitters[k - 1]``), JSON-ready: the scene's :meth:`meta` with the
+        transmitter's own keys (levels, n_leds, rows, cols, pitch_m, led_diameter_m,
+        radiance_dn, led_phase_s (s), led_drift_ppm, packet_symbols, payload_bytes,
+        air_interface, payload_seed, distance_m, lateral_m, vertical_m (m), speed_mps,
+        start_s, stop_s (s; None = never leaves), tx_index).
+
+        Parameters
+        ----------
+        index : int
+            Transmitter index, 0 .. n_transmitters - 1.
+
+        Returns
+        -------
+        dict
+        """
+        out = self.meta()
+        if index == 0:
+            return out
+        t = self.txs[index]
+        tx = t.tx
+        out.pop("fec", None)
+        out.update({
+            "tx_index": index, "levels": tx.levels, "n_leds": tx.n_leds, "rows": tx.rows,
+            "cols": tx.cols, "pitch_m": tx.pitch_m, "led_diameter_m": tx.led_diameter_m,
+            "radiance_dn": tx.radiance_dn, "led_phase_s": t.clock.phase_s,
+            "led_drift_ppm": t.clock.drift_ppm, "payload_seed": t.payload_seed,
+            "distance_m": t.scene.distance_m, "lateral_m": t.scene.lateral_m,
+            "vertical_m": t.scene.vertical_m, "speed_mps": t.scene.speed_mps,
+            "start_s": t.start_s, "stop_s": t.stop_s if math.isfinite(t.stop_s) else None,
+            **_air_meta(t.source)})
+        return out
 
 
 def spot_profile(op: OpticsConfig, extra_var_px2: float) -> SpotProfile:
@@ -692,6 +907,34 @@ def spot_profile(op: OpticsConfig, extra_var_px2: float) -> SpotProfile:
     else:
         psf = ((1.0, math.sqrt(op.psf_sigma_px ** 2 + extra_var_px2)),)
     return SpotProfile(psf, disks)
+
+
+def _frames(frames: np.ndarray | range) -> np.ndarray:
+    """Sorted unique int64 frame indices (at least one)."""
+    f = np.asarray(frames, dtype=np.int64).reshape(-1)
+    if f.size == 0:
+        raise ValueError("truth of no frames")
+    return np.unique(f)
+
+
+def _air_meta(source: object) -> dict:
+    """packet_symbols, payload_bytes, air_interface (and fec for v2) of a level source."""
+    air = getattr(source, "air", None)
+    known = isinstance(air, (AirInterface, AirInterfaceV2))
+    return {
+        "packet_symbols": air.period_symbols if known else None,  # type: ignore[union-attr]
+        "payload_bytes": air.payload_bytes if known else None,  # type: ignore[union-attr]
+        "air_interface": "v2" if isinstance(air, AirInterfaceV2) else "v1" if known else None,
+        **({"fec": air.fec} if isinstance(air, AirInterfaceV2) else {}),
+    }
+
+
+def _window_seed(frame_seed: int, gi: int) -> int:
+    """Noise seed of render window ``gi`` of a camera frame whose seeds start at
+    ``frame_seed`` (which steps by 8 per frame and camera): ``frame_seed + gi`` for the first
+    8 windows (the seeds of before), a mixed one from the 9th on (so that it does not reuse
+    the next camera's or frame's first windows' noise)."""
+    return frame_seed + gi if gi < 8 else _mix64(frame_seed ^ (gi << 48))
 
 
 def _mix64(x: int) -> int:

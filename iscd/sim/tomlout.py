@@ -1,7 +1,9 @@
 """Write a :class:`~iscd.core.config.Config` back as TOML (so a simulated run can be reproduced).
 
 Only what configs contain: tables of strings, booleans, numbers and lists (of scalars or of
-tables, written as arrays of tables), and nested tables (e.g. raw extra sections).
+tables, written as arrays of tables), and nested tables (e.g. raw extra sections). Keys whose
+value is None (optional keys left out, e.g. those of ``[[scene.transmitters]]`` that default
+to the main transmitter's) are left out, so they read back as None.
 """
 
 from __future__ import annotations
@@ -38,8 +40,8 @@ def _key(k: str) -> str:
 
 
 def _table(name: str, d: dict[str, Any], out: list[str]) -> None:
-    simple = {k: v for k, v in d.items()
-              if not isinstance(v, dict) and not (isinstance(v, list) and v and all(isinstance(x, dict) for x in v))}
+    simple = {k: v for k, v in d.items() if v is not None and not isinstance(v, dict)
+              and not (isinstance(v, list) and v and all(isinstance(x, dict) for x in v))}
     out.append(f"[{name}]")
     out.extend(f"{_key(k)} = {_scalar(v)}" for k, v in simple.items())
     out.append("")
@@ -49,7 +51,7 @@ def _table(name: str, d: dict[str, Any], out: list[str]) -> None:
         elif isinstance(v, list) and v and all(isinstance(x, dict) for x in v):
             for item in v:
                 out.append(f"[[{name}.{_key(k)}]]")
-                out.extend(f"{_key(a)} = {_scalar(b)}" for a, b in item.items())
+                out.extend(f"{_key(a)} = {_scalar(b)}" for a, b in item.items() if b is not None)
                 out.append("")
 
 

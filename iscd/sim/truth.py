@@ -7,7 +7,9 @@ Per frame (index ``f`` into ``frames``):
   jitter: these are where the spots are drawn), ``shift_left/right`` (F, 2) image shift
   (dx, dy) px, ``on_fraction`` (F, N) integrated on-time / exposure (0..1),
   ``symbol_mid`` (F,) LED symbol index at mid-exposure, ``clean`` (F,) True when the
-  exposure lies inside one symbol.
+  exposure lies inside one symbol, ``present`` (F,) True when the transmitter is in view
+  during (part of) the exposure (``[[scene.transmitters]]`` ``start_s``/``stop_s``; always
+  True for the main transmitter).
 Symbol schedule: ``symbol_index`` (S,), ``symbol_t_s`` (S,) start of each symbol (camera
 clock, s), ``levels`` (S, N) transmitted levels 1..M.
 Packets overlapping the frames: ``packet_index`` (P,), ``packet_start_symbol`` (P,),
@@ -16,7 +18,9 @@ Packets overlapping the frames: ``packet_index`` (P,), ``packet_start_symbol`` (
 pwm_hz, led_phase_s, led_drift_ppm, seed, payload_bytes, ...), distractor positions, and
 ``config`` (the whole config as a dict).
 
-``save(dir)`` writes ``truth.npz`` (arrays) + ``truth.json`` (meta, payloads as hex).
+``save(dir)`` writes ``truth.npz`` (arrays) + ``truth.json`` (meta, payloads as hex);
+``save(dir, name="truth_tx1")`` writes ``truth_tx1.npz`` + ``truth_tx1.json`` (the truth of a
+further transmitter, :meth:`iscd.sim.Scene.truths`, as ``iscd simulate`` names them).
 """
 
 from __future__ import annotations
@@ -56,6 +60,11 @@ class Truth:
     packet_t_s: np.ndarray
     payloads: list[bytes] = field(default_factory=list)
     meta: dict[str, Any] = field(default_factory=dict)
+    present: np.ndarray | None = None  # (F,) bool; None: all True (filled in)
+
+    def __post_init__(self) -> None:
+        if self.present is None:
+            self.present = np.ones(np.shape(self.frames), bool)
 
     def __len__(self) -> int:
         return int(self.frames.size)
@@ -95,39 +104,45 @@ class Truth:
             raise KeyError(f"symbols {k0}..{k1} are outside this truth")
         return self.levels[i0:i0 + (k1 - k0)]
 
-    def save(self, directory: str | Path) -> None:
-        """Write ``truth.npz`` (arrays) and ``truth.json`` (meta, payloads as hex).
+    def save(self, directory: str | Path, name: str = "truth") -> None:
+        """Write ``NAME.npz`` (arrays) and ``NAME.json`` (meta, payloads as hex).
 
         Parameters
         ----------
         directory : str or Path
             Output directory (created if missing).
+        name : str
+            File stem: ``truth`` (the main transmitter), ``truth_tx1``, ... (further ones).
         """
         d = Path(directory)
         d.mkdir(parents=True, exist_ok=True)
-        np.savez_compressed(d / "truth.npz", **{k: getattr(self, k) for k in _ARRAYS})
+        np.savez_compressed(d / f"{name}.npz", **{k: getattr(self, k) for k in _ARRAYS},
+                            present=self.present)
         doc = {"meta": self.meta, "payloads_hex": [p.hex() for p in self.payloads]}
-        (d / "truth.json").write_text(json.dumps(doc, indent=1, default=_json_default) + "\n")
+        (d / f"{name}.json").write_text(json.dumps(doc, indent=1, default=_json_default) + "\n")
 
     @classmethod
-    def load(cls, directory: str | Path) -> "Truth":
-        """Read a truth written by :meth:`save`.
+    def load(cls, directory: str | Path, name: str = "truth") -> "Truth":
+        """Read a truth written by :meth:`save` (one without ``present``: all True).
 
         Parameters
         ----------
         directory : str or Path
-            The directory holding ``truth.npz`` and ``truth.json``.
+            The directory holding ``NAME.npz`` and ``NAME.json``.
+        name : str
+            File stem (``truth``, ``truth_tx1``, ...).
 
         Returns
         -------
         Truth
         """
         d = Path(directory)
-        with np.load(d / "truth.npz") as z:
+        with np.load(d / f"{name}.npz") as z:
             arrays = {k: z[k] for k in _ARRAYS}
-        doc = json.loads((d / "truth.json").read_text())
+            present = z["present"] if "present" in z.files else None
+        doc = json.loads((d / f"{name}.json").read_text())
         return cls(**arrays, payloads=[bytes.fromhex(h) for h in doc["payloads_hex"]],
-                   meta=doc["meta"])
+                   meta=doc["meta"], present=present)
 
     def __eq__(self, other: object) -> bool:  # arrays compare by value
         if not isinstance(other, Truth):

@@ -10,17 +10,22 @@ from pathlib import Path
 import numpy as np
 
 OUTPUTS = ("left.iscr", "right.iscr", "truth.npz", "truth.json", "config.toml", "calibration.yml")
+EXTRA_TRUTH_GLOB = "truth_tx*.*"
+"""The truths of further transmitters ([[scene.transmitters]]): truth_tx1.npz/json, ..."""
 
 
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
         "simulate", help="render a simulated stereo recording (with ground truth) from a config",
         description=(
-            "Renders what the two cameras would see of the configured LED transmitter "
+            "Renders what the two cameras would see of the configured LED transmitters "
             "(physics simulator, docs/simulator.md) and writes DIR/left.iscr and DIR/right.iscr "
             "(the project's recording format), DIR/truth.npz + DIR/truth.json (ground truth per "
             "frame and per symbol: distance, disparity, LED positions, on-times, levels, "
-            "payloads), DIR/config.toml (the exact config used, to reproduce the run) and "
+            "payloads) of the main transmitter ([transmitter] + [scene]), DIR/truth_tx1.npz + "
+            "DIR/truth_tx1.json, truth_tx2.* ... the same for each further transmitter of "
+            "[[scene.transmitters]] in config order (none without them), DIR/config.toml (the "
+            "exact config used, to reproduce the run) and "
             "DIR/calibration.yml (the ideal stereo calibration of the rig). Replay it with "
             "'iscd replay DIR/left.iscr DIR/right.iscr --config DIR/config.toml --calibration "
             "DIR/calibration.yml'."))
@@ -82,6 +87,9 @@ def run(args: argparse.Namespace) -> int:
     if out.exists() and not out.is_dir():
         raise UserError(f"--out: {out} exists and is not a folder")
     existing = [name for name in OUTPUTS if (out / name).exists()]
+    if out.is_dir():
+        existing += sorted(p.name for p in out.glob(EXTRA_TRUTH_GLOB)
+                           if p.suffix in (".npz", ".json"))
     if existing and not args.overwrite:
         raise UserError(f"--out: {out} already holds a recording ({', '.join(existing)}); "
                         f"use --overwrite to replace it")
@@ -118,15 +126,18 @@ def run(args: argparse.Namespace) -> int:
         raise UserError(str(e)) from None
     except OSError as e:
         raise UserError(f"--out: cannot write to {out}: {e.strerror or e}") from None
-    print(f"iscd simulate: wrote left.iscr, right.iscr, truth.npz, truth.json, config.toml"
+    extra = "".join(f", truth_tx{k}.npz/json" for k in range(1, scene.n_transmitters))
+    print(f"iscd simulate: wrote left.iscr, right.iscr, truth.npz, truth.json{extra}, config.toml"
           f"{cal_note}", file=sys.stderr)
     return 0
 
 
 def write_recording(scene: object, out: Path, n_frames: int, block: int = 32,
                     extra_meta: dict | None = None) -> None:
-    """Render frames 0..n_frames-1 into out/left.iscr, out/right.iscr and save the truth
-    (``extra_meta``: added to the truth's meta, e.g. the randomized draw)."""
+    """Render frames 0..n_frames-1 into out/left.iscr, out/right.iscr and save the truth:
+    ``truth.npz``/``.json`` of the main transmitter, ``truth_tx{k}.npz``/``.json`` of further
+    transmitter k = 1.. (``[[scene.transmitters]]`` in order); ``extra_meta``: added to each
+    truth's meta, e.g. the randomized draw."""
     from tqdm import tqdm
 
     from iscd.core.config import to_dict
@@ -161,9 +172,9 @@ def write_recording(scene: object, out: Path, n_frames: int, block: int = 32,
     finally:
         for w in writers:
             w.close()
-    truth = s.truth(np.arange(n_frames))  # type: ignore[attr-defined]
-    truth.meta.update(extra_meta or {})
-    truth.save(out)
+    for k, truth in enumerate(s.truths(np.arange(n_frames))):  # type: ignore[attr-defined]
+        truth.meta.update(extra_meta or {})
+        truth.save(out, "truth" if k == 0 else f"truth_tx{k}")
 
 
 def _write_calibration(cfg: object, path: Path) -> str:
