@@ -37,7 +37,7 @@ from __future__ import annotations
 
 import logging
 import math
-from collections import Counter
+from collections import Counter, deque
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -103,6 +103,8 @@ class MultiDecoder:
                                     "candidates_rejected": 0, "candidate_records_dropped": 0,
                                     "duplicate_tracks": 0, "search_attempts": 0}
         self._next_tx = 0
+        self.events: deque[tuple[str, int, int]] = deque(maxlen=1000)
+        """("confirmed" | "lost", tx, frame id) as they happen (the last 1000)"""
         self._search_from = -1
         """frame id from which the searcher takes frames again (while something is tracked)"""
         self._last_id: int | None = None
@@ -183,6 +185,7 @@ class MultiDecoder:
         s.stats = Counter()
         s.last_z = math.nan
         self.own["transmitters_confirmed"] += 1
+        self.events.append(("confirmed", s.tx, self._last_id if self._last_id is not None else -1))
         tr = s.dec.track
         assert tr is not None
         log.info("transmitter tx=%d confirmed by its header at left %.1f,%.1f (%dx%d LEDs)",
@@ -230,6 +233,7 @@ class MultiDecoder:
             return
         log.info("transmitter tx=%d lost at frame %d", s.tx, last_frame)
         self.own["transmitters_lost"] += 1
+        self.events.append(("lost", s.tx, last_frame))
         s.retired.append((s.tx, last_frame))
         s.retired = s.retired[-4:]
         s.tx = None

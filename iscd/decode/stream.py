@@ -937,7 +937,7 @@ class StreamDecoder:
         self._new_assembler()
         if self.kalman is not None:
             self.kalman.reset()
-        log.info("transmitter acquired: left %.1f,%.1f right %.1f,%.1f pitch %.2f px",
+        log.info("transmitter acquired at frame %d: left %.1f,%.1f right %.1f,%.1f pitch %.2f px", int(meta[-1, 0]),
                  *fl.center, *fr.center, fl.pitch_px)
         got = meta[:, 0].astype(np.int64), meta[:, 1], L, R
         if self.keep_acquired:

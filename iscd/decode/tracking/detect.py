@@ -891,7 +891,10 @@ def detect_auto(frames: np.ndarray, *, exclude: list[tuple[int, int, int, int]] 
     H, W = lit.shape
     size = max(max(b.bbox[2] - b.bbox[0], b.bbox[3] - b.bbox[1]) for b in blobs[:MAX_GRID_SIDE])
     best: GridFit | None = None
-    for g in group_blobs(blobs, max_gap=max(3.0, 2.0 * size))[:3]:
+    groups = group_blobs(blobs, max_gap=max(3.0, 2.0 * size))[:3]
+    tried = 0
+    while groups:
+        g = groups.pop(0)
         pad = 3
         x0 = max(0, min(b.bbox[0] for b in g) - pad)
         y0 = max(0, min(b.bbox[1] for b in g) - pad)
@@ -901,6 +904,15 @@ def detect_auto(frames: np.ndarray, *, exclude: list[tuple[int, int, int, int]] 
             continue
         shape = infer_grid(lit[y0:y1, x0:x1])
         if shape is None:
+            if len(g) > 1 and tried < 6:
+                # blobs of unlike sizes (an array lit as one area during its header beside a
+                # far single LED) grouped by the largest one's gap: regrouped by their
+                # typical size, if that parts them (the fragments of one source do not part)
+                sides = [max(b.bbox[2] - b.bbox[0], b.bbox[3] - b.bbox[1]) for b in g]
+                sub = group_blobs(g, max_gap=max(3.0, 2.0 * float(np.median(sides))))
+                if len(sub) > 1:
+                    groups = sub + groups
+                    tried += len(sub)
             continue
         try:
             if shape.rows * shape.cols == 1:
