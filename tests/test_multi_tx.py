@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from iscd.core.config import Config, load
+from iscd.core.config import Config, ConfigError, load
 from iscd.decode.multi import MultiDecoder, make_decoder
 from iscd.decode.stream import StreamDecoder
 from iscd.sim.scene import Scene
@@ -82,8 +82,15 @@ def _alone(cfg: Config, k: int) -> Config:
 
 def test_make_decoder_picks_by_max_transmitters() -> None:
     cfg = load(EXAMPLE)
-    assert type(make_decoder(cfg)) is StreamDecoder  # the default: one transmitter, as before
-    assert isinstance(make_decoder(_receiver(cfg, 3)), MultiDecoder)
+    one = cfg.with_keys("tracking", max_transmitters=1)
+    assert type(make_decoder(one)) is StreamDecoder  # the default: one transmitter, as before
+    multi = make_decoder(cfg)  # the example asks for up to 6, any shape
+    assert isinstance(multi, MultiDecoder) and multi.cfg.transmitter.shape_auto
+    listed = make_decoder(cfg.with_keys("tracking", shapes="8x8, 1x1"))
+    assert listed.slots[0].dec.allowed_shapes == {(8, 8), (1, 1)}
+    assert not make_decoder(cfg.with_keys("tracking", shapes="config")).cfg.transmitter.shape_auto
+    with pytest.raises(ConfigError, match="tracking.shapes"):
+        make_decoder(cfg.with_keys("tracking", shapes="8 by 8"))
 
 
 def test_three_transmitters_and_two_tail_lights() -> None:
@@ -127,15 +134,17 @@ def test_three_transmitters_and_two_tail_lights() -> None:
 
 
 def test_transmitter_enters_and_leaves() -> None:
-    """The 55 m LED enters at 1.5 s and leaves at 4.5 s: decoded from its first whole
-    packet in view, given up within 1.5 packet durations of leaving; the other two lose
-    nothing meanwhile."""
+    """The 55 m LED enters at 1.30 s, 8 frames before a packet of its own starts, and
+    leaves at 4.5 s: decoded from that first whole packet (the searcher looks only every
+    search_every_frames, but keeps the frames since its last look), given up within 1.5
+    packet durations of leaving; the other two lose nothing meanwhile."""
     cfg = load(EXAMPLE)
     extras = list(cfg.scene.transmitters)
-    extras[1] = replace(extras[1], start_s=1.5, stop_s=4.5)
+    extras[1] = replace(extras[1], start_s=1.30, stop_s=4.5)
     cfg = cfg.replace(scene=replace(cfg.scene, transmitters=extras))
     n = 7400
-    dec = MultiDecoder(_receiver(cfg))
+    # looks 512 frames apart: the packet's header comes long before the next look after it enters
+    dec = MultiDecoder(_receiver(cfg).with_keys("tracking", search_every_frames=512))
     records, truths = _decode(cfg, dec, n)
     fps = cfg.camera.fps
     packet_frames = 1306.0
@@ -149,8 +158,10 @@ def test_transmitter_enters_and_leaves() -> None:
     # the one that comes and goes: every whole packet while it is in view
     t = truths[2]
     starts = np.asarray(t.packet_t_s) * fps
-    want = [p for p, s in zip(t.payloads, starts) if s >= 1.5 * fps and s + packet_frames <= 4.5 * fps]
-    assert len(want) >= 1
+    want = [p for p, s in zip(t.payloads, starts) if s >= 1.30 * fps and s + packet_frames <= 4.5 * fps]
+    first = min(s for s in starts if s >= 1.30 * fps)
+    assert first - 1.30 * fps < 64, "the scene no longer starts a packet just after the LED enters"
+    assert len(want) >= 2
     assert all(p in payload_tx for p in want)
     tx = payload_tx[want[0]]
     lost = [f for what, x, f in dec.events if what == "lost" and x == tx]

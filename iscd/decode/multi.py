@@ -38,13 +38,13 @@ from __future__ import annotations
 import logging
 import math
 from collections import Counter, deque
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
 
 from iscd.calibration.io import StereoCalibration
-from iscd.core.config import Config, section
+from iscd.core.config import Config, ConfigError, section
 from iscd.decode.stream import PipelineSettings, StreamDecoder
 
 log = logging.getLogger(__name__)
@@ -93,8 +93,19 @@ class MultiDecoder:
         if self.max_transmitters < 1:
             raise ValueError(f"max_transmitters must be >= 1, got {self.max_transmitters}")
         self.search_every = max(self.settings.acquire_frames, int(self.settings.search_every_frames))
+        self.allowed_shapes = parse_shapes(self.settings.shapes)
+        if self.allowed_shapes != "config" and not cfg.transmitter.shape_auto:
+            # each transmitter's shape inferred (v1 packets read with [transmitter]'s M, K, F)
+            self.cfg = cfg = cfg.replace(transmitter=replace(cfg.transmitter, rows=0, cols=0))
         self._async = async_demod
         self._compiled = compiled
+        self._shared: Any = None
+        """one demodulation worker process for every transmitter (async_demod="process"):
+        each decoder has its slot in it (:class:`iscd.decode.worker.SlotWorker`)"""
+        if async_demod == "process":
+            from iscd.decode.pipe import PipeDemodWorker
+
+            self._shared = PipeDemodWorker()
         self._born = 0
         self.slots: list[_Slot] = []
         self._closed: Counter = Counter()
@@ -105,8 +116,6 @@ class MultiDecoder:
         self._next_tx = 0
         self.events: deque[tuple[str, int, int]] = deque(maxlen=1000)
         """("confirmed" | "lost", tx, frame id) as they happen (the last 1000)"""
-        self._search_from = -1
-        """frame id from which the searcher takes frames again (while something is tracked)"""
         self._last_id: int | None = None
         self._deferred: list[_Slot] = []
         self._excluded: list[tuple[tuple[int, int, int, int], int]] = []
@@ -119,8 +128,15 @@ class MultiDecoder:
 
     # ------------------------------------------------------------------ slots
     def _new_slot(self) -> _Slot:
+        worker = None
+        if self._shared is not None:
+            from iscd.decode.worker import SlotWorker
+
+            worker = SlotWorker(self._shared, self._born)
         dec = StreamDecoder(self.cfg, self.cal, tx_index=-1, settings=self.settings,
-                            async_demod=self._async, compiled=self._compiled)
+                            async_demod=self._async, compiled=self._compiled, demod_worker=worker)
+        if isinstance(self.allowed_shapes, set):
+            dec.allowed_shapes = self.allowed_shapes
         s = _Slot(dec=dec, born=self._born)
         self._born += 1
         self.slots.append(s)
@@ -303,21 +319,21 @@ class MultiDecoder:
             s = self._new_slot()
         if s is None:
             return []
-        last = int(frame_ids[-1])
-        if tracked and last < self._search_from:
-            return []
         out: list[dict] = []
+        A = self.settings.acquire_frames
         while True:
             s.dec.extra_exclude = self._excludes(s)
             s.dec.keep_acquired = True
+            # nothing tracked: look at every acquire_frames, as one decoder does; else every
+            # search_every, keeping the frames since the last look (decoded from the first
+            # of them if something new is found: its first whole packet is among them)
+            s.dec.set_lookback(A if not tracked else self.search_every, self.search_every + A)
             attempts = s.dec.attempts
             out += self._push_slot(s, frame_ids, t_s, left, right, **kw)
             got, s.dec.acquired = s.dec.acquired, None
             if s.dec.attempts != attempts:
                 self.own["search_attempts"] += s.dec.attempts - attempts
             if s.dec.track is None:
-                if s.dec.attempts != attempts:  # nothing new: look again a while later
-                    self._search_from = last + self.search_every - self.settings.acquire_frames
                 return out
             if got is None or len(self.slots) >= self.max_transmitters:
                 return out
@@ -370,7 +386,13 @@ class MultiDecoder:
         out = self.finish_block()
         for s in list(self.slots):
             out += self._close_slot(s)
+        self._stop_shared()
         return out
+
+    def _stop_shared(self, wait: bool = True) -> None:
+        if self._shared is not None:
+            self._shared.shutdown(wait=wait)
+            self._shared = None
 
     def finish_within(self, timeout_s: float) -> tuple[list[dict], int]:
         """:meth:`StreamDecoder.finish_within` of every decoder, sharing ``timeout_s``."""
@@ -385,12 +407,14 @@ class MultiDecoder:
             out += self._route(s, recs)
             self._closed.update(s.dec.counters)
             self.slots.remove(s)
+        self._stop_shared(wait=not abandoned)
         return out, abandoned
 
     def close(self) -> None:
         """Stop every decoder's demodulation worker without waiting (idempotent)."""
         for s in self.slots:
             s.dec.close()
+        self._stop_shared(wait=False)
 
     def restart(self) -> None:
         """Drop every track (the daemon after a decoding error)."""
@@ -459,21 +483,35 @@ class MultiDecoder:
 
     @property
     def worker_pids(self) -> list[int]:
-        return [p for s in self.slots for p in s.dec.worker_pids]
+        return sorted({p for s in self.slots for p in s.dec.worker_pids})
 
     def needed_windows(self) -> tuple[tuple[int, int, int, int], tuple[int, int, int, int]] | None:
         """The union of the decoders' windows; None (whole frames) while the searcher reads."""
-        s = self.searcher
-        if s is not None or len(self.slots) < self.max_transmitters:
-            nxt = (self._last_id or 0) + 1
-            if not self.tracked() or nxt + 64 >= self._search_from:
-                return None
+        if self.searcher is not None or len(self.slots) < self.max_transmitters:
+            return None  # the searcher keeps whole frames
         wins = [s.dec.needed_windows() for s in self.tracked()]
         if not wins or any(w is None for w in wins):
             return None
         wl = [w[0] for w in wins]  # type: ignore[index]
         wr = [w[1] for w in wins]  # type: ignore[index]
         return _union_all(wl), _union_all(wr)
+
+
+def parse_shapes(text: str) -> set[tuple[int, int]] | str | None:
+    """``[tracking] shapes``: ``"auto"`` -> None (any shape), ``"config"`` -> "config", or
+    ``"8x8, 1x1"`` -> {(8, 8), (1, 1)}. Raises ConfigError naming the key on anything else."""
+    t = str(text).strip().lower()
+    if t in ("auto", ""):
+        return None
+    if t == "config":
+        return "config"
+    out: set[tuple[int, int]] = set()
+    for part in t.split(","):
+        r, x, c = part.strip().partition("x")
+        if not (x and r.strip().isdigit() and c.strip().isdigit()) or int(r) < 1 or int(c) < 1:
+            raise ConfigError(f'tracking.shapes: expected "auto", "config" or a list like "8x8, 1x1", got {text!r}')
+        out.add((int(r), int(c)))
+    return out
 
 
 def _union_all(boxes: list[tuple[int, int, int, int]]) -> tuple[int, int, int, int]:

@@ -80,6 +80,7 @@ class PipelineSettings:
     background_one_led: bool = field(default=True, metadata={"doc": "the per-pixel background (as background) whenever the transmitter is one LED: measured on a moving car's randomized scenes it delivered more packets (4 seed sets, docs/eval.md), and one LED's static suites (SER, range errors) are unchanged; an array keeps background's setting (its neighbours' light under a pixel cost static f/4 receivers packets)"})
     follow_passes: int = field(default=3, metadata={"lo": 0, "hi": 8, "doc": "further following passes per block along the LEDs' path (their lit frames' centres smoothed in time), while the path moves more than path_settle_px; dark and dimly lit frames are measured on the path; 0 = one pass from the last block's end (before issue 12)"})
     max_transmitters: int = field(default=1, metadata={"lo": 1, "hi": 16, "doc": "transmitters decoded at once (each its own tracking, timing, channel, packets, ranging, and a tx index once its first packet is valid); 1 = the one strongest, as before; > 1: iscd.decode.multi.MultiDecoder (docs/receiver.md)"})
+    shapes: str = field(default="auto", metadata={"doc": "with max_transmitters > 1, which transmitters to look for: \"auto\" (any shape, each inferred; v1 packets read with [transmitter]'s M, K, F), \"config\" (only [transmitter]'s rows x cols), or a list such as \"8x8, 1x1\""})
     search_every_frames: int = field(default=256, metadata={"lo": 8, "hi": 100000, "doc": "with max_transmitters > 1 and a transmitter tracked: look for another one every this many frames (each look reads acquire_frames whole frames)"})
     path_settle_px: float = field(default=0.5, metadata={"lo": 0.05, "hi": 5.0, "doc": "no further following pass once the path is within this of where the last pass started, px"})
 
@@ -162,7 +163,7 @@ class StreamDecoder:
 
     def __init__(self, cfg: Config, calibration: StereoCalibration | None = None, *, tx_index: int = 0,
                  settings: PipelineSettings | None = None, ranging: RangingSettings | None = None,
-                 async_demod: bool | str = False, compiled: bool = True) -> None:
+                 async_demod: bool | str = False, compiled: bool = True, demod_worker: Any = None) -> None:
         """``async_demod``: run the packet assembler elsewhere, so that demodulating a
         whole packet (0.1-0.2 s for an 8x8 array) does not delay the per-frame work;
         packets then come out of a later :meth:`push` (in order) or of :meth:`finish`.
@@ -171,7 +172,8 @@ class StreamDecoder:
         the frame loop); ``True`` or ``"thread"``: a worker thread. Replay and
         tests run synchronously. ``compiled``: the per-frame kernels compiled
         (:mod:`iscd.decode.tracking.follow_kernel`); ``False`` runs their numpy references (the
-        same records to float tolerance; for tests)."""
+        same records to float tolerance; for tests). ``demod_worker``: with
+        ``async_demod="process"``, a worker to use instead of starting one."""
         self.compiled = compiled
         if async_demod not in (False, True, "thread", "process"):
             raise ValueError(f"async_demod: expected False, True, 'thread' or 'process', got {async_demod!r}")
@@ -179,7 +181,10 @@ class StreamDecoder:
         self._pool: ThreadPoolExecutor | None = (
             ThreadPoolExecutor(max_workers=1, thread_name_prefix="iscd-demod")
             if async_demod in (True, "thread") else None)
-        self._worker: DemodWorker | None = DemodWorker() if async_demod == "process" else None
+        self._worker: Any = (demod_worker if demod_worker is not None
+                             else DemodWorker() if async_demod == "process" else None)
+        """the demodulation worker (``demod_worker``: a slot of one shared by several
+        transmitters, :class:`iscd.decode.worker.SlotWorker`)"""
         self._pending: deque[tuple[Future, int]] = deque()
         """asynchronous demodulation steps in order, each with the frames it pushes (a
         track's header wait counts frames once they are demodulated: a worker that is
@@ -223,6 +228,11 @@ class StreamDecoder:
         (:class:`iscd.decode.multi.MultiDecoder` sets them before each block)."""
         self.attempts = 0
         """detection attempts made (each on ``acquire_frames`` frames)"""
+        self.allowed_shapes: set[tuple[int, int]] | None = None
+        """auto shape: only arrays of these (rows, cols) are taken (None: any)"""
+        self._lookback: int | None = None
+        self._search_every = self.settings.acquire_frames
+        self._since_look = 0
         self.keep_acquired = False
         self.acquired: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = None
         """with ``keep_acquired``: the (ids, t_s, left, right) frames of the last successful
@@ -884,14 +894,28 @@ class StreamDecoder:
             self._acq_l.append(np.array(left[i]))
             self._acq_r.append(np.array(right[i]))
             self._acq_ids.append((int(frame_ids[i]), float(t_s[i])))
-        if len(self._acq_l) < self.settings.acquire_frames:
+        A = self.settings.acquire_frames
+        lookback = self._lookback is not None
+        self._since_look += len(frame_ids)
+        if len(self._acq_l) < A:
             return None
-        L = np.stack(self._acq_l)
-        R = np.stack(self._acq_r)
-        meta = np.array(self._acq_ids)
-        self._acq_l.clear()
-        self._acq_r.clear()
-        self._acq_ids.clear()
+        if lookback:
+            # several transmitters: a look every search_every frames on the last A frames;
+            # the frames before them are kept for a transmitter found (its first header)
+            if self._since_look < self._search_every:
+                return None
+            self._since_look = 0
+            k = len(self._acq_l) - A
+            L = np.stack([self._acq_l[i] for i in range(k, k + A)])
+            R = np.stack([self._acq_r[i] for i in range(k, k + A)])
+            meta = np.array([self._acq_ids[i] for i in range(k, k + A)])
+        else:
+            L = np.stack(self._acq_l)
+            R = np.stack(self._acq_r)
+            meta = np.array(self._acq_ids)
+            self._acq_l.clear()
+            self._acq_r.clear()
+            self._acq_ids.clear()
         now = int(meta[-1, 0])
         self.attempts += 1
         self.excluded = [(b, until) for b, until in self.excluded if until > now]
@@ -911,6 +935,10 @@ class StreamDecoder:
             fl = detect_auto(L, exclude=exclude) if auto else detect_array(L, *shape, exclude=exclude)
             if fl is None:
                 return None
+            if auto and self.allowed_shapes is not None and (fl.rows, fl.cols) not in self.allowed_shapes:
+                log.debug("a %dx%d array at %s is not among the shapes looked for", fl.rows, fl.cols, fl.center)
+                exclude = exclude + [fl.bbox(margin=2.0)]
+                continue
             found = self._partner(fl, L, R, own_right)
             if found is not None:
                 break
@@ -939,10 +967,32 @@ class StreamDecoder:
             self.kalman.reset()
         log.info("transmitter acquired at frame %d: left %.1f,%.1f right %.1f,%.1f pitch %.2f px", int(meta[-1, 0]),
                  *fl.center, *fr.center, fl.pitch_px)
+        if lookback:  # decode from the first frame kept: a header before the look is not lost
+            meta = np.array(self._acq_ids)
+            L, R = np.stack(self._acq_l), np.stack(self._acq_r)
+            self._acq_l.clear()
+            self._acq_r.clear()
+            self._acq_ids.clear()
+            self._since_look = 0
         got = meta[:, 0].astype(np.int64), meta[:, 1], L, R
         if self.keep_acquired:
             self.acquired = got
         return got
+
+    def set_lookback(self, search_every: int, lookback: int) -> None:
+        """Search every ``search_every`` frames (on the last ``acquire_frames``) and keep
+        the last ``lookback`` frames while searching; a transmitter found is decoded from
+        the first of them (:class:`iscd.decode.multi.MultiDecoder`: a transmitter that
+        enters is read from its first whole packet though the searcher looks only now and
+        then)."""
+        A = self.settings.acquire_frames
+        self._search_every = max(int(search_every), 1)
+        if self._lookback == max(int(lookback), A):
+            return
+        self._lookback = max(int(lookback), A)
+        self._acq_l = deque(self._acq_l, maxlen=self._lookback)
+        self._acq_r = deque(self._acq_r, maxlen=self._lookback)
+        self._acq_ids = deque(self._acq_ids, maxlen=self._lookback)
 
     ACQUIRE_CANDIDATES = 3
     """Left-camera candidates tried on one acquisition's frames before the next frames."""
@@ -954,11 +1004,16 @@ class StreamDecoder:
         left's light (:func:`iscd.decode.tracking.partner.find_partner`); None if neither.
         ``own_right`` holds the right camera's own detection per shape for these frames (it
         does not depend on the left's candidate: run once however many candidates are tried)."""
-        if (fl.rows, fl.cols) not in own_right:
-            own_right[(fl.rows, fl.cols)] = detect_array(R, fl.rows, fl.cols,
-                                                         exclude=list(self.extra_exclude[1]) or None)
-        fr = own_right[(fl.rows, fl.cols)]
         max_dy = 3.0 + 0.5 * fl.spot_px
+        if self._lookback is not None:
+            # several transmitters: the right camera's own detection within the left
+            # candidate's epipolar band (elsewhere in the frame a brighter one would win)
+            fr = self._detect_in_band(R, fl, max_dy)
+        else:
+            if (fl.rows, fl.cols) not in own_right:
+                own_right[(fl.rows, fl.cols)] = detect_array(R, fl.rows, fl.cols,
+                                                             exclude=list(self.extra_exclude[1]) or None)
+            fr = own_right[(fl.rows, fl.cols)]
         fr = match_stereo(fl, [fr], max_dy=max_dy) if fr is not None else None
         if fr is None:
             # the right camera's own search found nothing or something else (the HDR pair's
@@ -971,6 +1026,23 @@ class StreamDecoder:
             self.counters["guided_acquisitions"] += 1
             log.info("transmitter found in the right camera by the left's light (correlation %.2f)", fr.score)
         return fl, fr
+
+    def _detect_in_band(self, R: np.ndarray, fl: GridFit, max_dy: float) -> GridFit | None:
+        """The right camera's own detection of a ``fl``-shaped array on the rows of ``fl``'s
+        epipolar band (its box +- ``max_dy`` + a pitch), others' boxes left out; image px."""
+        H = R.shape[1]
+        x0, y0, x1, y1 = fl.bbox(max_dy + max(fl.pitch_px, fl.spot_px) + 2)
+        y0, y1 = max(0, int(y0)), min(H, int(y1))
+        if y1 - y0 < 4:
+            return None
+        ex = [(b[0], b[1] - y0, b[2], b[3] - y0) for b in self.extra_exclude[1]]
+        try:
+            fit = detect_array(R[:, y0:y1], fl.rows, fl.cols, exclude=ex or None)
+        except ValueError:
+            return None
+        if fit is None:
+            return None
+        return replace(fit, origin=(fit.origin[0], fit.origin[1] + y0))
 
     HINT_TRIES = 4
     """Acquisition attempts with the shape a PHY header named before inferring it again."""

@@ -79,11 +79,27 @@ class MemoryReport:
 _report: MemoryReport | None = None
 
 
+_slots: dict[int, PacketAssembler | None] = {}
+"""Assemblers of further transmitters (``slot`` operations: one worker for several)."""
+
+
 def _call(op: str, *args: Any) -> list[Packet]:
     """Runs in the worker: ``warm`` (load the compiled kernels), ``new`` (make the
     assembler from its arguments), ``push``, ``reset`` or ``flush`` on it; returns the
-    packets completed."""
+    packets completed. ``slot`` (key, op, *args): the same on the assembler of ``key``
+    (:class:`SlotWorker`: several transmitters' assemblers in one worker), ``drop`` (key)
+    forgets one."""
     global _assembler
+    if op == "slot":
+        key, inner, rest = args[0], args[1], args[2:]
+        if inner == "drop":
+            _slots.pop(key, None)
+            return []
+        saved, _assembler = _assembler, _slots.get(key)
+        try:
+            return _call(inner, *rest)
+        finally:
+            _slots[key], _assembler = _assembler, saved
     if op == "warm":  # load (or compile) the receiver's kernels before the first packet
         from iscd.core.jit import warm_up
 
@@ -157,3 +173,23 @@ class DemodWorker:
 
     def shutdown(self, wait: bool = True) -> None:
         self._pool.shutdown(wait=wait, cancel_futures=not wait)
+
+
+class SlotWorker:
+    """One transmitter's view of a shared worker (:class:`iscd.decode.pipe.PipeDemodWorker`
+    or :class:`DemodWorker`): the same interface, each operation run on this slot's own
+    assembler in the worker. :meth:`shutdown` only forgets the slot; the owner of the
+    shared worker stops it."""
+
+    def __init__(self, worker: Any, key: int) -> None:
+        self.worker, self.key = worker, int(key)
+
+    @property
+    def pids(self) -> list[int]:
+        return list(self.worker.pids)
+
+    def submit(self, op: str, *args: Any) -> Future:
+        return self.worker.submit("slot", self.key, op, *args)
+
+    def shutdown(self, wait: bool = True) -> None:
+        self.worker.submit("slot", self.key, "drop")
