@@ -99,3 +99,19 @@ def test_kill_9_leaves_no_process_and_no_ring(tmp_path: Path) -> None:
                 pass
     assert left == [], f"processes left after kill -9 of the daemon: {left}"
     assert not (_rings() & mine), "the daemon's shared-memory ring outlived it"
+
+
+def test_stale_ring_of_a_dead_daemon_is_reclaimed(tmp_path: Path) -> None:
+    """A ring left in /dev/shm by a daemon that died with its resource tracker (a whole
+    process group sent SIGKILL) is removed at the next start; a live process's ring stays."""
+    from iscd.rig.ringbuffer import reclaim_stale_rings
+
+    dead = subprocess.Popen([sys.executable, "-c", "pass"])
+    dead.wait()  # its pid is free now (reaped)
+    stale = tmp_path / f"iscd_ring_{dead.pid}_0badf00d"
+    live = tmp_path / f"iscd_ring_{os.getpid()}_00c0ffee"
+    other = tmp_path / "iscd_ring_notapid_1"
+    for p in (stale, live, other):
+        p.write_bytes(b"\0" * 64)
+    assert reclaim_stale_rings(str(tmp_path)) == [stale.name]
+    assert not stale.exists() and live.exists() and other.exists()

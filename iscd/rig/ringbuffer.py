@@ -178,6 +178,36 @@ class ReadSlot:
 _SHM_DIR = "/dev/shm"
 
 
+def reclaim_stale_rings(directory: str = _SHM_DIR) -> list[str]:
+    """Unlink the rings of daemons that are gone: ``iscd_ring_<pid>_<hex>`` segments whose
+    creating process no longer exists (a daemon killed together with its resource tracker,
+    e.g. a whole process group sent SIGKILL, leaves its segment behind, hundreds of MB of
+    /dev/shm). A segment whose pid is alive (another daemon, or a pid reused by another
+    program) is left alone. Returns the names unlinked; the daemon logs them at start."""
+    gone: list[str] = []
+    try:
+        names = os.listdir(directory)
+    except OSError:
+        return gone
+    for name in names:
+        parts = name.split("_")
+        if len(parts) != 4 or parts[:2] != ["iscd", "ring"] or not parts[2].isdigit():
+            continue
+        try:
+            os.kill(int(parts[2]), 0)
+            continue  # alive (or someone else's pid now): not ours to judge
+        except ProcessLookupError:
+            pass
+        except PermissionError:
+            continue  # exists, another user's
+        try:
+            os.unlink(os.path.join(directory, name))
+            gone.append(name)
+        except OSError:
+            pass
+    return gone
+
+
 class _Segment:
     """A mapping of a POSIX shared-memory segment by name, with its own file descriptor.
 

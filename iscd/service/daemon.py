@@ -308,6 +308,10 @@ class _Run:
         self.decoder = make_decoder(cfg, cal, async_demod="process")
         H, W = cfg.camera.height, cfg.camera.width
         dtype = np.uint8 if cfg.camera.bit_depth == 8 else np.uint16
+        from iscd.rig.ringbuffer import reclaim_stale_rings
+
+        for name in reclaim_stale_rings():  # the ring of a daemon killed with its resource tracker
+            log.warning("removed /dev/shm/%s: the ring of an iscd process that is gone", name)
         self.ring = StereoRing.create(height=H, width=W, capacity=capacity_for(st.ring_ms, cfg.camera.fps),
                                       dtype=dtype, max_held=st.block_max)  # a block's pairs are taken at once
         self.fps = cfg.camera.fps
