@@ -620,7 +620,8 @@ class _Run:
                # the frame rate the cameras report (after the device's own clamping)
                "device_fps": [a.fps_mhz_left / 1000 or None, a.fps_mhz_right / 1000 or None],
                "device_fps_mismatch": self.fps_mismatch,
-               "demod_worker_restarts": decoder.counters.get("demod_worker_restarts", 0)}
+               "demod_worker_restarts": decoder.counters.get("demod_worker_restarts", 0),
+               "demod_worker_processes": len(workers)}
         if hasattr(decoder, "transmitters"):  # several transmitters: each one's own figures
             rec["transmitters"] = decoder.transmitters()
             rec.update({k: decoder.counters[k] for k in ("transmitters_confirmed", "transmitters_lost",
