@@ -327,7 +327,8 @@ class MultiDecoder:
             # nothing tracked: look at every acquire_frames, as one decoder does; else every
             # search_every, keeping the frames since the last look (decoded from the first
             # of them if something new is found: its first whole packet is among them)
-            s.dec.set_lookback(A if not tracked else self.search_every, self.search_every + A)
+            s.dec.set_lookback(A if not tracked else self.search_every, self.search_every + A,
+                               look_async=self._async == "process")
             attempts = s.dec.attempts
             out += self._push_slot(s, frame_ids, t_s, left, right, **kw)
             got, s.dec.acquired = s.dec.acquired, None

@@ -231,6 +231,10 @@ class StreamDecoder:
         self.allowed_shapes: set[tuple[int, int]] | None = None
         """auto shape: only arrays of these (rows, cols) are taken (None: any)"""
         self._lookback: int | None = None
+        self._look: Future | None = None
+        """a look in flight in ``_look_pool``"""
+        self._look_pool: ThreadPoolExecutor | None = None
+        """with ``look_async``: the thread a searcher's looks run in (set_lookback)"""
         self._search_every = self.settings.acquire_frames
         self._since_look = 0
         self.keep_acquired = False
@@ -436,12 +440,17 @@ class StreamDecoder:
         records: list[dict] = pending
         if self._reacquire:
             self.restart()
+        catch_up = 0
         if self.track is None:
             got = self._acquire(frame_ids, t_s, left, right)
             if got is None:
                 return records
             # decode the whole acquisition window: a header in it is not lost
             frame_ids, t_s, left, right = got
+            if self._lookback is not None:
+                # a searcher's kept frames (hundreds): their packets matter, their ranges
+                # are past; only this block's are measured (a shorter catch-up step)
+                catch_up = len(got[0]) - n
             n = len(frame_ids)
         tr = self.track
         assert tr is not None
@@ -458,10 +467,12 @@ class StreamDecoder:
             assert lum_l is not None and lum_r is not None
             records += self._demod_block(frame_ids, t_s, lum_l, lum_r)
         ranged = np.arange(n) if ranging_every <= 1 else np.flatnonzero(frame_ids % int(ranging_every) == 0)
+        if catch_up > 0:
+            ranged = ranged[ranged >= catch_up]
         if self.ranger is not None and (not ranging or ranged.size == 0):
-            self.counters["ranging_skipped"] += n
+            self.counters["ranging_skipped"] += n - catch_up
         elif self.ranger is not None:
-            self.counters["ranging_skipped"] += n - ranged.size
+            self.counters["ranging_skipped"] += n - catch_up - ranged.size
             rl, rr = (left, right) if ranged.size == n else (left[ranged], right[ranged])
             res = self.ranger.measure(rl, rr, tr.left, tr.right)
             z, dsp, sg = res.z_m.tolist(), res.disparity_px.tolist(), res.sigma_m.tolist()
@@ -563,6 +574,10 @@ class StreamDecoder:
 
     def finish(self) -> list[dict]:
         """End of stream: decode what the assembler still holds."""
+        if self._look_pool is not None:  # a look in flight finds nothing more to decode
+            self._look_pool.shutdown(wait=False, cancel_futures=True)
+            self._look_pool = None
+            self._look = None
         if self._deferred is not None:
             pending = self.finish_block()
             return pending + self.finish()
@@ -603,6 +618,10 @@ class StreamDecoder:
         """Stop the demodulation worker (process or thread) without waiting for what it
         still holds: for a daemon leaving on an error (:meth:`finish` is the orderly end).
         Idempotent."""
+        if self._look_pool is not None:
+            self._look_pool.shutdown(wait=False, cancel_futures=True)
+            self._look_pool = None
+            self._look = None
         if self._worker is not None:
             self._worker.shutdown(wait=False)
             self._worker = None
@@ -631,6 +650,7 @@ class StreamDecoder:
         self._acq_l.clear()
         self._acq_r.clear()
         self._acq_ids.clear()
+        self._look = None  # a look in flight: its answer is for frames no longer kept
 
     FOLLOW_MAX_PX = 2.0
     """The LEDs are followed from the last frame's refined centres unless the array's
@@ -897,55 +917,49 @@ class StreamDecoder:
         A = self.settings.acquire_frames
         lookback = self._lookback is not None
         self._since_look += len(frame_ids)
-        if len(self._acq_l) < A:
-            return None
-        if lookback:
-            # several transmitters: a look every search_every frames on the last A frames;
-            # the frames before them are kept for a transmitter found (its first header)
-            if self._since_look < self._search_every:
+        if lookback and self._look is not None:
+            # a look in flight (a thread, the daemon): its answer once it has one
+            if not self._look.done():
                 return None
-            self._since_look = 0
-            k = len(self._acq_l) - A
-            L = np.stack([self._acq_l[i] for i in range(k, k + A)])
-            R = np.stack([self._acq_r[i] for i in range(k, k + A)])
-            meta = np.array([self._acq_ids[i] for i in range(k, k + A)])
+            found = self._look.result()
+            self._look = None
         else:
-            L = np.stack(self._acq_l)
-            R = np.stack(self._acq_r)
-            meta = np.array(self._acq_ids)
-            self._acq_l.clear()
-            self._acq_r.clear()
-            self._acq_ids.clear()
-        now = int(meta[-1, 0])
-        self.attempts += 1
-        self.excluded = [(b, until) for b, until in self.excluded if until > now]
-        exclude = [b for b, _ in self.excluded] + list(self.extra_exclude[0])
-        shape = self._shape_hint or (self.rows, self.cols)
-        auto = self.shape_auto and self._shape_hint is None
-        if not auto:
-            self._hint_tries -= 1
-            if self._hint_tries <= 0:
-                self._shape_hint = None
-        found = None
-        own_right: dict[tuple[int, int], GridFit | None] = {}  # the right's own search, once a shape
-        for _ in range(self.ACQUIRE_CANDIDATES):
-            # the left camera's best candidate; one that the right camera does not confirm
-            # is left out and the next one tried on the same frames (so that a packet whose
-            # header is in them is not lost to a distractor)
-            fl = detect_auto(L, exclude=exclude) if auto else detect_array(L, *shape, exclude=exclude)
-            if fl is None:
+            if len(self._acq_l) < A:
                 return None
-            if auto and self.allowed_shapes is not None and (fl.rows, fl.cols) not in self.allowed_shapes:
-                log.debug("a %dx%d array at %s is not among the shapes looked for", fl.rows, fl.cols, fl.center)
-                exclude = exclude + [fl.bbox(margin=2.0)]
-                continue
-            found = self._partner(fl, L, R, own_right)
-            if found is not None:
-                break
-            exclude = exclude + [fl.bbox(margin=2.0)]
+            if lookback:
+                # several transmitters: a look every search_every frames on the last A
+                # frames; the frames before them are kept for a transmitter found (its
+                # first header)
+                if self._since_look < self._search_every:
+                    return None
+                self._since_look = 0
+                k = len(self._acq_l) - A
+                wl = [self._acq_l[i] for i in range(k, k + A)]
+                wr = [self._acq_r[i] for i in range(k, k + A)]
+                meta = np.array([self._acq_ids[i] for i in range(k, k + A)])
+            else:
+                wl, wr = list(self._acq_l), list(self._acq_r)
+                meta = np.array(self._acq_ids)
+                self._acq_l.clear()
+                self._acq_r.clear()
+                self._acq_ids.clear()
+            now = int(meta[-1, 0])
+            self.attempts += 1
+            self.excluded = [(b, until) for b, until in self.excluded if until > now]
+            exclude = [b for b, _ in self.excluded] + list(self.extra_exclude[0])
+            shape = self._shape_hint or (self.rows, self.cols)
+            auto = self.shape_auto and self._shape_hint is None
+            if not auto:
+                self._hint_tries -= 1
+                if self._hint_tries <= 0:
+                    self._shape_hint = None
+            if lookback and self._look_pool is not None:
+                self._look = self._look_pool.submit(self._look_for, wl, wr, meta, exclude, shape, auto)
+                return None
+            found = self._look_for(wl, wr, meta, exclude, shape, auto)
         if found is None:
             return None
-        fl, fr = found
+        fl, fr, meta, L, R = found
         if self.shape_auto:
             if (fl.rows, fl.cols) != (self.rows, self.cols) or self.counters["acquisitions"] == 0:
                 log.info("transmitter's shape inferred: %dx%d LEDs, pitch %.2f px", fl.rows, fl.cols, fl.pitch_px)
@@ -979,13 +993,46 @@ class StreamDecoder:
             self.acquired = got
         return got
 
-    def set_lookback(self, search_every: int, lookback: int) -> None:
+    def _look_for(self, wl: list[np.ndarray], wr: list[np.ndarray], meta: np.ndarray,
+                  exclude: list[tuple[int, int, int, int]], shape: tuple[int, int], auto: bool
+                  ) -> tuple[GridFit, GridFit, np.ndarray, np.ndarray, np.ndarray] | None:
+        """One detection attempt on the frames ``wl``/``wr`` (lists of (H, W) images, ids and
+        t_s in ``meta``): (left fit, right fit, meta, L, R) of the transmitter found, or None.
+        Reads no decoder state that a block changes (it may run in a thread: a look of
+        :meth:`set_lookback`'s searcher in the daemon)."""
+        L = np.stack(wl)
+        R: np.ndarray | None = None
+        own_right: dict[tuple[int, int], GridFit | None] = {}  # the right's own search, once a shape
+        for _ in range(self.ACQUIRE_CANDIDATES):
+            # the left camera's best candidate; one that the right camera does not confirm
+            # is left out and the next one tried on the same frames (so that a packet whose
+            # header is in them is not lost to a distractor)
+            fl = detect_auto(L, exclude=exclude) if auto else detect_array(L, *shape, exclude=exclude)
+            if fl is None:
+                return None
+            if auto and self.allowed_shapes is not None and (fl.rows, fl.cols) not in self.allowed_shapes:
+                log.debug("a %dx%d array at %s is not among the shapes looked for", fl.rows, fl.cols, fl.center)
+                exclude = exclude + [fl.bbox(margin=2.0)]
+                continue
+            if R is None:
+                R = np.stack(wr)
+            found = self._partner(fl, L, R, own_right)
+            if found is not None:
+                return found[0], found[1], meta, L, R
+            exclude = exclude + [fl.bbox(margin=2.0)]
+        return None
+
+    def set_lookback(self, search_every: int, lookback: int, *, look_async: bool = False) -> None:
         """Search every ``search_every`` frames (on the last ``acquire_frames``) and keep
         the last ``lookback`` frames while searching; a transmitter found is decoded from
         the first of them (:class:`iscd.decode.multi.MultiDecoder`: a transmitter that
         enters is read from its first whole packet though the searcher looks only now and
-        then)."""
+        then). ``look_async`` (the daemon): each look runs in a thread of its own while the
+        blocks go on (the detection's numpy and OpenCV work releases the GIL), and its
+        answer is taken at a later block; the frames kept since cover the wait."""
         A = self.settings.acquire_frames
+        if look_async and self._look_pool is None:
+            self._look_pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="iscd-look")
         self._search_every = max(int(search_every), 1)
         if self._lookback == max(int(lookback), A):
             return
