@@ -48,15 +48,17 @@ def scene_config(k: int):  # -> Config
                                                        distractors=[]))
 
 
-def bench(k: int, n_frames: int, block: int, profile: bool = False) -> dict[str, float]:
+def bench(k: int, n_frames: int, block: int, profile: bool = False, single: bool = False) -> dict[str, float]:
+    """``single``: the one-transmitter StreamDecoder (max_transmitters = 1: no searcher) instead."""
     from iscd.core.jit import warm_up
     from iscd.decode.comms.packets import PacketAssembler
     from iscd.decode.multi import MultiDecoder
+    from iscd.decode.stream import StreamDecoder
     from iscd.sim.scene import Scene
 
     cfg = scene_config(k)
     sc = Scene(cfg)
-    dec = MultiDecoder(cfg.with_keys("tracking", max_transmitters=k + 1))
+    dec = StreamDecoder(cfg) if single else MultiDecoder(cfg.with_keys("tracking", max_transmitters=k + 1))
     warm_up()
     H, W = cfg.camera.height, cfg.camera.width
     L = np.empty((block, H, W), np.uint8)
@@ -100,7 +102,7 @@ def bench(k: int, n_frames: int, block: int, profile: bool = False) -> dict[str,
                 t_push += t1 - t
                 t_copy += t2 - t1
                 n_timed += block
-        tracked = dec.counters["transmitters_tracked"]
+        tracked = dec.counters.get("transmitters_tracked", int(dec.track is not None))
         dec.finish()
     finally:
         PacketAssembler.push = asm_push  # type: ignore[method-assign]
@@ -110,7 +112,7 @@ def bench(k: int, n_frames: int, block: int, profile: bool = False) -> dict[str,
     return {"k": k, "pairs": n_timed, "tracked": tracked, "frame_loop_ratio": n_timed / loop / cfg.camera.fps,
             "to_baseline": (n_timed / loop) / (n_timed / max(t_copy, 1e-9)),
             "ms_per_pair": 1e3 * loop / n_timed, "packets_ok": dec.counters["packets_ok"],
-            "packets_bad": dec.counters["packets_bad"], "confirmed": dec.counters["transmitters_confirmed"]}
+            "packets_bad": dec.counters["packets_bad"], "confirmed": dec.counters.get("transmitters_confirmed", tracked)}
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -124,6 +126,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     counts = [1, 2] if a.quick else [int(c) for c in a.counts.split(",")]
     n = 1000 if a.quick else a.frames
     first = None
+    if 1 in counts:  # the reference: one StreamDecoder, no searcher (what max_transmitters = 1 runs)
+        r = bench(1, n, a.block, False, single=True)
+        print(f"1 transmitter, StreamDecoder alone (no searcher): frame loop {r['frame_loop_ratio']:.2f}x the "
+              f"1000 fps camera rate, {r['to_baseline']:.3f}x the full-frame-copy baseline, "
+              f"{r['ms_per_pair']:.3f} ms/pair, packets {r['packets_ok']} ok {r['packets_bad']} bad", flush=True)
     for k in counts:
         r = bench(k, n, a.block, a.profile)
         first = first or r["ms_per_pair"]
