@@ -203,19 +203,7 @@ def on_time(t0_cam: np.ndarray, exposure_s: float, clock: LedClock,
     SPEC sections 3 and 6.
     """
     t0 = np.asarray(t0_cam, dtype=np.float64).reshape(-1)
-    T = clock.symbol_period_s
-    ua = clock.led_time(t0)
-    ub = clock.led_time(t0 + exposure_s)
-    if t0.size == 0:
-        d = duty_of(0, 1)
-        return np.zeros((0, d.shape[1]))
-    k0 = int(np.floor(ua.min() / T))
-    k1 = int(np.floor(ub.max() / T)) + 1
-    d = duty_of(k0, k1)
-    cum = symbol_cumsum(d, clock)
-    ga = cumulative_on_time(ua, d, k0, clock, cum)
-    gb = cumulative_on_time(ub, d, k0, clock, cum)
-    return (gb - ga) / clock.rate
+    return on_time_window(t0, t0 + exposure_s, clock, duty_of)
 
 
 def on_time_window(a_cam: np.ndarray, b_cam: np.ndarray, clock: LedClock,
