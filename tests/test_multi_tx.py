@@ -122,6 +122,7 @@ def test_three_transmitters_and_two_tail_lights() -> None:
         assert all(p in have for p in want), f"transmitter {k}: {len(set(want) & set(have))} of {len(want)}"
     assert sorted(tx_of.values()) == [0, 1, 2]
     assert dec.counters["transmitters_confirmed"] == 3
+    assert sorted(t["tx"] for t in dec.transmitters()) == [0, 1, 2]  # the final stats' figures
     # packets only from the three; the tail light tried as a candidate is rejected
     assert {int(r["tx"]) for r in records if r["type"] == "packet"} == {0, 1, 2}
     # ranging per transmitter, against the same transmitter alone in the scene

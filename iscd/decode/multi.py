@@ -120,6 +120,7 @@ class MultiDecoder:
         self._deferred: list[_Slot] = []
         self._excluded: list[tuple[tuple[int, int, int, int], int]] = []
         """(left box, until frame id) of rejected candidates, for every searcher"""
+        self._final: list[dict[str, Any]] = []
         self._rejections: list[tuple[tuple[int, int, int, int], int]] = []
         """(box, times) of places rejected (exclusion back-off)"""
         self._search_block: tuple | None = None
@@ -385,6 +386,7 @@ class MultiDecoder:
     def finish(self) -> list[dict]:
         """End of stream: every decoder's last packets."""
         out = self.finish_block()
+        self._final = self.transmitters()  # what the final stats report
         for s in list(self.slots):
             out += self._close_slot(s)
         self._stop_shared()
@@ -400,6 +402,7 @@ class MultiDecoder:
         import time
 
         out = self.finish_block()
+        self._final = self.transmitters()
         t_end = time.monotonic() + timeout_s
         abandoned = 0
         for s in list(self.slots):
@@ -445,7 +448,10 @@ class MultiDecoder:
 
     def transmitters(self) -> list[dict[str, Any]]:
         """Per confirmed transmitter in view: tx, since (frame), packets_ok/bad, ranges, the
-        last range z_m, the array's shape and its left-camera centre (px)."""
+        last range z_m, the array's shape and its left-camera centre (px); after
+        :meth:`finish`, those of the end of the stream."""
+        if not self.slots:
+            return list(self._final)
         out = []
         for s in self.slots:
             tr = s.dec.track
