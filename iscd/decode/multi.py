@@ -45,7 +45,7 @@ import numpy as np
 
 from iscd.calibration.io import StereoCalibration
 from iscd.core.config import Config, ConfigError, section
-from iscd.decode.stream import PipelineSettings, StreamDecoder
+from iscd.decode.stream import KeptFrames, PipelineSettings, StreamDecoder
 
 log = logging.getLogger(__name__)
 
@@ -112,7 +112,7 @@ class MultiDecoder:
         """counters of the decoders closed so far"""
         self.own: dict[str, int] = {"transmitters_confirmed": 0, "transmitters_lost": 0,
                                     "candidates_rejected": 0, "candidate_records_dropped": 0,
-                                    "duplicate_tracks": 0, "search_attempts": 0}
+                                    "duplicate_tracks": 0, "search_attempts": 0, "demod_steps_abandoned": 0}
         self._next_tx = 0
         self.events: deque[tuple[str, int, int]] = deque(maxlen=1000)
         """("confirmed" | "lost", tx, frame id) as they happen (the last 1000)"""
@@ -143,8 +143,13 @@ class MultiDecoder:
         self.slots.append(s)
         return s
 
-    def _close_slot(self, s: _Slot) -> list[dict]:
-        out = self._route(s, s.dec.finish())
+    def _close_slot(self, s: _Slot, wait: bool = True) -> list[dict]:
+        if wait:
+            recs = s.dec.finish()
+        else:
+            recs, abandoned = s.dec.drop()
+            self.own["demod_steps_abandoned"] += abandoned
+        out = self._route(s, recs)
         self._closed.update(s.dec.counters)
         self.slots.remove(s)
         return out
@@ -296,11 +301,12 @@ class MultiDecoder:
         out += self._housekeeping(last)
         return out
 
-    def _push_slot(self, s: _Slot, frame_ids, t_s, left, right, *, defer: bool = False, **kw: Any) -> list[dict]:
+    def _push_slot(self, s: _Slot, frame_ids, t_s, left, right, *, defer: bool = False,
+                   adopt: KeptFrames | None = None, **kw: Any) -> list[dict]:
         had = s.dec.track is not None
         acq = s.dec.counters["acquisitions"]
         rejected = s.dec.counters["rejected_candidates"]
-        recs = s.dec.push(frame_ids, t_s, left, right, defer=defer, **kw)
+        recs = s.dec.push(frame_ids, t_s, left, right, defer=defer, adopt=adopt, **kw)
         if s.dec.counters["rejected_candidates"] != rejected and s.dec.excluded:
             self._back_off(s, int(frame_ids[-1]))
         if defer and s.dec.track is not None:
@@ -322,6 +328,7 @@ class MultiDecoder:
             return []
         out: list[dict] = []
         A = self.settings.acquire_frames
+        adopt: KeptFrames | None = None
         while True:
             s.dec.extra_exclude = self._excludes(s)
             s.dec.keep_acquired = True
@@ -331,7 +338,7 @@ class MultiDecoder:
             s.dec.set_lookback(A if not tracked else self.search_every, self.search_every + A,
                                look_async=self._async == "process")
             attempts = s.dec.attempts
-            out += self._push_slot(s, frame_ids, t_s, left, right, **kw)
+            out += self._push_slot(s, frame_ids, t_s, left, right, adopt=adopt, **kw)
             got, s.dec.acquired = s.dec.acquired, None
             if s.dec.attempts != attempts:
                 self.own["search_attempts"] += s.dec.attempts - attempts
@@ -342,7 +349,9 @@ class MultiDecoder:
             # found one: another transmitter may be in the same frames (a first packet
             # whose header is among them): a new searcher looks at them at once
             s = self._new_slot()
-            frame_ids, t_s, left, right = got
+            # its kept frames, taken over without a copy (the look is on their last frames)
+            adopt = got
+            frame_ids, t_s, left, right = got.ids, got.t_s, None, None
 
     def finish_block(self) -> list[dict]:
         """The rest of the blocks pushed with ``defer=True`` (see :meth:`StreamDecoder.finish_block`)."""
@@ -367,8 +376,13 @@ class MultiDecoder:
             if s.dec.track is None and s.tx is not None:
                 self._track_ended(s, now)
         idle = [s for s in self.slots if s.dec.track is None]
-        for s in idle[1:]:
-            out += self._close_slot(s)
+        if len(idle) > 1:
+            # one searcher is enough; keep the one whose last transmitter may still have a
+            # packet in the worker, close the others without waiting for the worker (a
+            # rejected candidate has nothing to deliver; a wait stalled the frame loop)
+            idle.sort(key=lambda s: not (s.retired and s.dec.pending_steps))
+            for s in idle[1:]:
+                out += self._close_slot(s, wait=False)
         # two tracks on the same lights: the younger starts again
         tr = sorted(self.tracked(), key=lambda s: (s.tx is None, s.born))
         for i, a in enumerate(tr):

@@ -158,6 +158,33 @@ class _Track:
     """auto shape: v1 packets failed while the shape is not confirmed"""
 
 
+@dataclass
+class KeptFrames:
+    """Frames a searcher kept (:meth:`StreamDecoder.set_lookback`): ids, t_s (s) and the
+    left/right images, one (H, W) copy each (not stacked: a stack of hundreds is ~100 ms of
+    fresh memory; they are decoded in steps)."""
+
+    ids: np.ndarray
+    t_s: np.ndarray
+    left: list[np.ndarray]
+    right: list[np.ndarray]
+
+    def __len__(self) -> int:
+        return len(self.left)
+
+    def take(self, a: int, b: int, out: tuple[np.ndarray, np.ndarray] | None = None
+             ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Frames a..b-1 as (ids, t_s, left (n, H, W), right (n, H, W)); ``out``: (left,
+        right) buffers of at least b - a frames to stack them into (memory already touched:
+        a fresh stack's page faults are most of its cost)."""
+        if out is None or out[0].shape[0] < b - a:
+            return self.ids[a:b], self.t_s[a:b], np.stack(self.left[a:b]), np.stack(self.right[a:b])
+        lo, ro = out[0][:b - a], out[1][:b - a]
+        np.stack(self.left[a:b], out=lo)
+        np.stack(self.right[a:b], out=ro)
+        return self.ids[a:b], self.t_s[a:b], lo, ro
+
+
 class StreamDecoder:
     """Decodes one transmitter from a stream of stereo frame blocks (see module docstring)."""
 
@@ -230,6 +257,8 @@ class StreamDecoder:
         """detection attempts made (each on ``acquire_frames`` frames)"""
         self.allowed_shapes: set[tuple[int, int]] | None = None
         """auto shape: only arrays of these (rows, cols) are taken (None: any)"""
+        self._catch_buf: tuple[np.ndarray, np.ndarray] | None = None
+        """(left, right) buffers of acquire_frames frames the kept frames are decoded through"""
         self._lookback: int | None = None
         self._look: Future | None = None
         """a look in flight in ``_look_pool``"""
@@ -238,7 +267,7 @@ class StreamDecoder:
         self._search_every = self.settings.acquire_frames
         self._since_look = 0
         self.keep_acquired = False
-        self.acquired: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = None
+        self.acquired: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | KeptFrames | None = None
         """with ``keep_acquired``: the (ids, t_s, left, right) frames of the last successful
         detection, for the caller to take (another transmitter may be among them)"""
         # room for a detection attempt's frames plus one more block of any size up to
@@ -352,6 +381,11 @@ class StreamDecoder:
             return False
 
     @property
+    def pending_steps(self) -> int:
+        """Demodulation steps handed to the worker and not yet collected."""
+        return len(self._pending)
+
+    @property
     def worker_pids(self) -> list[int]:
         """Process ids of the demodulation worker (``async_demod="process"``), else []."""
         return self._worker.pids if self._worker is not None else []
@@ -409,9 +443,9 @@ class StreamDecoder:
         return out
 
     # ------------------------------------------------------------------ main entry
-    def push(self, frame_ids: np.ndarray, t_s: np.ndarray, left: np.ndarray, right: np.ndarray,
+    def push(self, frame_ids: np.ndarray, t_s: np.ndarray, left: np.ndarray | None, right: np.ndarray | None,
              *, ranging: bool = True, ranging_every: int = 1, per_led: bool = True,
-             defer: bool = False) -> list[dict]:
+             defer: bool = False, adopt: KeptFrames | None = None) -> list[dict]:
         """Process a block of stereo frames; returns the records it produced.
 
         frame_ids: (n,) int (left-camera frame ids of the pairs); t_s: (n,) exposure start,
@@ -429,6 +463,10 @@ class StreamDecoder:
         before the next push; the same steps in the same order among themselves, so the
         same records (packets then come out of :meth:`finish_block`). The ranges do not
         depend on those steps; their latency then does not include them.
+
+        ``adopt`` (a searcher, :class:`iscd.decode.multi.MultiDecoder`): instead of a block,
+        the frames another searcher kept (:attr:`acquired`), taken over without a copy
+        (``frame_ids``/``t_s`` are theirs, ``left``/``right`` None).
         """
         if self._deferred is not None:  # a caller that did not finish the last block
             pending = self.finish_block()
@@ -440,17 +478,30 @@ class StreamDecoder:
         records: list[dict] = pending
         if self._reacquire:
             self.restart()
-        catch_up = 0
         if self.track is None:
-            got = self._acquire(frame_ids, t_s, left, right)
+            got = self._acquire(frame_ids, t_s, left, right, adopt)
             if got is None:
+                return records
+            if isinstance(got, KeptFrames):
+                # a searcher's kept frames (hundreds): decoded in steps of acquire_frames
+                # (no stack of them all: ~100 ms of fresh memory each); their packets matter,
+                # their ranges are past: only the last step's (this block's) are measured
+                kw = dict(ranging_every=ranging_every, per_led=per_led)
+                A = self.settings.acquire_frames
+                last = max(0, len(got) - (n if adopt is None else A))
+                for c0 in list(range(0, last, A)) + [last]:
+                    c1 = len(got) if c0 == last else min(last, c0 + A)
+                    if c1 <= c0 or self.track is None:
+                        continue
+                    if c0 != last and self._catch_buf is None:  # reused for every step but the last
+                        f0 = got.left[0]
+                        self._catch_buf = (np.zeros((A,) + f0.shape, f0.dtype), np.zeros((A,) + f0.shape, f0.dtype))
+                    ids_c, t_c, l_c, r_c = got.take(c0, c1, self._catch_buf if c0 != last else None)
+                    records += self.push(ids_c, t_c, l_c, r_c, ranging=ranging and c0 == last,
+                                         defer=defer and c0 == last, **kw)
                 return records
             # decode the whole acquisition window: a header in it is not lost
             frame_ids, t_s, left, right = got
-            if self._lookback is not None:
-                # a searcher's kept frames (hundreds): their packets matter, their ranges
-                # are past; only this block's are measured (a shorter catch-up step)
-                catch_up = len(got[0]) - n
             n = len(frame_ids)
         tr = self.track
         assert tr is not None
@@ -467,12 +518,10 @@ class StreamDecoder:
             assert lum_l is not None and lum_r is not None
             records += self._demod_block(frame_ids, t_s, lum_l, lum_r)
         ranged = np.arange(n) if ranging_every <= 1 else np.flatnonzero(frame_ids % int(ranging_every) == 0)
-        if catch_up > 0:
-            ranged = ranged[ranged >= catch_up]
         if self.ranger is not None and (not ranging or ranged.size == 0):
-            self.counters["ranging_skipped"] += n - catch_up
+            self.counters["ranging_skipped"] += n
         elif self.ranger is not None:
-            self.counters["ranging_skipped"] += n - catch_up - ranged.size
+            self.counters["ranging_skipped"] += n - ranged.size
             rl, rr = (left, right) if ranged.size == n else (left[ranged], right[ranged])
             res = self.ranger.measure(rl, rr, tr.left, tr.right)
             z, dsp, sg = res.z_m.tolist(), res.disparity_px.tolist(), res.sigma_m.tolist()
@@ -613,6 +662,15 @@ class StreamDecoder:
                 self.close()
                 return out, not_done
         return self.finish(), 0
+
+    def drop(self) -> tuple[list[dict], int]:
+        """Stop without waiting for anything: the records of the demodulation steps already
+        done, and how many were still in flight (abandoned; no flush of the assembler).
+        For a searcher no longer needed (:class:`iscd.decode.multi.MultiDecoder`)."""
+        out = self._collect()
+        left = len(self._pending)
+        self.close()
+        return out, left
 
     def close(self) -> None:
         """Stop the demodulation worker (process or thread) without waiting for what it
@@ -906,14 +964,22 @@ class StreamDecoder:
                       int(np.ceil(xy[:, 0].max())) + r + 1, int(np.ceil(xy[:, 1].max())) + r + 1), W, H)
 
     # ------------------------------------------------------------------ acquisition/tracking
-    def _acquire(self, frame_ids: np.ndarray, t_s: np.ndarray, left: np.ndarray, right: np.ndarray
-                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None:
+    def _acquire(self, frame_ids: np.ndarray, t_s: np.ndarray, left: np.ndarray | None, right: np.ndarray | None,
+                 adopt: KeptFrames | None = None
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | KeptFrames | None:
         """Collect frames; every ``acquire_frames`` try to detect. On success returns the
-        collected (ids, t_s, left, right) so that they are decoded too."""
-        for i in range(len(frame_ids)):  # copies: the caller may reuse its buffers
-            self._acq_l.append(np.array(left[i]))
-            self._acq_r.append(np.array(right[i]))
-            self._acq_ids.append((int(frame_ids[i]), float(t_s[i])))
+        collected (ids, t_s, left, right) so that they are decoded too (a searcher with
+        :meth:`set_lookback`: its kept frames, :class:`KeptFrames`)."""
+        if adopt is not None:  # another searcher's kept frames: already copies
+            self._acq_l.extend(adopt.left)
+            self._acq_r.extend(adopt.right)
+            self._acq_ids.extend(zip(adopt.ids.tolist(), adopt.t_s.tolist()))
+        else:
+            assert left is not None and right is not None
+            for i in range(len(frame_ids)):  # copies: the caller may reuse its buffers
+                self._acq_l.append(np.array(left[i]))
+                self._acq_r.append(np.array(right[i]))
+                self._acq_ids.append((int(frame_ids[i]), float(t_s[i])))
         A = self.settings.acquire_frames
         lookback = self._lookback is not None
         self._since_look += len(frame_ids)
@@ -983,11 +1049,14 @@ class StreamDecoder:
                  *fl.center, *fr.center, fl.pitch_px)
         if lookback:  # decode from the first frame kept: a header before the look is not lost
             meta = np.array(self._acq_ids)
-            L, R = np.stack(self._acq_l), np.stack(self._acq_r)
+            kept = KeptFrames(meta[:, 0].astype(np.int64), meta[:, 1], list(self._acq_l), list(self._acq_r))
             self._acq_l.clear()
             self._acq_r.clear()
             self._acq_ids.clear()
             self._since_look = 0
+            if self.keep_acquired:
+                self.acquired = kept
+            return kept
         got = meta[:, 0].astype(np.int64), meta[:, 1], L, R
         if self.keep_acquired:
             self.acquired = got
