@@ -44,8 +44,8 @@ from typing import Any
 import numpy as np
 
 from iscd.calibration.io import StereoCalibration
-from iscd.core.config import Config, ConfigError, section
-from iscd.decode.stream import KeptFrames, PipelineSettings, StreamDecoder
+from iscd.core.config import Config, section
+from iscd.decode.stream import KeptFrames, PipelineSettings, StreamDecoder, parse_shapes
 
 log = logging.getLogger(__name__)
 
@@ -516,23 +516,6 @@ class MultiDecoder:
         wl = [w[0] for w in wins]  # type: ignore[index]
         wr = [w[1] for w in wins]  # type: ignore[index]
         return _union_all(wl), _union_all(wr)
-
-
-def parse_shapes(text: str) -> set[tuple[int, int]] | str | None:
-    """``[tracking] shapes``: ``"auto"`` -> None (any shape), ``"config"`` -> "config", or
-    ``"8x8, 1x1"`` -> {(8, 8), (1, 1)}. Raises ConfigError naming the key on anything else."""
-    t = str(text).strip().lower()
-    if t in ("auto", ""):
-        return None
-    if t == "config":
-        return "config"
-    out: set[tuple[int, int]] = set()
-    for part in t.split(","):
-        r, x, c = part.strip().partition("x")
-        if not (x and r.strip().isdigit() and c.strip().isdigit()) or int(r) < 1 or int(c) < 1:
-            raise ConfigError(f'tracking.shapes: expected "auto", "config" or a list like "8x8, 1x1", got {text!r}')
-        out.add((int(r), int(c)))
-    return out
 
 
 def _union_all(boxes: list[tuple[int, int, int, int]]) -> tuple[int, int, int, int]:

@@ -37,7 +37,7 @@ import numpy as np
 
 from iscd.calibration.io import StereoCalibration
 from iscd.core.airinterface import AirInterface
-from iscd.core.config import Config, config_section, section
+from iscd.core.config import Config, ConfigError, config_section, section
 from iscd.core.records import RangeFilteredRecord, RangeLedsRecord, RangeRecord
 from iscd.decode.pipe import PipeDemodWorker as DemodWorker
 from iscd.decode.tracking.follow_kernel import follow_and_measure_compiled
@@ -83,6 +83,26 @@ class PipelineSettings:
     shapes: str = field(default="auto", metadata={"doc": "with max_transmitters > 1, which transmitters to look for: \"auto\" (any shape, each inferred; v1 packets read with [transmitter]'s M, K, F), \"config\" (only [transmitter]'s rows x cols), or a list such as \"8x8, 1x1\""})
     search_every_frames: int = field(default=256, metadata={"lo": 8, "hi": 100000, "doc": "with max_transmitters > 1 and a transmitter tracked: look for another one every this many frames (each look reads acquire_frames whole frames)"})
     path_settle_px: float = field(default=0.5, metadata={"lo": 0.05, "hi": 5.0, "doc": "no further following pass once the path is within this of where the last pass started, px"})
+
+    def __post_init__(self) -> None:
+        parse_shapes(self.shapes)  # a bad list is a config error naming the key (iscd config --check)
+
+
+def parse_shapes(text: str) -> set[tuple[int, int]] | str | None:
+    """``[tracking] shapes``: ``"auto"`` -> None (any shape), ``"config"`` -> "config", or
+    ``"8x8, 1x1"`` -> {(8, 8), (1, 1)}. Raises ConfigError naming the key on anything else."""
+    t = str(text).strip().lower()
+    if t in ("auto", ""):
+        return None
+    if t == "config":
+        return "config"
+    out: set[tuple[int, int]] = set()
+    for part in t.split(","):
+        r, x, c = part.strip().partition("x")
+        if not (x and r.strip().isdigit() and c.strip().isdigit()) or int(r) < 1 or int(c) < 1:
+            raise ConfigError(f'tracking.shapes: expected "auto", "config" or a list like "8x8, 1x1", got {text!r}')
+        out.add((int(r), int(c)))
+    return out
 
 
 def _jsonable(rec: dict[str, Any]) -> dict[str, Any]:
