@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from iscd.core.airinterface import AirInterface
 from iscd.core.config import Config, ConfigError, load
 from iscd.decode.multi import MultiDecoder, make_decoder
 from iscd.decode.stream import StreamDecoder
@@ -45,6 +46,12 @@ def _decode(cfg: Config, dec: StreamDecoder | MultiDecoder, n_frames: int) -> tu
         ids = np.arange(f0, f0 + BLOCK)
         out += dec.push(ids, ids / cfg.camera.fps, left, right)
     return out + dec.finish(), truths
+
+
+def _packet_frames(cfg: Config) -> float:
+    """A packet's duration in frames (the main transmitter's; the example's share it)."""
+    air = AirInterface.from_config(cfg.transmitter)
+    return air.period_symbols * cfg.camera.fps / cfg.transmitter.symbol_rate_hz
 
 
 def _whole_packets(truth, n_frames: int, fps: float, packet_frames: float, since_frame: int = 0) -> list[bytes]:
@@ -113,7 +120,7 @@ def test_three_transmitters_and_two_tail_lights() -> None:
     # one tx per transmitter, and every whole packet of each
     tx_of = {}
     for k, t in enumerate(truths):
-        want = _whole_packets(t, n, cfg.camera.fps, 1306.0)
+        want = _whole_packets(t, n, cfg.camera.fps, _packet_frames(cfg))
         assert len(want) >= 3
         txs = {tx for tx, rs in got.items() for r in rs if bytes.fromhex(r["payload_hex"]) in set(t.payloads)}
         assert len(txs) == 1, f"transmitter {k}'s packets came under tx {sorted(txs)}"
@@ -122,6 +129,7 @@ def test_three_transmitters_and_two_tail_lights() -> None:
         assert all(p in have for p in want), f"transmitter {k}: {len(set(want) & set(have))} of {len(want)}"
     assert sorted(tx_of.values()) == [0, 1, 2]
     assert dec.counters["transmitters_confirmed"] == 3
+    assert dec.counters["rejected_candidates"] >= 1  # the 200 Hz tail light, tried and rejected
     assert sorted(t["tx"] for t in dec.transmitters()) == [0, 1, 2]  # the final stats' figures
     # packets only from the three; the tail light tried as a candidate is rejected
     assert {int(r["tx"]) for r in records if r["type"] == "packet"} == {0, 1, 2}
@@ -148,7 +156,7 @@ def test_transmitter_enters_and_leaves() -> None:
     dec = MultiDecoder(_receiver(cfg).with_keys("tracking", search_every_frames=512))
     records, truths = _decode(cfg, dec, n)
     fps = cfg.camera.fps
-    packet_frames = 1306.0
+    packet_frames = _packet_frames(cfg)
     got = _by_tx(records)
     payload_tx = {bytes.fromhex(r["payload_hex"]): tx for tx, rs in got.items() for r in rs}
     # the two that stay: every whole packet

@@ -111,7 +111,7 @@ class MultiDecoder:
         self._closed: Counter = Counter()
         """counters of the decoders closed so far"""
         self.own: dict[str, int] = {"transmitters_confirmed": 0, "transmitters_lost": 0,
-                                    "candidates_rejected": 0, "candidate_records_dropped": 0,
+                                    "candidate_records_dropped": 0,
                                     "duplicate_tracks": 0, "search_attempts": 0, "demod_steps_abandoned": 0}
         self._next_tx = 0
         self.events: deque[tuple[str, int, int]] = deque(maxlen=1000)
@@ -240,7 +240,6 @@ class MultiDecoder:
                 break
         self._rejections.append((box, n))
         self._rejections = self._rejections[-64:]
-        self.own["candidates_rejected"] += 1
         factor = min(2 ** (n - 1), self.BACKOFF_MAX)
         until = now + factor * (until - now)
         s.dec.excluded[-1] = (box, until)
@@ -287,7 +286,7 @@ class MultiDecoder:
         n = len(frame_ids)
         if n == 0:
             return out
-        first, last = int(frame_ids[0]), int(frame_ids[-1])
+        last = int(frame_ids[-1])
         self._last_id = last
         kw = dict(ranging=ranging, ranging_every=ranging_every, per_led=per_led)
         for s in list(self.slots):

@@ -1033,6 +1033,7 @@ class StreamDecoder:
             self.attempts += 1
             self.excluded = [(b, until) for b, until in self.excluded if until > now]
             exclude = [b for b, _ in self.excluded] + list(self.extra_exclude[0])
+            exclude_right = list(self.extra_exclude[1])  # a snapshot: a look may run in a thread
             shape = self._shape_hint or (self.rows, self.cols)
             auto = self.shape_auto and self._shape_hint is None
             if not auto:
@@ -1040,9 +1041,9 @@ class StreamDecoder:
                 if self._hint_tries <= 0:
                     self._shape_hint = None
             if lookback and self._look_pool is not None:
-                self._look = self._look_pool.submit(self._look_for, wl, wr, meta, exclude, shape, auto)
+                self._look = self._look_pool.submit(self._look_for, wl, wr, meta, exclude, exclude_right, shape, auto)
                 return None
-            found = self._look_for(wl, wr, meta, exclude, shape, auto)
+            found = self._look_for(wl, wr, meta, exclude, exclude_right, shape, auto)
         if found is None:
             return None
         fl, fr, meta, L, R = found
@@ -1083,12 +1084,14 @@ class StreamDecoder:
         return got
 
     def _look_for(self, wl: list[np.ndarray], wr: list[np.ndarray], meta: np.ndarray,
-                  exclude: list[tuple[int, int, int, int]], shape: tuple[int, int], auto: bool
+                  exclude: list[tuple[int, int, int, int]], exclude_right: list[tuple[int, int, int, int]],
+                  shape: tuple[int, int], auto: bool
                   ) -> tuple[GridFit, GridFit, np.ndarray, np.ndarray, np.ndarray] | None:
         """One detection attempt on the frames ``wl``/``wr`` (lists of (H, W) images, ids and
-        t_s in ``meta``): (left fit, right fit, meta, L, R) of the transmitter found, or None.
-        Reads no decoder state that a block changes (it may run in a thread: a look of
-        :meth:`set_lookback`'s searcher in the daemon)."""
+        t_s in ``meta``), leaving out ``exclude`` / ``exclude_right`` (boxes, px, per camera):
+        (left fit, right fit, meta, L, R) of the transmitter found, or None. Reads no decoder
+        state that a block changes (it may run in a thread: a look of :meth:`set_lookback`'s
+        searcher in the daemon)."""
         L = np.stack(wl)
         R: np.ndarray | None = None
         own_right: dict[tuple[int, int], GridFit | None] = {}  # the right's own search, once a shape
@@ -1105,7 +1108,7 @@ class StreamDecoder:
                 continue
             if R is None:
                 R = np.stack(wr)
-            found = self._partner(fl, L, R, own_right)
+            found = self._partner(fl, L, R, own_right, exclude_right)
             if found is not None:
                 return found[0], found[1], meta, L, R
             exclude = exclude + [fl.bbox(margin=2.0)]
@@ -1134,7 +1137,8 @@ class StreamDecoder:
     """Left-camera candidates tried on one acquisition's frames before the next frames."""
 
     def _partner(self, fl: GridFit, L: np.ndarray, R: np.ndarray,
-                 own_right: dict[tuple[int, int], GridFit | None]) -> tuple[GridFit, GridFit] | None:
+                 own_right: dict[tuple[int, int], GridFit | None],
+                 exclude_right: list[tuple[int, int, int, int]]) -> tuple[GridFit, GridFit] | None:
         """(left, right) fits of the transmitter the left camera found as ``fl``: the right
         camera's own detection when it pairs with it, else the right camera searched for the
         left's light (:func:`iscd.decode.tracking.partner.find_partner`); None if neither.
@@ -1144,11 +1148,11 @@ class StreamDecoder:
         if self._lookback is not None:
             # several transmitters: the right camera's own detection within the left
             # candidate's epipolar band (elsewhere in the frame a brighter one would win)
-            fr = self._detect_in_band(R, fl, max_dy)
+            fr = self._detect_in_band(R, fl, max_dy, exclude_right)
         else:
             if (fl.rows, fl.cols) not in own_right:
                 own_right[(fl.rows, fl.cols)] = detect_array(R, fl.rows, fl.cols,
-                                                             exclude=list(self.extra_exclude[1]) or None)
+                                                             exclude=exclude_right or None)
             fr = own_right[(fl.rows, fl.cols)]
         fr = match_stereo(fl, [fr], max_dy=max_dy) if fr is not None else None
         if fr is None:
@@ -1163,15 +1167,17 @@ class StreamDecoder:
             log.info("transmitter found in the right camera by the left's light (correlation %.2f)", fr.score)
         return fl, fr
 
-    def _detect_in_band(self, R: np.ndarray, fl: GridFit, max_dy: float) -> GridFit | None:
+    def _detect_in_band(self, R: np.ndarray, fl: GridFit, max_dy: float,
+                        exclude_right: list[tuple[int, int, int, int]]) -> GridFit | None:
         """The right camera's own detection of a ``fl``-shaped array on the rows of ``fl``'s
-        epipolar band (its box +- ``max_dy`` + a pitch), others' boxes left out; image px."""
+        epipolar band (its box +- ``max_dy`` + a pitch), the boxes ``exclude_right`` (px)
+        left out; image px."""
         H = R.shape[1]
         x0, y0, x1, y1 = fl.bbox(max_dy + max(fl.pitch_px, fl.spot_px) + 2)
         y0, y1 = max(0, int(y0)), min(H, int(y1))
         if y1 - y0 < 4:
             return None
-        ex = [(b[0], b[1] - y0, b[2], b[3] - y0) for b in self.extra_exclude[1]]
+        ex = [(b[0], b[1] - y0, b[2], b[3] - y0) for b in exclude_right]
         try:
             fit = detect_array(R[:, y0:y1], fl.rows, fl.cols, exclude=ex or None)
         except ValueError:
