@@ -45,3 +45,25 @@ def test_blocks_whole_frames_then_windows_then_discard() -> None:
         assert rd.discard() == 5 and ring.queued == 0
     finally:
         ring.close()
+
+
+def test_whole_frames_come_in_arrays_of_their_own() -> None:
+    """Whole frames (the decoder looking for a transmitter keeps them) are in fresh arrays
+    that no later read writes; windows go into buffers the reader reuses."""
+    ring = StereoRing.create(height=24, width=32, capacity=64, max_held=4)
+    try:
+        for fid in range(16):
+            ring.write(_frame(fid, 0), _frame(fid, 1), frame_id=fid)
+        rd = BlockReader(ring, 24, 32, np.uint8, block_max=4, fps=1000.0, block_wait_s=0.0)
+        assert rd.read(None, pace=False) == 4 and rd.fresh
+        kept_l, kept_r = rd.left[:4], rd.right[:4]  # what a decoder keeps (views, no copy)
+        assert rd.read(None, pace=False) == 4 and rd.fresh
+        assert rd.left is not kept_l.base and rd.ids.tolist() == [4, 5, 6, 7]
+        win = ((0, 0, 32, 24), (0, 0, 32, 24))
+        assert rd.read(win, pace=False) == 4 and not rd.fresh
+        buf = rd.left
+        assert rd.read(win, pace=False) == 4 and rd.left is buf  # reused while windows
+        for i in range(4):  # the kept frames were written by no later read
+            assert np.array_equal(kept_l[i], _frame(i, 0)) and np.array_equal(kept_r[i], _frame(i, 1))
+    finally:
+        ring.close()

@@ -279,9 +279,10 @@ class MultiDecoder:
 
     def push(self, frame_ids: np.ndarray, t_s: np.ndarray, left: np.ndarray, right: np.ndarray,
              *, ranging: bool = True, ranging_every: int = 1, per_led: bool = True,
-             defer: bool = False) -> list[dict]:
-        """Process a block of stereo frames (as :meth:`StreamDecoder.push`); returns the
-        records it produced, each with its transmitter's ``tx``."""
+             defer: bool = False, owned: bool = False) -> list[dict]:
+        """Process a block of stereo frames (as :meth:`StreamDecoder.push`, ``owned``
+        included: the searcher keeps views of owned frames); returns the records it
+        produced, each with its transmitter's ``tx``."""
         out: list[dict] = self.finish_block() if (self._deferred or self._search_block) else []
         n = len(frame_ids)
         if n == 0:
@@ -293,10 +294,11 @@ class MultiDecoder:
             if s.dec.track is None:
                 continue
             out += self._push_slot(s, frame_ids, t_s, left, right, defer=defer, **kw)
+        kw_search = dict(kw, owned=owned)
         if defer:  # the searcher's turn comes in finish_block (the caller keeps the frames)
-            self._search_block = (frame_ids, t_s, left, right, kw)
+            self._search_block = (frame_ids, t_s, left, right, kw_search)
             return out
-        out += self._search(frame_ids, t_s, left, right, **kw)
+        out += self._search(frame_ids, t_s, left, right, **kw_search)
         out += self._housekeeping(last)
         return out
 

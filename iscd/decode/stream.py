@@ -465,7 +465,7 @@ class StreamDecoder:
     # ------------------------------------------------------------------ main entry
     def push(self, frame_ids: np.ndarray, t_s: np.ndarray, left: np.ndarray | None, right: np.ndarray | None,
              *, ranging: bool = True, ranging_every: int = 1, per_led: bool = True,
-             defer: bool = False, adopt: KeptFrames | None = None) -> list[dict]:
+             defer: bool = False, adopt: KeptFrames | None = None, owned: bool = False) -> list[dict]:
         """Process a block of stereo frames; returns the records it produced.
 
         frame_ids: (n,) int (left-camera frame ids of the pairs); t_s: (n,) exposure start,
@@ -487,6 +487,10 @@ class StreamDecoder:
         ``adopt`` (a searcher, :class:`iscd.decode.multi.MultiDecoder`): instead of a block,
         the frames another searcher kept (:attr:`acquired`), taken over without a copy
         (``frame_ids``/``t_s`` are theirs, ``left``/``right`` None).
+
+        ``owned=True``: ``left``/``right`` are the decoder's to keep (the caller never writes
+        them again: :attr:`iscd.service.blocks.BlockReader.fresh`); frames kept while
+        looking for a transmitter are then views of them, not copies.
         """
         if self._deferred is not None:  # a caller that did not finish the last block
             pending = self.finish_block()
@@ -499,7 +503,7 @@ class StreamDecoder:
         if self._reacquire:
             self.restart()
         if self.track is None:
-            got = self._acquire(frame_ids, t_s, left, right, adopt)
+            got = self._acquire(frame_ids, t_s, left, right, adopt, owned)
             if got is None:
                 return records
             if isinstance(got, KeptFrames):
@@ -985,7 +989,7 @@ class StreamDecoder:
 
     # ------------------------------------------------------------------ acquisition/tracking
     def _acquire(self, frame_ids: np.ndarray, t_s: np.ndarray, left: np.ndarray | None, right: np.ndarray | None,
-                 adopt: KeptFrames | None = None
+                 adopt: KeptFrames | None = None, owned: bool = False
                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | KeptFrames | None:
         """Collect frames; every ``acquire_frames`` try to detect. On success returns the
         collected (ids, t_s, left, right) so that they are decoded too (a searcher with
@@ -996,9 +1000,10 @@ class StreamDecoder:
             self._acq_ids.extend(zip(adopt.ids.tolist(), adopt.t_s.tolist()))
         else:
             assert left is not None and right is not None
-            for i in range(len(frame_ids)):  # copies: the caller may reuse its buffers
-                self._acq_l.append(np.array(left[i]))
-                self._acq_r.append(np.array(right[i]))
+            keep = (lambda a: a) if owned else np.array  # copies unless the frames are ours
+            for i in range(len(frame_ids)):
+                self._acq_l.append(keep(left[i]))
+                self._acq_r.append(keep(right[i]))
                 self._acq_ids.append((int(frame_ids[i]), float(t_s[i])))
         A = self.settings.acquire_frames
         lookback = self._lookback is not None

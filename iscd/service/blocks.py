@@ -12,6 +12,11 @@ Per pair it keeps the left camera's frame id, the exposure start ``t_s`` (s, the
 camera's timestamp; the id over the frame rate where the camera gives none) and the
 arrival time on the host ``arrival_ns`` (``time.monotonic_ns``, what the latency counts from).
 
+Whole frames (no windows: the decoder is looking for a transmitter) go into fresh block
+arrays, :attr:`BlockReader.fresh` True: the decoder may keep them (its look-back) without a
+copy of its own (``push(owned=True)``); the windows of a tracked transmitter go into the
+reused buffers.
+
 An optional :attr:`BlockReader.tap` (the run's recording, :mod:`iscd.service.recording`)
 sees every pair taken, before its slot goes back to the ring: ``tap.pair(slot, windows,
 block)``, ``block`` numbering the blocks read (it must copy what it keeps, and never wait).
@@ -62,6 +67,10 @@ class BlockReader:
         """sees each pair before its slot is released (see the module docstring)"""
         self.blocks_read = 0
         """blocks read so far (the number of the next one)"""
+        self.fresh = False
+        """the last block is in arrays of its own that no later read reuses (whole frames)"""
+        self._shape = (B, height, width)
+        self._dtype = dtype
 
     def read(self, windows: tuple[Window, Window] | None, *, pace: bool = True) -> int:
         """Take the next block; returns how many pairs it holds (0: none came within the
@@ -69,6 +78,13 @@ class BlockReader:
         ``pace``: sleep until the block is about due first (False while draining)."""
         ring, B = self.ring, self.block_max
         n = 0
+        if windows is None:  # whole frames: arrays the decoder may keep (see the module docstring)
+            self.left = np.empty(self._shape, self._dtype)
+            self.right = np.empty(self._shape, self._dtype)
+        elif self.fresh:  # back to buffers of its own, reused from now on
+            self.left = np.zeros(self._shape, self._dtype)
+            self.right = np.zeros(self._shape, self._dtype)
+        self.fresh = windows is None
         t_fill = time.monotonic() + self.block_wait_s
         if pace:
             missing = B - ring.queued

@@ -504,7 +504,8 @@ class _Run:
             # the block's ranges first; its demodulation hand-off and tracking update
             # after they are out (finish_block below)
             records = decoder.push(ids[:n].copy(), t_s[:n].copy(), b.left[:n], b.right[:n],
-                                   ranging_every=svc.ranging_every, per_led=svc.per_led, defer=True)
+                                   ranging_every=svc.ranging_every, per_led=svc.per_led, defer=True,
+                                   owned=b.fresh)
         except Exception:  # a decoder bug on odd frames must not stop the service
             counters["decode_errors"] += 1
             log.exception("decoding frames %d..%d failed; the decoder restarts acquisition",

@@ -499,7 +499,8 @@ class ProjectedShift:
                  background: tuple[ArrayLike, ArrayLike] | None = None,
                  pedestal: tuple[ArrayLike, ArrayLike] | None = None, plan: Plan | None = None,
                  centres_left: ArrayLike | None = None, centres_right: ArrayLike | None = None,
-                 pitch_px: float = 0.0, spot_px: float | None = None, **kw: Any):  # -> ShiftEstimate
+                 pitch_px: float = 0.0, spot_px: float | None = None, compiled: bool = False,
+                 **kw: Any):  # -> ShiftEstimate
         """Shifts of the patch pairs by the fast method (see the class).
 
         Parameters
@@ -518,6 +519,9 @@ class ProjectedShift:
             Keyword-only. LED spacing, px.
         spot_px : float, optional
             Keyword-only. Spot diameter, px.
+        compiled : bool
+            Keyword-only. The profiles' correlation by the compiled kernel (as
+            :meth:`from_profiles`; the live pipeline).
         **kw
             Ignored (the common estimator interface).
 
@@ -595,7 +599,7 @@ class ProjectedShift:
             prof_l = (wl @ l0).astype(np.float64)                          # (n, w)
             prof_r = (wr @ r0).astype(np.float64)  # type: ignore[operator]
         return self.from_profiles(prof_l, prof_r, plan,
-                                  saturated=(any_l | any_r) if sat_any else None)
+                                  saturated=(any_l | any_r) if sat_any else None, compiled=compiled)
 
     def declips(self, plan: Plan) -> bool:
         """Whether :meth:`estimate` looks for clipped cores with this plan.

@@ -489,7 +489,7 @@ class StereoRanger:
             (pr.reshape(n, -1) @ g.snr_right - br.ravel() @ g.snr_right - ped_r * g.snr_right.sum()) / noise_r)
         if g.plan is not None:
             kw = {"background": (bl, br), "pedestal": (ped_l, ped_r)} if self.subtract_background else {}
-            est = est_obj.estimate(pl, pr, plan=g.plan, **kw)
+            est = est_obj.estimate(pl, pr, plan=g.plan, compiled=self.compiled, **kw)
         elif self.subtract_background and self.native_background:
             est = est_obj.estimate(pl, pr, background=(bl, br))
         elif self.subtract_background:

@@ -32,6 +32,8 @@ import cv2
 import numpy as np
 from scipy import ndimage, optimize
 
+from iscd.decode.tracking.maps_kernel import look_maps
+
 
 @functools.lru_cache(maxsize=64)
 def _grid_index(rows: int, cols: int) -> np.ndarray:
@@ -769,9 +771,8 @@ def detect_array(frames: np.ndarray, rows: int, cols: int, *, exclude: list[tupl
     GridFit or None
         The best fit, px; None if nothing blinks.
     """
-    act = activity_map(frames)
-    mean = frames.mean(axis=0, dtype=np.float32)
-    light = mean - frames.min(axis=0).astype(np.float32)
+    act, mean, lo, _ = look_maps(frames)  # one compiled pass (the same values as numpy)
+    light = mean - lo.astype(np.float32)
     blobs = find_blobs(act, mean)
     if exclude:
         blobs = [b for b in blobs if not any(e[0] <= b.x < e[2] and e[1] <= b.y < e[3] for e in exclude)]
@@ -879,15 +880,14 @@ def detect_auto(frames: np.ndarray, *, exclude: list[tuple[int, int, int, int]] 
         The best fit (``rows`` and ``cols`` inferred), px; None if nothing blinks or no
         group makes a grid.
     """
-    act = activity_map(frames)
-    mean = frames.mean(axis=0, dtype=np.float32)
+    act, mean, lo, hi = look_maps(frames)  # one compiled pass (the same values as numpy)
     blobs = find_blobs(act, mean)
     if exclude:
         blobs = [b for b in blobs if not any(e[0] <= b.x < e[2] and e[1] <= b.y < e[3] for e in exclude)]
     if not blobs:
         return None
-    light = mean - frames.min(axis=0).astype(np.float32)
-    lit = lit_map(frames)
+    light = mean - lo.astype(np.float32)
+    lit = hi.astype(np.float32) - lo.astype(np.float32)  # lit_map(frames)
     H, W = lit.shape
     size = max(max(b.bbox[2] - b.bbox[0], b.bbox[3] - b.bbox[1]) for b in blobs[:MAX_GRID_SIDE])
     best: GridFit | None = None
