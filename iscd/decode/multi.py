@@ -45,7 +45,7 @@ import numpy as np
 
 from iscd.calibration.io import StereoCalibration
 from iscd.core.config import Config, section
-from iscd.decode.stream import KeptFrames, PipelineSettings, StreamDecoder, parse_shapes
+from iscd.decode.stream import KeptFrames, PipelineSettings, StreamDecoder, parse_shapes, touched_buffers
 
 log = logging.getLogger(__name__)
 
@@ -125,6 +125,14 @@ class MultiDecoder:
         """(box, times) of places rejected (exclusion back-off)"""
         self._search_block: tuple | None = None
         """a block pushed with defer=True, for the searcher in finish_block"""
+        self._catch_buffers: dict[tuple, tuple[np.ndarray, np.ndarray]] = {}
+        """the buffers every decoder decodes a find's kept frames through (the configured
+        frame size made now: touched before the first frame, not while a find waits)"""
+        if self.max_transmitters > 1:
+            cam = cfg.camera
+            dt = np.dtype(np.uint8 if cam.bit_depth <= 8 else np.uint16)
+            A = self.settings.acquire_frames
+            self._catch_buffers[(A, cam.height, cam.width, dt.str)] = touched_buffers(A, (cam.height, cam.width), dt)
         self._new_slot()
 
     # ------------------------------------------------------------------ slots
@@ -138,6 +146,7 @@ class MultiDecoder:
                             async_demod=self._async, compiled=self._compiled, demod_worker=worker)
         if isinstance(self.allowed_shapes, set):
             dec.allowed_shapes = self.allowed_shapes
+        dec.catch_buffers = self._catch_buffers  # one set for all (they decode one at a time)
         s = _Slot(dec=dec, born=self._born)
         self._born += 1
         self.slots.append(s)

@@ -178,6 +178,14 @@ class _Track:
     """auto shape: v1 packets failed while the shape is not confirmed"""
 
 
+def touched_buffers(n: int, shape: tuple[int, ...], dtype: Any) -> tuple[np.ndarray, np.ndarray]:
+    """Two (n, *shape) arrays whose every page has been written (no page faults later)."""
+    out = (np.empty((n,) + tuple(shape), dtype), np.empty((n,) + tuple(shape), dtype))
+    for a in out:
+        a.fill(0)
+    return out
+
+
 @dataclass
 class KeptFrames:
     """Frames a searcher kept (:meth:`StreamDecoder.set_lookback`): ids, t_s (s) and the
@@ -277,7 +285,10 @@ class StreamDecoder:
         """detection attempts made (each on ``acquire_frames`` frames)"""
         self.allowed_shapes: set[tuple[int, int]] | None = None
         """auto shape: only arrays of these (rows, cols) are taken (None: any)"""
-        self._catch_buf: tuple[np.ndarray, np.ndarray] | None = None
+        self.catch_buffers: dict[tuple, tuple[np.ndarray, np.ndarray]] = {}
+        """buffers a searcher's kept frames are decoded through, by (frames, H, W, dtype)
+        (:class:`iscd.decode.multi.MultiDecoder` gives all its decoders one dict, filled
+        and touched before the first frame)"""
         """(left, right) buffers of acquire_frames frames the kept frames are decoded through"""
         self._lookback: int | None = None
         self._look: Future | None = None
@@ -517,10 +528,12 @@ class StreamDecoder:
                     c1 = len(got) if c0 == last else min(last, c0 + A)
                     if c1 <= c0 or self.track is None:
                         continue
-                    if c0 != last and self._catch_buf is None:  # reused for every step but the last
-                        f0 = got.left[0]
-                        self._catch_buf = (np.zeros((A,) + f0.shape, f0.dtype), np.zeros((A,) + f0.shape, f0.dtype))
-                    ids_c, t_c, l_c, r_c = got.take(c0, c1, self._catch_buf if c0 != last else None)
+                    # one buffer for every step (but a deferred last one, whose frames must
+                    # outlive this call): its memory touched once, as a fresh stack's page
+                    # faults cost more than the copy (~80 ms for 64 frames of 512 x 512 here)
+                    deferred_step = defer and c0 == last
+                    buf = None if deferred_step else self._catch_buffer(got.left[0], A)
+                    ids_c, t_c, l_c, r_c = got.take(c0, c1, buf)
                     records += self.push(ids_c, t_c, l_c, r_c, ranging=ranging and c0 == last,
                                          defer=defer and c0 == last, **kw)
                 return records
@@ -1118,6 +1131,15 @@ class StreamDecoder:
                 return found[0], found[1], meta, L, R
             exclude = exclude + [fl.bbox(margin=2.0)]
         return None
+
+    def _catch_buffer(self, frame: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
+        """(left, right) buffers of ``n`` frames like ``frame`` (from :attr:`catch_buffers`,
+        made and touched on first use)."""
+        key = (n,) + frame.shape + (frame.dtype.str,)
+        buf = self.catch_buffers.get(key)
+        if buf is None:
+            buf = self.catch_buffers[key] = touched_buffers(n, frame.shape, frame.dtype)
+        return buf
 
     def set_lookback(self, search_every: int, lookback: int, *, look_async: bool = False) -> None:
         """Search every ``search_every`` frames (on the last ``acquire_frames``) and keep
