@@ -37,6 +37,7 @@ from __future__ import annotations
 
 import logging
 import math
+import threading
 from collections import Counter, deque
 from dataclasses import dataclass, field, replace
 from typing import Any
@@ -132,7 +133,10 @@ class MultiDecoder:
             cam = cfg.camera
             dt = np.dtype(np.uint8 if cam.bit_depth <= 8 else np.uint16)
             A = self.settings.acquire_frames
-            self._catch_buffers[(A, cam.height, cam.width, dt.str)] = touched_buffers(A, (cam.height, cam.width), dt)
+            for use in ("catch", "look"):
+                self._catch_buffers[(use, A, cam.height, cam.width, dt.str)] = touched_buffers(
+                    A, (cam.height, cam.width), dt)
+        self._look_lock = threading.Lock()
         self._new_slot()
 
     # ------------------------------------------------------------------ slots
@@ -146,7 +150,8 @@ class MultiDecoder:
                             async_demod=self._async, compiled=self._compiled, demod_worker=worker)
         if isinstance(self.allowed_shapes, set):
             dec.allowed_shapes = self.allowed_shapes
-        dec.catch_buffers = self._catch_buffers  # one set for all (they decode one at a time)
+        dec.catch_buffers = self._catch_buffers  # one set for all (they decode one at a time,
+        dec.look_lock = self._look_lock          # and look one at a time)
         s = _Slot(dec=dec, born=self._born)
         self._born += 1
         self.slots.append(s)

@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import logging
 import math
+import threading
 import time
 from collections import deque
 from concurrent.futures import Future, ThreadPoolExecutor
@@ -286,9 +287,11 @@ class StreamDecoder:
         self.allowed_shapes: set[tuple[int, int]] | None = None
         """auto shape: only arrays of these (rows, cols) are taken (None: any)"""
         self.catch_buffers: dict[tuple, tuple[np.ndarray, np.ndarray]] = {}
-        """buffers a searcher's kept frames are decoded through, by (frames, H, W, dtype)
-        (:class:`iscd.decode.multi.MultiDecoder` gives all its decoders one dict, filled
-        and touched before the first frame)"""
+        """buffers a searcher's kept frames are decoded through and its looks stack their
+        frames into, by (use, frames, H, W, dtype) (:class:`iscd.decode.multi.MultiDecoder`
+        gives all its decoders one dict, filled and touched before the first frame)"""
+        self.look_lock = threading.Lock()
+        """held by a look while it uses its buffers (one lock for a MultiDecoder's decoders)"""
         """(left, right) buffers of acquire_frames frames the kept frames are decoded through"""
         self._lookback: int | None = None
         self._look: Future | None = None
@@ -532,7 +535,7 @@ class StreamDecoder:
                     # outlive this call): its memory touched once, as a fresh stack's page
                     # faults cost more than the copy (~80 ms for 64 frames of 512 x 512 here)
                     deferred_step = defer and c0 == last
-                    buf = None if deferred_step else self._catch_buffer(got.left[0], A)
+                    buf = None if deferred_step else self._buffers(got.left[0], A)
                     ids_c, t_c, l_c, r_c = got.take(c0, c1, buf)
                     records += self.push(ids_c, t_c, l_c, r_c, ranging=ranging and c0 == last,
                                          defer=defer and c0 == last, **kw)
@@ -1110,7 +1113,17 @@ class StreamDecoder:
         (left fit, right fit, meta, L, R) of the transmitter found, or None. Reads no decoder
         state that a block changes (it may run in a thread: a look of :meth:`set_lookback`'s
         searcher in the daemon)."""
-        L = np.stack(wl)
+        with self.look_lock:  # one look at a time in the shared buffers (a searcher's runs in a thread)
+            return self._look_in(wl, wr, meta, exclude, exclude_right, shape, auto)
+
+    def _look_in(self, wl: list[np.ndarray], wr: list[np.ndarray], meta: np.ndarray,
+                 exclude: list[tuple[int, int, int, int]], exclude_right: list[tuple[int, int, int, int]],
+                 shape: tuple[int, int], auto: bool
+                 ) -> tuple[GridFit, GridFit, np.ndarray, np.ndarray, np.ndarray] | None:
+        """:meth:`_look_for` under :attr:`look_lock`: the frames stacked into buffers made
+        and touched once (a fresh 16 MB stack a look cost ~80 ms of page faults here)."""
+        bufs = self._buffers(wl[0], len(wl), "look")
+        L = np.stack(wl, out=bufs[0][:len(wl)])
         R: np.ndarray | None = None
         own_right: dict[tuple[int, int], GridFit | None] = {}  # the right's own search, once a shape
         for _ in range(self.ACQUIRE_CANDIDATES):
@@ -1125,17 +1138,18 @@ class StreamDecoder:
                 exclude = exclude + [fl.bbox(margin=2.0)]
                 continue
             if R is None:
-                R = np.stack(wr)
+                R = np.stack(wr, out=bufs[1][:len(wr)])
             found = self._partner(fl, L, R, own_right, exclude_right)
             if found is not None:
                 return found[0], found[1], meta, L, R
             exclude = exclude + [fl.bbox(margin=2.0)]
         return None
 
-    def _catch_buffer(self, frame: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
-        """(left, right) buffers of ``n`` frames like ``frame`` (from :attr:`catch_buffers`,
-        made and touched on first use)."""
-        key = (n,) + frame.shape + (frame.dtype.str,)
+    def _buffers(self, frame: np.ndarray, n: int, use: str = "catch") -> tuple[np.ndarray, np.ndarray]:
+        """(left, right) buffers of ``n`` frames like ``frame`` for ``use`` ("catch": a
+        find's kept frames, the frame loop; "look": a look, under :attr:`look_lock`), from
+        :attr:`catch_buffers`, made and touched on first use."""
+        key = (use, n) + frame.shape + (frame.dtype.str,)
         buf = self.catch_buffers.get(key)
         if buf is None:
             buf = self.catch_buffers[key] = touched_buffers(n, frame.shape, frame.dtype)
