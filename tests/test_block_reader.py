@@ -67,3 +67,33 @@ def test_whole_frames_come_in_arrays_of_their_own() -> None:
             assert np.array_equal(kept_l[i], _frame(i, 0)) and np.array_equal(kept_r[i], _frame(i, 1))
     finally:
         ring.close()
+
+
+def test_whole_frame_arrays_are_reused_once_nothing_holds_them() -> None:
+    """The pool: a pair of block arrays comes back once no view of it is kept (a decoder's
+    look-back lets go of its frames), never while one is."""
+    ring = StereoRing.create(height=24, width=32, capacity=64, max_held=4)
+    try:
+        for fid in range(40):
+            ring.write(_frame(fid, 0), _frame(fid, 1), frame_id=fid)
+        rd = BlockReader(ring, 24, 32, np.uint8, block_max=4, fps=1000.0, block_wait_s=0.0, pool_blocks=3)
+        assert len(rd._pool) == 3
+        rd.read(None, pace=False)
+        kept = rd.left[2]  # a decoder keeps one frame of the first block
+        first = id(rd.left)  # (no reference of our own: it would hold the arrays too)
+        seen = {first}
+        for _ in range(4):
+            rd.read(None, pace=False)
+            assert id(rd.left) != first  # never while the kept view lives
+            seen.add(id(rd.left))
+        assert np.array_equal(kept, _frame(2, 0))  # the kept frame was not written over
+        assert len(seen) <= 3 and len(rd._pool) == 3  # the other two pairs took turns
+        del kept
+        handed = []
+        for _ in range(3):
+            rd.read(None, pace=False)
+            handed.append(id(rd.left) == first)
+        assert any(handed)  # free again: handed out within one turn of the pool
+        assert len(rd._pool) == 3  # no new arrays were needed
+    finally:
+        ring.close()

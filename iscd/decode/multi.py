@@ -169,6 +169,12 @@ class MultiDecoder:
         return out
 
     @property
+    def lookback_frames(self) -> int:
+        """Most recent frames a searcher keeps (whole pairs: the look-back of
+        :meth:`StreamDecoder.set_lookback`), for the daemon's block pool."""
+        return self.search_every + self.settings.acquire_frames
+
+    @property
     def searcher(self) -> _Slot | None:
         """The decoder looking for the next transmitter (None when all slots track one)."""
         for s in self.slots:

@@ -12,10 +12,14 @@ Per pair it keeps the left camera's frame id, the exposure start ``t_s`` (s, the
 camera's timestamp; the id over the frame rate where the camera gives none) and the
 arrival time on the host ``arrival_ns`` (``time.monotonic_ns``, what the latency counts from).
 
-Whole frames (no windows: the decoder is looking for a transmitter) go into fresh block
-arrays, :attr:`BlockReader.fresh` True: the decoder may keep them (its look-back) without a
-copy of its own (``push(owned=True)``); the windows of a tracked transmitter go into the
-reused buffers.
+Whole frames (no windows: the decoder is looking for a transmitter) go into block arrays
+that no later read writes while anything else holds them, :attr:`BlockReader.fresh` True:
+the decoder may keep them (its look-back) without a copy of its own (``push(owned=True)``).
+They come from a pool: a pair of arrays is reused once nothing but the pool refers to it
+(no view of it is left), so that a searcher keeping hundreds of frames does not fault in
+fresh memory for every block (~4-20 us a 4 KiB page on this kind of VM: a 160 MB look-back
+cost ~0.5 s of stalls at start-up); ``pool_blocks`` pairs are made and touched when the
+reader is made. The windows of a tracked transmitter go into buffers of their own, reused.
 
 An optional :attr:`BlockReader.tap` (the run's recording, :mod:`iscd.service.recording`)
 sees every pair taken, before its slot goes back to the ring: ``tap.pair(slot, windows,
@@ -24,6 +28,7 @@ block)``, ``block`` numbering the blocks read (it must copy what it keeps, and n
 
 from __future__ import annotations
 
+import sys
 import time
 from typing import Any
 
@@ -50,10 +55,16 @@ class BlockReader:
         Camera frame rate, frames/s (the pacing of the sleep between blocks).
     block_wait_s : float
         Longest wait for a block to fill once its first pair is in, s.
+    pool_blocks : int
+        Pairs of whole-frame block arrays made and touched now (the decoder's look-back in
+        blocks, a few more); the pool grows past it when a decoder holds more, up to
+        ``pool_max``.
+    pool_max : int
+        Most pairs the pool keeps (beyond it a block's arrays are fresh and let go).
     """
 
     def __init__(self, ring: Any, height: int, width: int, dtype: Any, block_max: int, fps: float,
-                 block_wait_s: float) -> None:
+                 block_wait_s: float, *, pool_blocks: int = 0, pool_max: int = 64) -> None:
         self.ring = ring
         self.block_max = B = int(block_max)
         self.fps = float(fps)
@@ -71,6 +82,13 @@ class BlockReader:
         """the last block is in arrays of its own that no later read reuses (whole frames)"""
         self._shape = (B, height, width)
         self._dtype = dtype
+        self._pool: list[tuple[np.ndarray, np.ndarray]] = []
+        self.pool_max = max(int(pool_max), int(pool_blocks))
+        for _ in range(int(pool_blocks)):
+            pair = (np.empty(self._shape, dtype), np.empty(self._shape, dtype))
+            for a in pair:
+                a.fill(0)  # touched now, not while frames wait
+            self._pool.append(pair)
 
     def read(self, windows: tuple[Window, Window] | None, *, pace: bool = True) -> int:
         """Take the next block; returns how many pairs it holds (0: none came within the
@@ -79,8 +97,7 @@ class BlockReader:
         ring, B = self.ring, self.block_max
         n = 0
         if windows is None:  # whole frames: arrays the decoder may keep (see the module docstring)
-            self.left = np.empty(self._shape, self._dtype)
-            self.right = np.empty(self._shape, self._dtype)
+            self.left, self.right = self._free_pair()
         elif self.fresh:  # back to buffers of its own, reused from now on
             self.left = np.zeros(self._shape, self._dtype)
             self.right = np.zeros(self._shape, self._dtype)
@@ -117,6 +134,22 @@ class BlockReader:
         if n:
             self.blocks_read += 1
         return n
+
+    def _free_pair(self) -> tuple[np.ndarray, np.ndarray]:
+        """Whole-frame block arrays that nothing outside the pool refers to (no view of them
+        kept by a decoder), else a new pair (kept in the pool up to ``pool_max``)."""
+        cur = (self.left, self.right) if self.fresh else None
+        for pair in self._pool:
+            # references: the pool's tuple and getrefcount's argument (2), and this
+            # reader's own ``left``/``right`` while it is the last block read; any view of
+            # it (a decoder's kept frame) holds one more
+            own = 2 + (cur is not None and pair[0] is cur[0])
+            if sys.getrefcount(pair[0]) <= own and sys.getrefcount(pair[1]) <= own:
+                return pair
+        pair = (np.empty(self._shape, self._dtype), np.empty(self._shape, self._dtype))
+        if len(self._pool) < self.pool_max:
+            self._pool.append(pair)
+        return pair
 
     def discard(self) -> int:
         """Take and drop every pair the ring still holds; returns how many."""

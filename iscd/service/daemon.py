@@ -315,7 +315,11 @@ class _Run:
         self.ring = StereoRing.create(height=H, width=W, capacity=capacity_for(st.ring_ms, cfg.camera.fps),
                                       dtype=dtype, max_held=st.block_max)  # a block's pairs are taken at once
         self.fps = cfg.camera.fps
-        self.blocks = BlockReader(self.ring, H, W, dtype, st.block_max, self.fps, st.block_wait_ms / 1000)
+        # whole-frame blocks a searcher keeps (its look-back) made and touched now, not
+        # while the first frames wait (several transmitters: hundreds of frames)
+        kept = int(getattr(self.decoder, "lookback_frames", 0))
+        self.blocks = BlockReader(self.ring, H, W, dtype, st.block_max, self.fps, st.block_wait_ms / 1000,
+                                  pool_blocks=-(-kept // st.block_max) + 3 if kept else 0)
         self._factory = functools.partial(make_stereo, cfg)
         self._cam_settings = (settings_from_config(cfg, "left"), settings_from_config(cfg, "right"))
         self._new_acquisition = functools.partial(AcquisitionProcess, self._factory, self.ring,
