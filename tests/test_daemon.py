@@ -54,8 +54,11 @@ def _check_live(recs: list[dict], strict: bool) -> None:
     assert final["final"] is True and sum(s.get("final", False) for s in stats) == 1
     assert len(stats) >= 5  # one a second, and the last
     for key in ("frames_in", "frames_dropped", "pairs_decoded", "packets_ok", "packets_bad",
-                "latency_ms_p50", "latency_ms_p99"):
+                "latency_ms_p50", "latency_ms_p99", "latency_run_ms_p50", "latency_run_ms_p99", "latency_run_ms_max"):
         assert key in final
+    # the run's latencies cover every interval's: its maximum at least every interval's p99
+    assert final["latency_run_ms_max"] >= max(s["latency_ms_p99"] or 0 for s in stats) - 1e-9
+    assert final["latency_run_ms_p50"] <= final["latency_run_ms_p99"] <= final["latency_run_ms_max"]
     assert final["packets_ok"] == sum(r["crc_ok"] for r in pk)
     # every CRC-valid payload is one the transmitter sent (never a corrupted one)
     truth = _truth_payloads(C.loads(LIGHT), int(final["frame"]) + 400)

@@ -253,7 +253,7 @@ class _Run:
 
     def __init__(self, daemon: Daemon) -> None:
         from iscd.service.overload import OverloadPolicy
-        from iscd.service.stats import CpuMeter, LatencyWindow
+        from iscd.service.stats import CpuMeter, LatencyHistogram, LatencyWindow
 
         self.daemon = daemon
         cfg, st = daemon.cfg, daemon.settings
@@ -272,6 +272,8 @@ class _Run:
             raise
         self.overload = OverloadPolicy(daemon.overload_settings)
         self.lat = LatencyWindow()
+        self.lat_run = LatencyHistogram()
+        """every pair's latency since the run started (the stats' latency_run_ms_*)"""
         self.wake = LatencyWindow(cap=2000)
         self.work = LatencyWindow(cap=2000)
         self.cpu = CpuMeter()
@@ -520,7 +522,9 @@ class _Run:
         counters["pairs_decoded"] += n
         self.last_frame = int(ids[n - 1])
         self.last_t_s = float(t_s[n - 1])
-        self.lat.add((done_ns - b.arrival_ns[:n]) / 1e6)
+        lat = (done_ns - b.arrival_ns[:n]) / 1e6
+        self.lat.add(lat)
+        self.lat_run.add(lat)
         # where a block's latency goes: waiting for its last pair, then decoding it
         self.wake.add(np.array([(t_read_ns - b.arrival_ns[n - 1]) / 1e6]))
         self.work.add(np.array([(done_ns - t_read_ns) / 1e6]))
@@ -614,6 +618,9 @@ class _Run:
                "following_resets": decoder.counters.get("following_resets", 0),
                "tracking": decoder.track is not None,
                "latency_ms_p50": p50, "latency_ms_p99": p99,
+               # the same over every pair since the run started (0.1 ms bins)
+               "latency_run_ms_p50": self.lat_run.percentile(50), "latency_run_ms_p99": self.lat_run.percentile(99),
+               "latency_run_ms_max": round(self.lat_run.max_ms, 3) if self.lat_run.n else None,
                # per block: its last pair's arrival to the block read, and the decoding
                # (outputs excluded); the rest of a pair's latency is the block filling
                "block_read_ms_p50_p99": self.wake.take(), "block_decode_ms_p50_p99": self.work.take(),

@@ -47,6 +47,43 @@ class LatencyWindow:
         return round(float(p50), 3), round(float(p99), 3)
 
 
+class LatencyHistogram:
+    """Every latency (ms) of a whole run, in bins of ``bin_ms`` up to ``top_ms`` (one bin
+    above for the rest): the run's percentiles in constant memory, however long it runs.
+
+    A percentile is the upper edge of the bin it falls in (at most ``bin_ms`` above the
+    exact value); above ``top_ms`` it is the largest latency seen.
+    """
+
+    def __init__(self, bin_ms: float = 0.1, top_ms: float = 2000.0) -> None:
+        self.bin_ms = float(bin_ms)
+        self.n_bins = int(np.ceil(top_ms / bin_ms))
+        self.counts = np.zeros(self.n_bins + 1, np.int64)
+        self.max_ms = 0.0
+
+    def add(self, latencies_ms: np.ndarray) -> None:
+        v = np.asarray(latencies_ms, dtype=np.float64).ravel()
+        if v.size == 0:
+            return
+        idx = np.clip((v / self.bin_ms).astype(np.int64), 0, self.n_bins)
+        np.add.at(self.counts, idx, 1)
+        self.max_ms = max(self.max_ms, float(v.max()))
+
+    @property
+    def n(self) -> int:
+        return int(self.counts.sum())
+
+    def percentile(self, q: float) -> float | None:
+        """The q-th percentile (0-100) of every latency added, ms (None before any)."""
+        n = self.n
+        if n == 0:
+            return None
+        k = int(np.searchsorted(np.cumsum(self.counts), np.ceil(q / 100.0 * n)))
+        if k >= self.n_bins:
+            return round(self.max_ms, 3)
+        return round(min((k + 1) * self.bin_ms, self.max_ms), 3)
+
+
 def process_usage(pid: int | None = None) -> tuple[float, int]:
     """(CPU seconds user+system, RSS bytes) of a process (Linux /proc; (0, 0) elsewhere)."""
     p = pid or os.getpid()

@@ -206,6 +206,7 @@ def run(args: argparse.Namespace) -> int:
             tmp_dir.cleanup()
     print(json.dumps({**{k: final.get(k) for k in ("pairs_decoded", "frames_dropped", "packets_ok",
                                                     "packets_bad", "ranges", "latency_ms_p50",
-                                                    "latency_ms_p99")},
+                                                    "latency_ms_p99", "latency_run_ms_p50",
+                                                    "latency_run_ms_p99", "latency_run_ms_max")},
                       **{k: final[k] for k in ("record_written", "record_dropped", "record_mb") if k in final}}))
     return 0
