@@ -32,8 +32,10 @@ def _receiver(cfg: Config, n: int = 6) -> Config:
         "tracking", max_transmitters=n)
 
 
-def _decode(cfg: Config, dec: StreamDecoder | MultiDecoder, n_frames: int) -> tuple[list[dict], list]:
-    """Render ``n_frames`` of ``cfg`` block by block into ``dec``; (records, truths)."""
+def _decode(cfg: Config, dec: StreamDecoder | MultiDecoder, n_frames: int,
+            defer: bool = False) -> tuple[list[dict], list]:
+    """Render ``n_frames`` of ``cfg`` block by block into ``dec`` (``defer``: as the daemon,
+    push(defer=True) then finish_block()); (records, truths)."""
     scene = Scene(cfg)
     truths = scene.truths(np.arange(n_frames))
     H, W = cfg.camera.height, cfg.camera.width
@@ -44,7 +46,11 @@ def _decode(cfg: Config, dec: StreamDecoder | MultiDecoder, n_frames: int) -> tu
         for i in range(BLOCK):
             scene.render_pair_into(f0 + i, left[i], right[i])
         ids = np.arange(f0, f0 + BLOCK)
-        out += dec.push(ids, ids / cfg.camera.fps, left, right)
+        if defer:
+            out += dec.push(ids, ids / cfg.camera.fps, left, right, defer=True)
+            out += dec.finish_block()
+        else:
+            out += dec.push(ids, ids / cfg.camera.fps, left, right)
     return out + dec.finish(), truths
 
 
@@ -209,3 +215,33 @@ def test_daemon_decodes_every_transmitter_of_the_mock_rig(tmp_path: Path) -> Non
     assert seen and max(len(s["transmitters"]) for s in seen) == 3
     # one demodulation worker process for all of them (each has its slot in it)
     assert {s["demod_worker_processes"] for s in stats_records(recs, final=False) if s.get("transmitters")} == {1}
+
+
+def test_a_find_at_a_rejected_blinkers_place_skips_its_look_back() -> None:
+    """A candidate found again where a blinker was rejected before is decoded from its look
+    on, not from the whole look-back (the frame loop would spend ~0.1 s at once on it every
+    time the tail light comes back); a transmitter there is still tracked and confirmed."""
+    cfg = load(EXAMPLE)
+    dec = MultiDecoder(_receiver(cfg))
+    # pretend the 30 m LED's place (left ~115, 255) was rejected once as a blinker
+    dec._rejections = [((105, 245, 126, 266), 1)]
+    records, truths = _decode(cfg, dec, 2400)
+    assert dec.counters["lookbacks_skipped"] >= 1
+    assert dec.counters["transmitters_confirmed"] == 3
+    got = _by_tx(records)
+    sent = {p for t in truths for p in t.payloads}
+    payloads = [bytes.fromhex(r["payload_hex"]) for rs in got.values() for r in rs]
+    assert payloads and set(payloads) <= sent
+
+
+def test_a_rejection_backs_off_when_blocks_are_deferred() -> None:
+    """As the daemon decodes (push(defer=True), then finish_block): the tail light rejected
+    in the deferred part is registered for the back-off (its place left out longer each
+    time, and a find there again skips its look-back) as in the in-line decode."""
+    cfg = load(EXAMPLE)
+    dec = MultiDecoder(_receiver(cfg))
+    records, _ = _decode(cfg, dec, 4000, defer=True)
+    assert dec.counters["rejected_candidates"] >= 1
+    assert dec._rejections, "the rejection was not registered"
+    assert dec.counters["transmitters_confirmed"] == 3
+    assert {int(r["tx"]) for r in records if r["type"] == "packet"} == {0, 1, 2}

@@ -261,6 +261,8 @@ class MultiDecoder:
         self._rejections.append((box, n))
         self._rejections = self._rejections[-64:]
         factor = min(2 ** (n - 1), self.BACKOFF_MAX)
+        if factor > 1:
+            log.info("the place at %d,%d was rejected %d times: left out %d times as long", int(cx), int(cy), n, factor)
         until = now + factor * (until - now)
         s.dec.excluded[-1] = (box, until)
         self._excluded.append((box, until))  # for every searcher, whichever slot it is
@@ -352,6 +354,7 @@ class MultiDecoder:
         adopt: KeptFrames | None = None
         while True:
             s.dec.extra_exclude = self._excludes(s)
+            s.dec.blinker_places = [b for b, _ in self._rejections]
             s.dec.keep_acquired = True
             # nothing tracked: look at every acquire_frames, as one decoder does; else every
             # search_every, keeping the frames since the last look (decoded from the first
@@ -378,11 +381,18 @@ class MultiDecoder:
         """The rest of the blocks pushed with ``defer=True`` (see :meth:`StreamDecoder.finish_block`)."""
         out: list[dict] = []
         deferred, self._deferred = self._deferred, []
+        now = self._last_id if self._last_id is not None else -1
         for s in deferred:
             had = s.dec.track is not None
+            rejected = s.dec.counters["rejected_candidates"]
             out += self._route(s, s.dec.finish_block())
+            # a candidate rejected in the deferred part (its header search runs there): the
+            # same back-off as in _push_slot (without it the daemon, which defers, tried a
+            # tail light again every exclude_packets)
+            if s.dec.counters["rejected_candidates"] != rejected and s.dec.excluded:
+                self._back_off(s, now)
             if had and s.dec.track is None:
-                self._track_ended(s, self._last_id if self._last_id is not None else -1)
+                self._track_ended(s, now)
         blk, self._search_block = self._search_block, None
         if blk is not None:
             frame_ids, t_s, left, right, kw = blk

@@ -197,6 +197,9 @@ class KeptFrames:
     t_s: np.ndarray
     left: list[np.ndarray]
     right: list[np.ndarray]
+    start: int = 0
+    """the first frame the finder decodes (a place rejected before as a blinker: only the
+    look's frames, not the whole look-back; a searcher adopting them looks at all)"""
 
     def __len__(self) -> int:
         return len(self.left)
@@ -279,6 +282,9 @@ class StreamDecoder:
         self.excluded: list[tuple[tuple[int, int, int, int], int]] = []
         """(bbox, until frame id) of rejected candidates."""
         self.extra_exclude: tuple[list[tuple[int, int, int, int]], list[tuple[int, int, int, int]]] = ([], [])
+        self.blinker_places: list[tuple[int, int, int, int]] = []
+        """left boxes, px, where candidates were rejected as blinkers before (a searcher of
+        :class:`iscd.decode.multi.MultiDecoder`): a find there is decoded from its look on"""
         """(left, right) boxes (x0, y0, x1, y1) px that acquisition leaves out besides its own
         rejected candidates: the transmitters other decoders track
         (:class:`iscd.decode.multi.MultiDecoder` sets them before each block)."""
@@ -340,7 +346,7 @@ class StreamDecoder:
                                          "frames_decoded": 0, "assembler_resets": 0,
                                          "ranging_skipped": 0, "led_ranges_shed": 0,
                                          "demod_worker_restarts": 0, "following_resets": 0,
-                                         "shape_mismatches": 0, "shape_retries": 0}
+                                         "shape_mismatches": 0, "shape_retries": 0, "lookbacks_skipped": 0}
 
     def _set_shape(self, rows: int, cols: int) -> None:
         """The array's shape (of the config, or inferred at acquisition) and what follows
@@ -527,7 +533,7 @@ class StreamDecoder:
                 kw = dict(ranging_every=ranging_every, per_led=per_led)
                 A = self.settings.acquire_frames
                 last = max(0, len(got) - (n if adopt is None else A))
-                for c0 in list(range(0, last, A)) + [last]:
+                for c0 in list(range(min(got.start, last), last, A)) + [last]:
                     c1 = len(got) if c0 == last else min(last, c0 + A)
                     if c1 <= c0 or self.track is None:
                         continue
@@ -1092,6 +1098,12 @@ class StreamDecoder:
         if lookback:  # decode from the first frame kept: a header before the look is not lost
             meta = np.array(self._acq_ids)
             kept = KeptFrames(meta[:, 0].astype(np.int64), meta[:, 1], list(self._acq_l), list(self._acq_r))
+            cx, cy = fl.center
+            if any(b[0] <= cx < b[2] and b[1] <= cy < b[3] for b in self.blinker_places):
+                # found again where a blinker was rejected: most likely it again; its
+                # look-back is not decoded (~0.1 s of the frame loop at once), only from the look on
+                kept.start = max(0, len(kept) - A)
+                self.counters["lookbacks_skipped"] += 1
             self._acq_l.clear()
             self._acq_r.clear()
             self._acq_ids.clear()

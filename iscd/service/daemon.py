@@ -637,7 +637,8 @@ class _Run:
         if hasattr(decoder, "transmitters"):  # several transmitters: each one's own figures
             rec["transmitters"] = decoder.transmitters()
             rec.update({k: decoder.counters[k] for k in ("transmitters_confirmed", "transmitters_lost",
-                                                         "candidate_records_dropped", "search_attempts")})
+                                                         "candidate_records_dropped", "search_attempts",
+                                                         "lookbacks_skipped")})
         rec.update(self.outputs.counters())  # output_errors and each output's own counters
         if self.control is not None:
             rec.update(self.control.counters())  # control_commands, control_refused
