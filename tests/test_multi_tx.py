@@ -238,9 +238,18 @@ def test_a_rejection_backs_off_when_blocks_are_deferred() -> None:
     """As the daemon decodes (push(defer=True), then finish_block): the tail light rejected
     in the deferred part is registered for the back-off (its place left out longer each
     time, and a find there again skips its look-back) as in the in-line decode."""
+    from iscd.core import jit
+
     cfg = load(EXAMPLE)
     dec = MultiDecoder(_receiver(cfg))
+    jit.warm_up()
+    before = jit.signatures()
     records, _ = _decode(cfg, dec, 4000, defer=True)
+    # and nothing compiled in the middle of it (a compile there stalls the daemon's frame
+    # loop for seconds on the first start after an install): every type the several
+    # transmitters' path passes a kernel was warmed up
+    grown = {k: (before.get(k), v) for k, v in jit.signatures().items() if v != before.get(k)}
+    assert not grown, grown
     assert dec.counters["rejected_candidates"] >= 1
     assert dec._rejections, "the rejection was not registered"
     assert dec.counters["transmitters_confirmed"] == 3

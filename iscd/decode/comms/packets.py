@@ -25,7 +25,7 @@ import numpy as np
 from iscd.core.airinterface import HEADER_SYMBOLS, AirInterface
 from iscd.core.airinterface_v2 import AirInterfaceV2, header_symbols
 from iscd.core.config import TransmitterConfig
-from iscd.core.jit import njit
+from iscd.core.jit import njit, register_warm
 from iscd.core.records import PacketRecord
 from iscd.decode.comms.demod import PacketResult, Rejection, demodulate_packet
 from iscd.decode.comms.settings import ReceiverConfig
@@ -41,6 +41,11 @@ def _consecutive(ids: np.ndarray, ts: np.ndarray, first: int) -> bool:
         if ids[j] != first + j or not np.isfinite(ts[j]):
             return False
     return True
+
+
+# a block's timestamps may come as a strided view (a searcher's kept frames): that layout
+# compiled (or loaded) at the warm-up too, not in the middle of a stream
+register_warm(_consecutive, lambda: (np.arange(3), np.zeros(6)[::2], 0))
 
 
 @dataclass

@@ -169,11 +169,13 @@ def declip_one_cell(patches: np.ndarray, saturated: np.ndarray, top: np.ndarray 
     n, h, w = patches.shape
     out = np.array(patches, dtype=np.float64, copy=True).reshape(n, h * w)
     sat = np.ascontiguousarray(saturated, dtype=np.bool_).reshape(n, h * w)
-    t = np.ascontiguousarray(np.broadcast_to(np.asarray(top, dtype=np.float64), (n,)))
+    # writable copies: a read-only array (what broadcast_to gives) is another type to Numba,
+    # compiled at its first use instead of at the warm-up
+    t = np.array(np.broadcast_to(np.asarray(top, dtype=np.float64), (n,)))
     if top_map is None:
         tm = np.zeros((n, h * w))
     else:
-        tm = np.ascontiguousarray(np.broadcast_to(np.asarray(top_map, dtype=np.float64), (n, h, w))).reshape(n, h * w)
+        tm = np.array(np.broadcast_to(np.asarray(top_map, dtype=np.float64), (n, h, w))).reshape(n, h * w)
     refilled = np.zeros(n, np.bool_)
     _declip_one(out, sat, t, tm, np.ascontiguousarray(index, dtype=np.int64),
                 np.ascontiguousarray(member, dtype=np.bool_), float(fit_floor), int(min_pixels), float(max_gain),
