@@ -32,7 +32,7 @@ import cv2
 import numpy as np
 from scipy import ndimage, optimize
 
-from iscd.decode.tracking.maps_kernel import look_maps
+from iscd.decode.tracking.maps_kernel import frames_block, look_maps
 
 
 @functools.lru_cache(maxsize=64)
@@ -169,9 +169,7 @@ def activity_map(frames: np.ndarray) -> np.ndarray:
     ValueError
         If ``frames`` is not (n >= 2, H, W).
     """
-    f = np.asarray(frames)
-    if f.ndim != 3 or f.shape[0] < 2:
-        raise ValueError(f"need a (n >= 2, H, W) block of frames, got shape {f.shape}")
+    f = frames_block(frames)
     acc = np.zeros(f.shape[1:], dtype=np.float32)
     wide = np.int16 if f.dtype.itemsize == 1 else np.int32  # 16-bit data overflows int16
     prev = f[0].astype(wide)

@@ -70,6 +70,14 @@ for _dt in (np.uint8, np.uint16):
                                            np.empty(4, _dt), np.empty(4, _dt)))
 
 
+def frames_block(frames: np.ndarray) -> np.ndarray:
+    """``frames`` as an array, checked to be an (n >= 2, H, W) block (ValueError if not)."""
+    f = np.asarray(frames)
+    if f.ndim != 3 or f.shape[0] < 2:
+        raise ValueError(f"need a (n >= 2, H, W) block of frames, got shape {f.shape}")
+    return f
+
+
 def look_maps_reference(frames: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """:func:`look_maps` with numpy (the detection's own functions): the reference."""
     from iscd.decode.tracking.detect import activity_map
@@ -102,9 +110,7 @@ def look_maps(frames: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, n
     ValueError
         If ``frames`` is not (n >= 2, H, W).
     """
-    f = np.asarray(frames)
-    if f.ndim != 3 or f.shape[0] < 2:
-        raise ValueError(f"need a (n >= 2, H, W) block of frames, got shape {f.shape}")
+    f = frames_block(frames)
     n, H, W = f.shape
     if f.dtype not in (np.uint8, np.uint16) or n * np.iinfo(f.dtype).max >= EXACT:
         return look_maps_reference(f)
