@@ -32,7 +32,7 @@ import cv2
 import numpy as np
 from scipy import ndimage, optimize
 
-from iscd.decode.tracking.maps_kernel import frames_block, look_maps
+from iscd.decode.tracking.maps_kernel import activity_map, look_maps  # noqa: F401 (activity_map: part of this module's API)
 
 
 @functools.lru_cache(maxsize=64)
@@ -149,35 +149,6 @@ class Blob:
     area: float
     peak: float
     bbox: tuple[int, int, int, int]
-
-
-def activity_map(frames: np.ndarray) -> np.ndarray:
-    """Temporal gradient: mean absolute difference of consecutive frames, (H, W) float32.
-
-    Parameters
-    ----------
-    frames : ndarray
-        (n, H, W) uint8/uint16 frames, DN, n >= 2.
-
-    Returns
-    -------
-    ndarray of float32
-        (H, W) activity, DN per frame.
-
-    Raises
-    ------
-    ValueError
-        If ``frames`` is not (n >= 2, H, W).
-    """
-    f = frames_block(frames)
-    acc = np.zeros(f.shape[1:], dtype=np.float32)
-    wide = np.int16 if f.dtype.itemsize == 1 else np.int32  # 16-bit data overflows int16
-    prev = f[0].astype(wide)
-    for k in range(1, f.shape[0]):  # per frame, vectorized over pixels; n is small (~64)
-        cur = f[k].astype(wide)
-        acc += np.abs(cur - prev)
-        prev = cur
-    return acc / (f.shape[0] - 1)
 
 
 def light_map(frames: np.ndarray) -> np.ndarray:

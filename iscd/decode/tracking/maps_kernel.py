@@ -71,17 +71,72 @@ for _dt in (np.uint8, np.uint16):
 
 
 def frames_block(frames: np.ndarray) -> np.ndarray:
-    """``frames`` as an array, checked to be an (n >= 2, H, W) block (ValueError if not)."""
+    """``frames`` as an array, checked to be a block of frames.
+
+    Parameters
+    ----------
+    frames : array_like
+        (n >= 2, H, W) frames, DN.
+
+    Returns
+    -------
+    ndarray
+        The same frames (no copy when already an array).
+
+    Raises
+    ------
+    ValueError
+        If ``frames`` is not (n >= 2, H, W).
+    """
     f = np.asarray(frames)
     if f.ndim != 3 or f.shape[0] < 2:
         raise ValueError(f"need a (n >= 2, H, W) block of frames, got shape {f.shape}")
     return f
 
 
-def look_maps_reference(frames: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """:func:`look_maps` with numpy (the detection's own functions): the reference."""
-    from iscd.decode.tracking.detect import activity_map
+def activity_map(frames: np.ndarray) -> np.ndarray:
+    """Temporal gradient: mean absolute difference of consecutive frames, (H, W) float32.
 
+    Parameters
+    ----------
+    frames : ndarray
+        (n, H, W) uint8/uint16 frames, DN, n >= 2.
+
+    Returns
+    -------
+    ndarray of float32
+        (H, W) activity, DN per frame.
+
+    Raises
+    ------
+    ValueError
+        If ``frames`` is not (n >= 2, H, W).
+    """
+    f = frames_block(frames)
+    acc = np.zeros(f.shape[1:], dtype=np.float32)
+    wide = np.int16 if f.dtype.itemsize == 1 else np.int32  # 16-bit data overflows int16
+    prev = f[0].astype(wide)
+    for k in range(1, f.shape[0]):  # per frame, vectorized over pixels; n is small (~64)
+        cur = f[k].astype(wide)
+        acc += np.abs(cur - prev)
+        prev = cur
+    return acc / (f.shape[0] - 1)
+
+
+def look_maps_reference(frames: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`look_maps` with numpy: the reference.
+
+    Parameters
+    ----------
+    frames : ndarray
+        (n >= 2, H, W) frames, DN.
+
+    Returns
+    -------
+    act, mean, lo, hi : ndarray
+        As :func:`look_maps`: activity (float32, DN per frame), mean (float32, DN),
+        minimum and maximum (the frames' dtype, DN), each (H, W).
+    """
     f = np.asarray(frames)
     return activity_map(f), f.mean(axis=0, dtype=np.float32), f.min(axis=0), f.max(axis=0)
 
