@@ -46,7 +46,7 @@ import numpy as np
 
 from iscd.calibration.io import StereoCalibration
 from iscd.core.config import Config, section
-from iscd.decode.stream import KeptFrames, PipelineSettings, StreamDecoder, parse_shapes, touched_buffers
+from iscd.decode.stream import KeptFrames, PipelineSettings, StreamDecoder, parse_shapes, shared_buffers
 
 log = logging.getLogger(__name__)
 
@@ -127,15 +127,8 @@ class MultiDecoder:
         self._search_block: tuple | None = None
         """a block pushed with defer=True, for the searcher in finish_block"""
         self._catch_buffers: dict[tuple, tuple[np.ndarray, np.ndarray]] = {}
-        """the buffers every decoder decodes a find's kept frames through (the configured
-        frame size made now: touched before the first frame, not while a find waits)"""
-        if self.max_transmitters > 1:
-            cam = cfg.camera
-            dt = np.dtype(np.uint8 if cam.bit_depth <= 8 else np.uint16)
-            A = self.settings.acquire_frames
-            for use in ("catch", "look"):
-                self._catch_buffers[(use, A, cam.height, cam.width, dt.str)] = touched_buffers(
-                    A, (cam.height, cam.width), dt)
+        """the buffers every decoder decodes a find's kept frames through and looks in
+        (:meth:`prepare` makes them before the first frame, not while a find waits)"""
         self._look_lock = threading.Lock()
         self._new_slot()
 
@@ -167,6 +160,13 @@ class MultiDecoder:
         self._closed.update(s.dec.counters)
         self.slots.remove(s)
         return out
+
+    def prepare(self, height: int, width: int, dtype: Any) -> None:
+        """Make and touch the look and catch-up buffers for frames of this size now (the
+        daemon, before its first frame: their page faults are ~0.1 s here)."""
+        frame = np.empty((int(height), int(width)), dtype)
+        for use in ("catch", "look"):
+            shared_buffers(self._catch_buffers, frame, self.settings.acquire_frames, use)
 
     @property
     def lookback_frames(self) -> int:

@@ -187,6 +187,18 @@ def touched_buffers(n: int, shape: tuple[int, ...], dtype: Any) -> tuple[np.ndar
     return out
 
 
+def shared_buffers(store: dict[tuple, tuple[np.ndarray, np.ndarray]], frame: np.ndarray, n: int,
+                   use: str) -> tuple[np.ndarray, np.ndarray]:
+    """(left, right) buffers of at least ``n`` frames like ``frame`` for ``use`` from
+    ``store`` (by use, frame size and dtype), made and touched (:func:`touched_buffers`)
+    when none there is large enough."""
+    key = (use,) + frame.shape + (frame.dtype.str,)
+    buf = store.get(key)
+    if buf is None or buf[0].shape[0] < n:
+        buf = store[key] = touched_buffers(n, frame.shape, frame.dtype)
+    return buf
+
+
 @dataclass
 class KeptFrames:
     """Frames a searcher kept (:meth:`StreamDecoder.set_lookback`): ids, t_s (s) and the
@@ -1157,15 +1169,28 @@ class StreamDecoder:
             exclude = exclude + [fl.bbox(margin=2.0)]
         return None
 
+    def prepare(self, height: int, width: int, dtype: Any) -> None:
+        """Make and touch the look buffers for frames of this size now (the daemon, before
+        its first frame: their page faults are ~0.1 s here, and the first acquisition
+        happens while frames arrive)."""
+        self._buffers(np.empty((int(height), int(width)), dtype), self.settings.acquire_frames + self.LOOK_SPARE, "look")
+
+    @property
+    def lookback_frames(self) -> int:
+        """Most recent whole frames this decoder keeps while it looks for its transmitter
+        (an acquisition's frames, or a searcher's look-back), for the daemon's block pool."""
+        return int(self._lookback or self.settings.acquire_frames)
+
     def _buffers(self, frame: np.ndarray, n: int, use: str = "catch") -> tuple[np.ndarray, np.ndarray]:
-        """(left, right) buffers of ``n`` frames like ``frame`` for ``use`` ("catch": a
-        find's kept frames, the frame loop; "look": a look, under :attr:`look_lock`), from
-        :attr:`catch_buffers`, made and touched on first use."""
-        key = (use, n) + frame.shape + (frame.dtype.str,)
-        buf = self.catch_buffers.get(key)
-        if buf is None:
-            buf = self.catch_buffers[key] = touched_buffers(n, frame.shape, frame.dtype)
-        return buf
+        """(left, right) buffers of at least ``n`` frames like ``frame`` for ``use``
+        ("catch": a find's kept frames, the frame loop; "look": a look, under
+        :attr:`look_lock`), from :attr:`catch_buffers` (by use, frame size and dtype), made
+        and touched when none is large enough."""
+        return shared_buffers(self.catch_buffers, frame, n, use)
+
+    LOOK_SPARE = 32
+    """Frames a look's buffers hold beyond ``acquire_frames`` (an acquisition's frames come
+    in whole blocks: up to a block more than it needs)."""
 
     def set_lookback(self, search_every: int, lookback: int, *, look_async: bool = False) -> None:
         """Search every ``search_every`` frames (on the last ``acquire_frames``) and keep

@@ -319,9 +319,10 @@ class _Run:
         self.fps = cfg.camera.fps
         # whole-frame blocks a searcher keeps (its look-back) made and touched now, not
         # while the first frames wait (several transmitters: hundreds of frames)
-        kept = int(getattr(self.decoder, "lookback_frames", 0))
+        kept = int(self.decoder.lookback_frames)
         self.blocks = BlockReader(self.ring, H, W, dtype, st.block_max, self.fps, st.block_wait_ms / 1000,
-                                  pool_blocks=-(-kept // st.block_max) + 3 if kept else 0)
+                                  pool_blocks=-(-kept // st.block_max) + 3)
+        self.decoder.prepare(H, W, dtype)  # its look buffers, touched now too
         self._factory = functools.partial(make_stereo, cfg)
         self._cam_settings = (settings_from_config(cfg, "left"), settings_from_config(cfg, "right"))
         self._new_acquisition = functools.partial(AcquisitionProcess, self._factory, self.ring,
