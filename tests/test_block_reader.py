@@ -4,6 +4,8 @@ arrival kept per pair, a short block when the ring runs dry, the rest discarded.
 
 from __future__ import annotations
 
+import time
+
 import numpy as np
 
 from iscd.rig.ringbuffer import StereoRing
@@ -95,5 +97,34 @@ def test_whole_frame_arrays_are_reused_once_nothing_holds_them() -> None:
             handed.append(id(rd.left) == first)
         assert any(handed)  # free again: handed out within one turn of the pool
         assert len(rd._pool) == 3  # no new arrays were needed
+    finally:
+        ring.close()
+
+
+def test_paced_whole_frame_block_taken_in_two_halves_is_whole_and_in_order() -> None:
+    """With pacing, whole frames are taken as the first half is in and then the rest (the
+    copy overlaps the arrival): the block is still every pair once, in order, each its own
+    content, whatever the writer's timing (a generous fill wait: nothing here races a clock)."""
+    import threading
+
+    ring = StereoRing.create(height=24, width=32, capacity=64, max_held=16)
+    try:
+        rd = BlockReader(ring, 24, 32, np.uint8, block_max=16, fps=1000.0, block_wait_s=5.0)
+
+        def writer() -> None:
+            for fid in range(16):
+                ring.write(_frame(fid, 0), _frame(fid, 1), frame_id=fid)
+                time.sleep(0.001)
+
+        t = threading.Thread(target=writer)
+        t.start()
+        try:
+            assert rd.read(None, pace=True) == 16
+        finally:
+            t.join()
+        assert rd.ids.tolist() == list(range(16))
+        for i in range(16):
+            assert np.array_equal(rd.left[i], _frame(i, 0)) and np.array_equal(rd.right[i], _frame(i, 1))
+        assert ring.queued == 0
     finally:
         ring.close()

@@ -105,34 +105,47 @@ class BlockReader:
         t_fill = time.monotonic() + self.block_wait_s
         if pace:
             missing = B - ring.queued
+            if windows is None and missing > B // 2 + 1:
+                # whole frames (0.5 MB a pair): the first half taken as soon as it is in,
+                # its copy overlapping the second half's arrival, so that half as much is
+                # left to copy after the block's last pair (the latency)
+                time.sleep(min(self.block_wait_s, (missing - B // 2) / self.fps))
+                n = self._take(ring.read_batch(B, timeout_s=0.0), windows, n)
+                missing = B - n - ring.queued
             if missing > 1:
-                time.sleep(min(self.block_wait_s, (missing - 1) / self.fps))
+                time.sleep(max(0.0, min(t_fill - time.monotonic(), (missing - 1) / self.fps)))
         while n < B:
             timeout = max(0.0, t_fill - time.monotonic()) if n else 0.05
             slots = ring.read_batch(B - n, timeout_s=timeout)
             if not slots:
                 break
-            try:
-                for slot in slots:
-                    if windows is None:
-                        self.left[n] = slot.left
-                        self.right[n] = slot.right
-                    else:
-                        (ax0, ay0, ax1, ay1), (bx0, by0, bx1, by1) = windows
-                        self.left[n, ay0:ay1, ax0:ax1] = slot.left[ay0:ay1, ax0:ax1]
-                        self.right[n, by0:by1, bx0:bx1] = slot.right[by0:by1, bx0:bx1]
-                    self.ids[n] = slot.frame_id
-                    self.t_s[n] = slot.ts_left_ns * 1e-9 if slot.ts_left_ns else slot.frame_id / self.fps
-                    self.arrival_ns[n] = slot.arrival_ns
-                    if self.tap is not None:
-                        self.tap.pair(slot, windows, self.blocks_read)
-                    n += 1
-            finally:
-                ring.release_batch(slots)
+            n = self._take(slots, windows, n)
             if time.monotonic() >= t_fill:
                 break
         if n:
             self.blocks_read += 1
+        return n
+
+    def _take(self, slots: list, windows: tuple[Window, Window] | None, n: int) -> int:
+        """Copy ``slots`` (read from the ring) into the block from pair ``n`` on, then give
+        them back; returns the pairs in the block now."""
+        try:
+            for slot in slots:
+                if windows is None:
+                    self.left[n] = slot.left
+                    self.right[n] = slot.right
+                else:
+                    (ax0, ay0, ax1, ay1), (bx0, by0, bx1, by1) = windows
+                    self.left[n, ay0:ay1, ax0:ax1] = slot.left[ay0:ay1, ax0:ax1]
+                    self.right[n, by0:by1, bx0:bx1] = slot.right[by0:by1, bx0:bx1]
+                self.ids[n] = slot.frame_id
+                self.t_s[n] = slot.ts_left_ns * 1e-9 if slot.ts_left_ns else slot.frame_id / self.fps
+                self.arrival_ns[n] = slot.arrival_ns
+                if self.tap is not None:
+                    self.tap.pair(slot, windows, self.blocks_read)
+                n += 1
+        finally:
+            self.ring.release_batch(slots)
         return n
 
     def _free_pair(self) -> tuple[np.ndarray, np.ndarray]:
