@@ -128,3 +128,44 @@ def test_paced_whole_frame_block_taken_in_two_halves_is_whole_and_in_order() -> 
         assert ring.queued == 0
     finally:
         ring.close()
+
+
+def test_on_part_gets_the_first_pairs_while_the_rest_is_still_coming() -> None:
+    """``read(on_part=...)`` (the daemon's ranging ahead): called once, with the pairs taken
+    so far, before the rest of the block is written (the writer waits for the call: no
+    clock raced), windows copied; the block then whole and in order."""
+    import threading
+
+    ring = StereoRing.create(height=24, width=32, capacity=64, max_held=16)
+    try:
+        rd = BlockReader(ring, 24, 32, np.uint8, block_max=16, fps=1000.0, block_wait_s=5.0)
+        win = ((2, 3, 10, 12), (4, 3, 12, 12))
+        for fid in range(4):
+            ring.write(_frame(fid, 0), _frame(fid, 1), frame_id=fid)
+        called = threading.Event()
+        seen: list[tuple[int, list[int], bool]] = []
+
+        def on_part(k: int) -> None:
+            (x0, y0, x1, y1) = win[0]
+            seen.append((k, rd.ids[:k].tolist(),
+                         all(np.array_equal(rd.left[i, y0:y1, x0:x1], _frame(i, 0)[y0:y1, x0:x1]) for i in range(k))))
+            called.set()
+
+        def writer() -> None:
+            called.wait(10.0)
+            for fid in range(4, 16):
+                ring.write(_frame(fid, 0), _frame(fid, 1), frame_id=fid)
+
+        t = threading.Thread(target=writer)
+        t.start()
+        try:
+            assert rd.read(win, pace=True, on_part=on_part) == 16
+        finally:
+            called.set()
+            t.join()
+        assert seen == [(4, [0, 1, 2, 3], True)]
+        assert rd.ids.tolist() == list(range(16))
+        (x0, y0, x1, y1) = win[1]
+        assert all(np.array_equal(rd.right[i, y0:y1, x0:x1], _frame(i, 1)[y0:y1, x0:x1]) for i in range(16))
+    finally:
+        ring.close()

@@ -142,14 +142,18 @@ def test_block_notes_say_what_the_decoder_shed(tmp_path: Path) -> None:
             w.append(i, i, i, left, right, (0, 0, 8, 8), (0, 0, 8, 8), block=i // 4)
             if i == 3:
                 w.note(3, 0, ranging_every=4, per_led=False)
+            if i == 7:
+                w.note(7, 1, ranging_every=1, per_led=True, ahead=3)
     with PairSession(p) as s:
         r = s.files[0]
-        assert r.n_pairs == 8 and r.notes == {0: (4, False)} and r.frame_ids.tolist() == list(range(8))
+        assert r.n_pairs == 8 and r.notes == {0: (4, False, 0), 1: (1, True, 3)}
+        assert r.frame_ids.tolist() == list(range(8))
         assert s.block_service(0) == (4, False) and s.block_service(1) == (1, True)
+        assert s.block_ahead(0) == 0 and s.block_ahead(1) == 3 and s.block_ahead(2) == 0
         assert [b.block for b in s.iter_blocks()] == [0, 1]
     data = p.read_bytes()
     cut = tmp_path / "cut.iscr"
     cut.write_bytes(data[:int(r.offsets[5]) + 10])
     with pytest.warns(Warning, match="not sealed"):
         c = PairRecording(cut)
-    assert c.n_pairs == 5 and c.notes == {0: (4, False)}
+    assert c.n_pairs == 5 and c.notes == {0: (4, False, 0)}

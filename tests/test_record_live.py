@@ -109,7 +109,11 @@ def test_roi_recording_replays_to_the_live_packets(tmp_path: Path) -> None:
     assert info["pairs"] == final["pairs_decoded"] and info["bytes_per_pair_mean"] < 30_000
     print(f"roi: {info['pairs']} pairs, {info['bytes_per_pair_mean']:.0f} B a pair, "
           f"{final['record_mb']:.1f} MiB; {len(lp)} packets and {len(rng(live))} ranges equal after replay "
-          f"({final['ranging_skipped']} frames' ranging shed live)")
+          f"({final['ranging_skipped']} frames' ranging shed live, {final['pairs_ranged_ahead']} ranged ahead)")
+    # the blocks whose first pairs were ranged before the rest was in say so in their notes
+    # (the replay ranges them apart too: the equality above holds either way)
+    noted = sum(v[2] for r in PairSession(folder).files for v in r.notes.values())
+    assert noted == final["pairs_ranged_ahead"]
 
 
 def test_full_recording_is_the_rigs_frames_and_late_pairs_are_counted(tmp_path: Path,

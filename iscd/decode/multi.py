@@ -324,6 +324,28 @@ class MultiDecoder:
         out += self._housekeeping(last)
         return out
 
+    def range_ahead(self, frame_ids: np.ndarray, t_s: np.ndarray, left: np.ndarray, right: np.ndarray,
+                    *, ranging: bool = True, ranging_every: int = 1, per_led: bool = True) -> list[dict]:
+        """:meth:`StreamDecoder.range_ahead` for every tracked transmitter (records with
+        their ``tx``; a candidate's held until its header, as its other records)."""
+        for s in self.slots:
+            s.dec._ranged_ahead = None
+        if self._deferred or self._search_block:
+            return []
+        out: list[dict] = []
+        for s in self.slots:
+            if s.dec.track is not None:
+                out += self._route(s, s.dec.range_ahead(frame_ids, t_s, left, right, ranging=ranging,
+                                                       ranging_every=ranging_every, per_led=per_led))
+        return out
+
+    @property
+    def ranged_ahead(self) -> int:
+        """Pairs whose range records :meth:`range_ahead` put out for every tracked
+        transmitter (0 when one of them did not, or none is tracked)."""
+        counts = [s.dec.ranged_ahead for s in self.slots if s.dec.track is not None]
+        return min(counts) if counts else 0
+
     def _push_slot(self, s: _Slot, frame_ids, t_s, left, right, *, defer: bool = False,
                    adopt: KeptFrames | None = None, **kw: Any) -> list[dict]:
         had = s.dec.track is not None

@@ -304,6 +304,8 @@ class StreamDecoder:
         """detection attempts made (each on ``acquire_frames`` frames)"""
         self.allowed_shapes: set[tuple[int, int]] | None = None
         """auto shape: only arrays of these (rows, cols) are taken (None: any)"""
+        self._ranged_ahead: tuple[int, int] | None = None
+        """(first frame id, count) ranged by :meth:`range_ahead` for the next push"""
         self.catch_buffers: dict[tuple, tuple[np.ndarray, np.ndarray]] = {}
         """buffers a searcher's kept frames are decoded through and its looks stack their
         frames into, by (use, frames, H, W, dtype) (:class:`iscd.decode.multi.MultiDecoder`
@@ -575,22 +577,17 @@ class StreamDecoder:
         if not defer:
             assert lum_l is not None and lum_r is not None
             records += self._demod_block(frame_ids, t_s, lum_l, lum_r)
-        ranged = np.arange(n) if ranging_every <= 1 else np.flatnonzero(frame_ids % int(ranging_every) == 0)
-        if self.ranger is not None and (not ranging or ranged.size == 0):
-            self.counters["ranging_skipped"] += n
-        elif self.ranger is not None:
-            self.counters["ranging_skipped"] += n - ranged.size
-            rl, rr = (left, right) if ranged.size == n else (left[ranged], right[ranged])
-            res = self.ranger.measure(rl, rr, tr.left, tr.right)
-            z, dsp, sg = res.z_m.tolist(), res.disparity_px.tolist(), res.sigma_m.tolist()
-            fid, ts = frame_ids.tolist(), t_s.tolist()
-            for k, i in enumerate(ranged.tolist()):
-                if math.isfinite(z[k]):
-                    records.append(RangeRecord(tx=self.tx_index, frame=fid[i], t_s=ts[i], z_m=z[k],
-                                               disparity_px=dsp[k], sigma_m=sg[k]).to_json())
-            self.counters["ranges"] += int(np.isfinite(res.z_m).sum())
-            if self.kalman is not None:
-                records += self._filtered(frame_ids[ranged], t_s[ranged], res.z_m, res.sigma_m)
+        # frames ranged ahead (range_ahead: the first part of this very block) are not again
+        a0 = 0
+        if self._ranged_ahead is not None:
+            first, count = self._ranged_ahead
+            self._ranged_ahead = None
+            if n and int(frame_ids[0]) == first:
+                a0 = min(count, n)
+        some = ranging and (ranging_every <= 1 or bool(np.any(frame_ids % int(ranging_every) == 0)))
+        if self.ranger is not None:
+            records += self._range(frame_ids[a0:], t_s[a0:], left[a0:], right[a0:], ranging, ranging_every)
+        if self.ranger is not None and some:
             if self.led_ranger is not None and per_led:
                 records += self._per_led(frame_ids, t_s, left, right)
             elif self.led_ranger is not None:
@@ -600,6 +597,75 @@ class StreamDecoder:
             return records
         self._retrack(frame_ids, left, right)
         return self._collect() + records
+
+    def _range(self, frame_ids: np.ndarray, t_s: np.ndarray, left: np.ndarray, right: np.ndarray,
+               ranging: bool, ranging_every: int) -> list[dict]:
+        """The range records of these frames with the current fits (the block's ranging in
+        :meth:`push`, or a block's first part in :meth:`range_ahead`), counted."""
+        tr = self.track
+        assert tr is not None and self.ranger is not None
+        n = len(frame_ids)
+        records: list[dict] = []
+        ranged = np.arange(n) if ranging_every <= 1 else np.flatnonzero(frame_ids % int(ranging_every) == 0)
+        if not ranging or ranged.size == 0:
+            self.counters["ranging_skipped"] += n
+            return records
+        self.counters["ranging_skipped"] += n - ranged.size
+        rl, rr = (left, right) if ranged.size == n else (left[ranged], right[ranged])
+        res = self.ranger.measure(rl, rr, tr.left, tr.right)
+        z, dsp, sg = res.z_m.tolist(), res.disparity_px.tolist(), res.sigma_m.tolist()
+        fid, ts = frame_ids.tolist(), t_s.tolist()
+        for k, i in enumerate(ranged.tolist()):
+            if math.isfinite(z[k]):
+                records.append(RangeRecord(tx=self.tx_index, frame=fid[i], t_s=ts[i], z_m=z[k],
+                                           disparity_px=dsp[k], sigma_m=sg[k]).to_json())
+        self.counters["ranges"] += int(np.isfinite(res.z_m).sum())
+        if self.kalman is not None:
+            records += self._filtered(frame_ids[ranged], t_s[ranged], res.z_m, res.sigma_m)
+        return records
+
+    def range_ahead(self, frame_ids: np.ndarray, t_s: np.ndarray, left: np.ndarray, right: np.ndarray,
+                    *, ranging: bool = True, ranging_every: int = 1, per_led: bool = True) -> list[dict]:
+        """Range the first pairs of the next block now, before the rest of it is in (the
+        daemon: half a block's filling less latency for them); the :meth:`push` of the
+        whole block (starting with these same frames, unchanged) then ranges only the
+        others. The ranges use the fits the last block left, as the push would: only the
+        running background's minimum is taken over fewer frames at a time. Nothing (an
+        empty list, and the push ranges them all) while no transmitter is tracked or a
+        deferred block is pending, nor while per-LED ranges are on (``per_led`` and a
+        ``[ranging] per_led`` ranger: they need the block's luminance, so these pairs'
+        records are all out only after the push).
+
+        Parameters
+        ----------
+        frame_ids, t_s : ndarray
+            (k,) the pairs' left-camera frame ids and exposure starts, s.
+        left, right : ndarray
+            (k, H, W) their images, DN (the block's buffers: the push gets them again).
+        ranging, ranging_every, per_led : bool, int, bool
+            As :meth:`push` (what the overload policy sheds); the push must get the same.
+
+        Returns
+        -------
+        list of dict
+            The range records (and filtered ranges) of these pairs; :attr:`ranged_ahead`
+            then says how many pairs they cover.
+        """
+        self._ranged_ahead = None
+        k = len(frame_ids)
+        if (k == 0 or self.track is None or self.ranger is None or self._reacquire
+                or self._deferred is not None or (per_led and self.led_ranger is not None)):
+            return []
+        frame_ids = np.asarray(frame_ids, dtype=np.int64)
+        t_s = np.asarray(t_s, dtype=np.float64)
+        records = self._range(frame_ids, t_s, left, right, ranging, ranging_every)
+        self._ranged_ahead = (int(frame_ids[0]), k)
+        return records
+
+    @property
+    def ranged_ahead(self) -> int:
+        """Pairs the last :meth:`range_ahead` ranged (0: none; the next push ranges them all)."""
+        return self._ranged_ahead[1] if self._ranged_ahead is not None else 0
 
     def finish_block(self) -> list[dict]:
         """The rest of a block pushed with ``defer=True``: the LEDs followed and their

@@ -292,6 +292,10 @@ def _replay_stereo(inp: ReplayInputs, out: str | Path, warn: Warn, rotate_bytes:
                 prev = int(ids[-1])
                 # what the live decoder shed on this block (overload), so that the ranges match too
                 every, per_led = session.block_service(blk.block)
+                ahead = session.block_ahead(blk.block)  # its first pairs ranged apart, as live
+                if 0 < ahead < len(ids):
+                    emit(dec.range_ahead(ids[:ahead], t_s[:ahead], blk.left[:ahead], blk.right[:ahead],
+                                         ranging_every=every, per_led=per_led))
                 emit(dec.push(ids, t_s, blk.left, blk.right, ranging_every=every, per_led=per_led))
                 last = (int(ids[-1]), float(t_s[-1]))
             emit(dec.finish())

@@ -45,8 +45,10 @@ VERSION = 2
 SYNC = b"ISCP"
 NOTE_SYNC = b"ISCB"
 """Sync of a block note: a header alone (no pixels, windows 0), ``block`` the decoder block,
-``frame_id`` its last pair's, flags = ranging_every | per_led << 16 (what the daemon's
-overload policy let the decoder do on that block; written only when it shed something)."""
+``frame_id`` its last pair's, flags = ranging_every | per_led << 16 | ahead << 17 (what the
+daemon's overload policy let the decoder do on that block, and how many of its first pairs
+were ranged ahead, before the rest was in; written only when it shed something or ranged
+ahead; a note without ahead bits: 0)."""
 INDEX_SYNC = b"ISCX"
 SEAL_MAGIC = b"ISCRSEAL"
 PAIR_HEADER = struct.Struct("<4sIqqqq4H4HII")
@@ -113,19 +115,20 @@ _write = os.write
 """The system call that writes (a test injects a full or slow disk here)."""
 
 
-def pack_note_into(buf: np.ndarray, off: int, frame_id: int, block: int, ranging_every: int, per_led: bool) -> int:
+def pack_note_into(buf: np.ndarray, off: int, frame_id: int, block: int, ranging_every: int, per_led: bool,
+                   ahead: int = 0) -> int:
     """Write a block note (see :data:`NOTE_SYNC`) into ``buf`` at byte ``off``; returns its
     size (64 bytes)."""
-    flags = (int(ranging_every) & 0xFFFF) | (int(bool(per_led)) << 16)
+    flags = (int(ranging_every) & 0xFFFF) | (int(bool(per_led)) << 16) | ((int(ahead) & 0x7FFF) << 17)
     PAIR_HEADER.pack_into(buf, off, NOTE_SYNC, PAIR_HEADER_SIZE, frame_id, 0, 0, block, 0, 0, 0, 0, 0, 0, 0, 0,
                           flags, 0)
     struct.pack_into("<I", buf, off + CRC_SPAN, zlib.crc32(buf[off:off + CRC_SPAN]))
     return PAIR_HEADER_SIZE
 
 
-def note_flags(flags: int) -> tuple[int, bool]:
-    """(ranging_every, per_led) of a block note's flags."""
-    return max(int(flags) & 0xFFFF, 1), bool((int(flags) >> 16) & 1)
+def note_flags(flags: int) -> tuple[int, bool, int]:
+    """(ranging_every, per_led, pairs ranged ahead) of a block note's flags."""
+    return max(int(flags) & 0xFFFF, 1), bool((int(flags) >> 16) & 1), (int(flags) >> 17) & 0x7FFF
 
 
 def _write_all(fd: int, data: memoryview) -> None:
@@ -265,10 +268,11 @@ class PairFileWriter:
                            wl == full and wr == full)
         self.write_records(buf.data, [n])
 
-    def note(self, frame_id: int, block: int, ranging_every: int, per_led: bool) -> None:
-        """Append a block note (what the decoder shed on ``block``)."""
+    def note(self, frame_id: int, block: int, ranging_every: int, per_led: bool, ahead: int = 0) -> None:
+        """Append a block note (what the decoder shed on ``block``, the pairs it ranged ahead)."""
         buf = np.empty(PAIR_HEADER_SIZE, np.uint8)
-        self.write_records(buf.data, [pack_note_into(buf, 0, frame_id, block, ranging_every, per_led)], pairs=0)
+        self.write_records(buf.data, [pack_note_into(buf, 0, frame_id, block, ranging_every, per_led, ahead)],
+                           pairs=0)
 
     def sync(self) -> None:
         """fsync what was written (survives a power cut)."""

@@ -95,10 +95,11 @@ class PairRecording:
             hdr, offsets = hdr
         end = int(offsets[-1] + hdr["size"][-1]) if offsets.size else self.data_offset
         is_note = hdr["sync"] == NOTE_SYNC
-        self.notes: dict[int, tuple[int, bool]] = {
+        self.notes: dict[int, tuple[int, bool, int]] = {
             int(b): note_flags(int(f)) for b, f in zip(hdr["block"][is_note], hdr["flags"][is_note])}
-        """block -> (ranging_every, per_led): what the live decoder was let do on that block
-        (blocks without a note: everything)"""
+        """block -> (ranging_every, per_led, ranged ahead): what the live decoder was let do
+        on that block and how many of its first pairs it ranged before the rest was in
+        (blocks without a note: everything, nothing ahead)"""
         hdr, offsets = hdr[~is_note], offsets[~is_note]
         self.offsets = offsets
         self.frame_ids = hdr["frame_id"].astype(np.int64)
@@ -394,8 +395,17 @@ class PairSession:
         policy's shedding, from the block notes; (1, True) without a note)."""
         for r in self.files:
             if block in r.notes:
-                return r.notes[block]
+                return r.notes[block][:2]
         return 1, True
+
+    def block_ahead(self, block: int) -> int:
+        """How many of ``block``'s first pairs the live decoder ranged before the rest was in
+        (``range_ahead``, from the block notes; 0 without a note): a replay ranges them
+        apart too, so that its ranges are the live ones."""
+        for r in self.files:
+            if block in r.notes:
+                return r.notes[block][2]
+        return 0
 
     def iter_blocks(self, emulate_intake: bool = True, max_pairs: int = 4096) -> Iterator["Block"]:
         """The pairs in the blocks the live decoder took them in (consecutive pairs with the

@@ -200,17 +200,18 @@ class Recorder:
         self.spool.commit(off, size, fid)
         return True
 
-    def note_block(self, block: int, ranging_every: int, per_led: bool) -> None:
-        """What the decoder was let do on ``block`` (the overload policy's shedding), stored
-        after its pairs as a block note so that a replay sheds the same; only called when
-        something was shed. A note that does not fit in the spool is left out."""
+    def note_block(self, block: int, ranging_every: int, per_led: bool, ahead: int = 0) -> None:
+        """What the decoder was let do on ``block`` (the overload policy's shedding) and how
+        many of its first pairs it ranged ahead, stored after its pairs as a block note so
+        that a replay does the same; only called when something was shed or ranged ahead. A
+        note that does not fit in the spool is left out."""
         state = self._state
         if state in (FAILED, CLOSED) or self._last_id is None:
             return
         off = self.spool.reserve(PAIR_HEADER_SIZE)
         if off is None:
             return
-        pack_note_into(self.spool.buf, off, self._last_id, int(block), int(ranging_every), bool(per_led))
+        pack_note_into(self.spool.buf, off, self._last_id, int(block), int(ranging_every), bool(per_led), int(ahead))
         self.spool.commit(off, PAIR_HEADER_SIZE, self._last_id, pair=False)
 
     def trigger(self, reason: str) -> None:

@@ -30,7 +30,7 @@ from __future__ import annotations
 
 import sys
 import time
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 
@@ -90,10 +90,14 @@ class BlockReader:
                 a.fill(0)  # touched now, not while frames wait
             self._pool.append(pair)
 
-    def read(self, windows: tuple[Window, Window] | None, *, pace: bool = True) -> int:
+    def read(self, windows: tuple[Window, Window] | None, *, pace: bool = True,
+             on_part: Callable[[int], None] | None = None) -> int:
         """Take the next block; returns how many pairs it holds (0: none came within the
         wait). ``windows``: the (left, right) pixel windows to copy (None: whole frames).
-        ``pace``: sleep until the block is about due first (False while draining)."""
+        ``pace``: sleep until the block is about due first (False while draining).
+        ``on_part(k)``: called once the block's first ``k`` pairs (about half of it) are in
+        and copied, while the rest is still coming (paced reads only; not when the whole
+        block was already queued): the daemon ranges them then (``range_ahead``)."""
         ring, B = self.ring, self.block_max
         n = 0
         if windows is None:  # whole frames: arrays the decoder may keep (see the module docstring)
@@ -105,12 +109,14 @@ class BlockReader:
         t_fill = time.monotonic() + self.block_wait_s
         if pace:
             missing = B - ring.queued
-            if windows is None and missing > B // 2 + 1:
-                # whole frames (0.5 MB a pair): the first half taken as soon as it is in,
-                # its copy overlapping the second half's arrival, so that half as much is
-                # left to copy after the block's last pair (the latency)
+            if (windows is None or on_part is not None) and missing > B // 2 + 1:
+                # the first half taken as soon as it is in: whole frames (0.5 MB a pair)
+                # copied while the second half arrives, so that half as much is left to
+                # copy after the block's last pair (the latency), and handed to on_part
                 time.sleep(min(self.block_wait_s, (missing - B // 2) / self.fps))
                 n = self._take(ring.read_batch(B, timeout_s=0.0), windows, n)
+                if on_part is not None and 0 < n < B:
+                    on_part(n)
                 missing = B - n - ring.queued
             if missing > 1:
                 time.sleep(max(0.0, min(t_fill - time.monotonic(), (missing - 1) / self.fps)))

@@ -235,7 +235,7 @@ class Daemon:
             if not draining and not run.acq.is_alive():
                 run.restart_acquisition()
                 continue
-            n = run.blocks.read(run.decoder.needed_windows(), pace=not draining)
+            n = run.blocks.read(run.decoder.needed_windows(), pace=not draining, on_part=run.range_part)
             if n == 0:
                 if run.ring.finished or (draining and (not run.acq.is_alive() or now > drain_until)):
                     if draining and not run.ring.finished:
@@ -279,12 +279,16 @@ class _Run:
         self.cpu = CpuMeter()
         self.unpaired_watch = _UnpairedWatch()
         self.counters = {"pairs_decoded": 0, "pair_gaps": 0, "decode_errors": 0, "acquisition_restarts": 0,
-                         "stop_dropped": 0, "stop_demod_abandoned": 0}
+                         "stop_dropped": 0, "stop_demod_abandoned": 0, "pairs_ranged_ahead": 0}
         self.min_fps = 2 * cfg.transmitter.symbol_rate_hz  # iscd.core.config's check of camera.fps
         self.fps_checked: dict[str, int] = {}
         self.fps_error: str | None = None
         self.fps_mismatch = False
         self.last_frame = -1
+        self.svc: Any = None
+        """the overload policy's service for the block being read (chosen at its first part)"""
+        self.ahead = 0
+        """pairs of the block being read whose range records are already out (range_part)"""
         self.last_t_s: float | None = None
         self.t_start = self.next_stats = self.t_spawn = time.monotonic()
         # --duration counts from when the acquisition runs (its cameras opened and started),
@@ -491,6 +495,30 @@ class _Run:
             self.outputs.write(r)  # never raises: an output must never stop decoding
         self.daemon.records_written += len(records)
 
+    def range_part(self, k: int) -> None:
+        """The first ``k`` pairs of the block being read are in (the rest still coming):
+        their ranges out now (``decoder.range_ahead``: the filling of the block's second
+        half no longer adds to their latency), their latency stamped; :meth:`decode_block`
+        ranges the others. The overload policy's service is chosen here for the whole
+        block. A decoder error here is counted and logged as in :meth:`decode_block` (the
+        push then ranges every pair)."""
+        b = self.blocks
+        self.svc = self.overload.service(self.ring.stats().queued / self.ring.capacity)
+        try:
+            records = self.decoder.range_ahead(b.ids[:k].copy(), b.t_s[:k].copy(), b.left[:k], b.right[:k],
+                                               ranging_every=self.svc.ranging_every, per_led=self.svc.per_led)
+            self.ahead = self.decoder.ranged_ahead
+        except Exception:
+            self.counters["decode_errors"] += 1
+            log.exception("ranging frames %d..%d ahead failed", int(b.ids[0]), int(b.ids[k - 1]))
+            records, self.ahead = [], 0
+        if self.ahead:
+            self.counters["pairs_ranged_ahead"] += self.ahead
+            lat = (time.monotonic_ns() - b.arrival_ns[:self.ahead]) / 1e6
+            self.lat.add(lat)
+            self.lat_run.add(lat)
+        self.emit(records)
+
     def decode_block(self, n: int) -> None:
         """The block of ``n`` pairs in the reader decoded: its ranges out first, then its
         demodulation hand-off and tracking update (``finish_block``); latency and the
@@ -503,10 +531,14 @@ class _Run:
         prev = self.last_frame if self.last_frame >= 0 else int(ids[0]) - 1
         steps = np.diff(np.concatenate([[prev], ids[:n]]))
         counters["pair_gaps"] += int(np.clip(steps - 1, 0, None).sum())
-        # falling behind: shed work in the policy's order so that no packet is lost
-        svc = self.overload.service(self.ring.stats().queued / self.ring.capacity)
-        if self.recorder is not None:  # what is shed goes into the recording: its replay sheds the same
-            self.recorder.note_block(b.blocks_read - 1, svc.ranging_every, svc.per_led)
+        # falling behind: shed work in the policy's order so that no packet is lost (the
+        # service chosen at the block's first part, if it had one: range_part)
+        svc, self.svc = self.svc, None
+        ahead, self.ahead = self.ahead, 0
+        if svc is None:
+            svc = self.overload.service(self.ring.stats().queued / self.ring.capacity)
+        if self.recorder is not None:  # what is shed (and ranged ahead) goes into the recording: its replay does the same
+            self.recorder.note_block(b.blocks_read - 1, svc.ranging_every, svc.per_led, ahead)
         try:
             # the block's ranges first; its demodulation hand-off and tracking update
             # after they are out (finish_block below)
@@ -523,7 +555,7 @@ class _Run:
         counters["pairs_decoded"] += n
         self.last_frame = int(ids[n - 1])
         self.last_t_s = float(t_s[n - 1])
-        lat = (done_ns - b.arrival_ns[:n]) / 1e6
+        lat = (done_ns - b.arrival_ns[ahead:n]) / 1e6  # the first `ahead` were stamped in range_part
         self.lat.add(lat)
         self.lat_run.add(lat)
         # where a block's latency goes: waiting for its last pair, then decoding it
@@ -619,6 +651,8 @@ class _Run:
                "following_resets": decoder.counters.get("following_resets", 0),
                "tracking": decoder.track is not None,
                "latency_ms_p50": p50, "latency_ms_p99": p99,
+               # pairs whose ranges went out before the rest of their block was in (range_part)
+               "pairs_ranged_ahead": counters["pairs_ranged_ahead"],
                # the same over every pair since the run started (0.1 ms bins)
                "latency_run_ms_p50": self.lat_run.percentile(50), "latency_run_ms_p99": self.lat_run.percentile(99),
                "latency_run_ms_max": round(self.lat_run.max_ms, 3) if self.lat_run.n else None,

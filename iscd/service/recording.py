@@ -72,11 +72,12 @@ class LiveRecording:
                 if r.get("type") == "packet" and not r.get("crc_ok", True):
                     self.recorder.trigger("bad packet")
 
-    def note_block(self, block: int, ranging_every: int, per_led: bool) -> None:
-        """What the overload policy let the decoder do on ``block``; stored (a block note)
-        only when it shed something, so that a replay sheds the same."""
-        if ranging_every != 1 or not per_led:
-            self.recorder.note_block(block, ranging_every, per_led)
+    def note_block(self, block: int, ranging_every: int, per_led: bool, ahead: int = 0) -> None:
+        """What the overload policy let the decoder do on ``block`` and how many of its first
+        pairs were ranged ahead; stored (a block note) only when it shed something or ranged
+        ahead, so that a replay does the same."""
+        if ranging_every != 1 or not per_led or ahead:
+            self.recorder.note_block(block, ranging_every, per_led, ahead)
 
     def trigger(self, reason: str) -> None:
         """Trigger the blackbox (other modes: nothing); safe from a signal handler."""
