@@ -95,9 +95,10 @@ class BlockReader:
         """Take the next block; returns how many pairs it holds (0: none came within the
         wait). ``windows``: the (left, right) pixel windows to copy (None: whole frames).
         ``pace``: sleep until the block is about due first (False while draining).
-        ``on_part(k)``: called once the block's first ``k`` pairs (about half of it) are in
-        and copied, while the rest is still coming (paced reads only; not when the whole
-        block was already queued): the daemon ranges them then (``range_ahead``)."""
+        ``on_part(k)``: called once the block's first ``k`` pairs (about half of it, or what
+        was already queued when the read began) are in and copied, while the rest is still
+        coming (paced reads only; not when the whole block was already queued): the daemon
+        ranges them then (``range_ahead``)."""
         ring, B = self.ring, self.block_max
         n = 0
         if windows is None:  # whole frames: arrays the decoder may keep (see the module docstring)
@@ -109,11 +110,13 @@ class BlockReader:
         t_fill = time.monotonic() + self.block_wait_s
         if pace:
             missing = B - ring.queued
-            if (windows is None or on_part is not None) and missing > B // 2 + 1:
-                # the first half taken as soon as it is in: whole frames (0.5 MB a pair)
+            if (windows is None or on_part is not None) and missing > 1:
+                # the first half taken as soon as it is in (at once if the last block's
+                # decoding took longer than its filling): whole frames (0.5 MB a pair)
                 # copied while the second half arrives, so that half as much is left to
                 # copy after the block's last pair (the latency), and handed to on_part
-                time.sleep(min(self.block_wait_s, (missing - B // 2) / self.fps))
+                if missing > B // 2 + 1:
+                    time.sleep(min(self.block_wait_s, (missing - B // 2) / self.fps))
                 n = self._take(ring.read_batch(B, timeout_s=0.0), windows, n)
                 if on_part is not None and 0 < n < B:
                     on_part(n)
