@@ -75,3 +75,19 @@ def test_nothing_ahead_while_per_led_ranges_need_the_luminance(rendered_default)
     assert set(counts) == {0}
     whole, _ = _run(StreamDecoder(cfg), L[:128], R[:128], 0)
     assert split == whole
+
+
+def test_dropped_ahead_is_ranged_by_the_push(rendered_default) -> None:
+    """After a range_ahead whose records were lost (the daemon's error path), drop_ahead
+    makes the push range every pair again: no frame without its range."""
+    L, R = rendered_default
+    dec = StreamDecoder(default_config())
+    out: list[dict] = []
+    for s in range(0, 128, 16):
+        ids = np.arange(s, s + 16)
+        dec.range_ahead(ids[:8], ids[:8] / 1000.0, L[s:s + 8], R[s:s + 8])  # records thrown away
+        dec.drop_ahead()
+        assert dec.ranged_ahead == 0
+        out += dec.push(ids, ids / 1000.0, L[s:s + 16], R[s:s + 16])
+    whole, _ = _run(StreamDecoder(default_config()), L[:128], R[:128], 0)
+    assert sorted(_ranges(out)) == sorted(_ranges(whole)) and len(_ranges(out)) > 30

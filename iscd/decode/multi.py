@@ -328,8 +328,7 @@ class MultiDecoder:
                     *, ranging: bool = True, ranging_every: int = 1, per_led: bool = True) -> list[dict]:
         """:meth:`StreamDecoder.range_ahead` for every tracked transmitter (records with
         their ``tx``; a candidate's held until its header, as its other records)."""
-        for s in self.slots:
-            s.dec._ranged_ahead = None
+        self.drop_ahead()
         if self._deferred or self._search_block:
             return []
         out: list[dict] = []
@@ -345,6 +344,11 @@ class MultiDecoder:
         transmitter (0 when one of them did not, or none is tracked)."""
         counts = [s.dec.ranged_ahead for s in self.slots if s.dec.track is not None]
         return min(counts) if counts else 0
+
+    def drop_ahead(self) -> None:
+        """:meth:`StreamDecoder.drop_ahead` for every transmitter."""
+        for s in self.slots:
+            s.dec.drop_ahead()
 
     def _push_slot(self, s: _Slot, frame_ids, t_s, left, right, *, defer: bool = False,
                    adopt: KeptFrames | None = None, **kw: Any) -> list[dict]:

@@ -651,7 +651,7 @@ class StreamDecoder:
             The range records (and filtered ranges) of these pairs; :attr:`ranged_ahead`
             then says how many pairs they cover.
         """
-        self._ranged_ahead = None
+        self.drop_ahead()
         k = len(frame_ids)
         if (k == 0 or self.track is None or self.ranger is None or self._reacquire
                 or self._deferred is not None or (per_led and self.led_ranger is not None)):
@@ -666,6 +666,11 @@ class StreamDecoder:
     def ranged_ahead(self) -> int:
         """Pairs the last :meth:`range_ahead` ranged (0: none; the next push ranges them all)."""
         return self._ranged_ahead[1] if self._ranged_ahead is not None else 0
+
+    def drop_ahead(self) -> None:
+        """Forget what :meth:`range_ahead` ranged: the next push ranges every pair (after a
+        failed range_ahead, whose records were not put out)."""
+        self._ranged_ahead = None
 
     def finish_block(self) -> list[dict]:
         """The rest of a block pushed with ``defer=True``: the LEDs followed and their

@@ -511,6 +511,7 @@ class _Run:
         except Exception:
             self.counters["decode_errors"] += 1
             log.exception("ranging frames %d..%d ahead failed", int(b.ids[0]), int(b.ids[k - 1]))
+            self.decoder.drop_ahead()  # what a transmitter did range is not out: the push ranges it
             records, self.ahead = [], 0
         if self.ahead:
             self.counters["pairs_ranged_ahead"] += self.ahead
