@@ -13,6 +13,7 @@ import json
 import os
 import shutil
 import socket
+import xml.etree.ElementTree as ET
 from pathlib import Path
 from typing import Any
 
@@ -101,7 +102,9 @@ def test_the_summary_equals_iscd_replay_alone_on_each_recording(campaign12: Any,
         delivered += row["packets_delivered"]
     assert delivered >= N_RECORDINGS - 2  # the short recordings decode (not a test of the receiver)
     report = (out / "report.md").read_text()
-    assert all(r.name in report for r in recordings) and (out / "campaign.png").stat().st_size > 0
+    assert all(r.name in report for r in recordings) and "campaign.svg" in report
+    svg = ET.parse(out / "campaign.svg").getroot()  # well-formed; a name under each task's bars
+    assert [t.text for t in svg.iter("{http://www.w3.org/2000/svg}text")][-N_RECORDINGS:] == [r.name for r in recordings]
 
 
 def test_a_finished_campaign_run_again_does_no_work(campaign12: Any, runner2: Any) -> None:
@@ -277,3 +280,28 @@ def test_a_task_that_raises_becomes_its_error_result_and_the_others_go_on(runner
     assert out == [0, "#1: odd 1", 2, "#3: odd 3"]
     with pytest.raises(ValueError, match="odd 1"):  # without error_result the caller sees it
         runner2.map(_fails_on_odd, [1])
+
+
+def _worker_settings() -> tuple[Any, ...]:
+    import dask
+
+    return tuple(dask.config.get(k) for k in LEAN_KEYS)
+
+
+LEAN_KEYS = ("distributed.worker.profile.enabled", "distributed.admin.tick.interval",
+             "distributed.admin.system-monitor.interval", "distributed.worker.memory.monitor-interval")
+
+
+def test_the_local_cluster_runs_without_its_background_samplers_and_this_process_keeps_its_settings(
+        runner2: Any) -> None:
+    import dask
+
+    from iscd.campaign.runner import LOCAL_CLUSTER_CONFIG
+
+    want = tuple(LOCAL_CLUSTER_CONFIG[k] for k in LEAN_KEYS)
+    assert set(runner2.client.run(_worker_settings).values()) == {want}  # each worker got them
+    assert runner2.cluster.scheduler._tick_interval == 0.5  # the in-process scheduler too
+    # and this process's own settings are the defaults again (the whole section intact)
+    assert dask.config.get("distributed.worker.profile.enabled") is True
+    assert dask.config.get("distributed.admin.tick.interval") == "20ms"
+    assert dask.config.get("distributed.comm.timeouts.connect")

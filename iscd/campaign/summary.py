@@ -1,11 +1,10 @@
 """The campaign's summary: ``summary.parquet`` and ``summary.csv`` (one row per task, the
-columns of :data:`iscd.campaign.rows.COLUMNS`) and ``report.md`` with plots
-(``campaign.png``; without matplotlib the report says so and has none, as ``iscd eval``)."""
+columns of :data:`iscd.campaign.rows.COLUMNS`) and ``report.md`` with its plot
+(``campaign.svg``, :mod:`iscd.campaign.chart`)."""
 
 from __future__ import annotations
 
 import csv
-import math
 import os
 import time
 import uuid
@@ -99,7 +98,7 @@ def read_summary(path: str | Path) -> list[dict[str, Any]]:
 
 def write_report(rows: Sequence[dict[str, Any]], out: Path, *, command: str, runner: str,
                  seconds: float) -> list[str]:
-    """``report.md`` (and ``campaign.png`` when matplotlib is there).
+    """``report.md`` and its plot ``campaign.svg``.
 
     Parameters
     ----------
@@ -117,14 +116,13 @@ def write_report(rows: Sequence[dict[str, Any]], out: Path, *, command: str, run
     Returns
     -------
     list of str
-        The notes (what is missing: plots, Parquet) the report states.
+        The notes (what is missing: the Parquet file) the report states.
     """
-    from iscd.eval.report import NO_MATPLOTLIB, _table, fmt, fmt_rate
+    from iscd.campaign.chart import campaign_svg
+    from iscd.eval.report import _table, fmt, fmt_rate
 
     notes = []
-    plots = _plot(rows, out / "campaign.png")
-    if not plots:
-        notes.append(NO_MATPLOTLIB)
+    _replace(out / "campaign.svg", lambda tmp: tmp.write_text(campaign_svg(rows), encoding="utf-8"))
     if not (out / "summary.parquet").exists():
         notes.append(NO_PYARROW)
     ok = [r for r in rows if r["status"] == "ok"]
@@ -149,47 +147,7 @@ def write_report(rows: Sequence[dict[str, Any]], out: Path, *, command: str, run
     lines += ["## Tasks", "", _table(header, (cells(r) for r in rows)), ""]
     if failed:
         lines += ["## Failed", ""] + [f"- `{r['name']}`: {r['error']}" for r in failed] + [""]
-    if plots:
-        lines += ["## Plots", "", "![packets, SER and range per task](campaign.png)", ""]
+    lines += ["## Plots", "", "![packets, SER and range per task](campaign.svg)", ""]
     lines += ["Columns: summary.csv / summary.parquet (docs/campaign.md); each task's records: tasks/NAME.jsonl.", ""]
     _replace(out / "report.md", lambda tmp: tmp.write_text("\n".join(lines)))
     return notes
-
-
-def _plot(rows: Sequence[dict[str, Any]], path: Path) -> bool:
-    """Packets found/delivered, SER and range (with its MAE) per task; False without matplotlib."""
-    try:
-        import matplotlib
-
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
-    except ImportError:
-        return False
-    ok = [r for r in rows if r["status"] == "ok"]
-    if not ok:
-        return True
-    names = [r["name"] for r in ok]
-    x = list(range(len(ok)))
-    fig, ax = plt.subplots(3, 1, figsize=(max(6.0, 0.45 * len(ok) + 2), 9), sharex=True)
-    ax[0].bar([i - 0.2 for i in x], [r["packets_found"] for r in ok], 0.4, label="found")
-    ax[0].bar([i + 0.2 for i in x], [r["packets_delivered"] for r in ok], 0.4, label="delivered")
-    ax[0].set_ylabel("packets")
-    ax[0].legend()
-    ser = [(i, r["ser"]) for i, r in zip(x, ok) if r["ser"] is not None]
-    if ser:
-        floor = 0.5 / max(1, max(r["packets_found"] for r in ok) * 100)
-        ax[1].semilogy([i for i, _ in ser], [max(s, floor) for _, s in ser], "o")
-        ax[1].set_ylabel("SER (0 drawn at the floor)")
-    else:
-        ax[1].text(0.5, 0.5, "no truth: no SER", ha="center", transform=ax[1].transAxes)
-    med = [(i, r["range_median_m"], r["range_mae_m"]) for i, r in zip(x, ok) if r["range_median_m"] is not None]
-    if med:
-        ax[2].errorbar([i for i, _, _ in med], [m for _, m, _ in med],
-                       yerr=[0.0 if e is None or not math.isfinite(e) else e for _, _, e in med], fmt="o")
-    ax[2].set_ylabel("median range, m (bar: MAE)")
-    ax[2].set_xticks(x)
-    ax[2].set_xticklabels(names, rotation=60, ha="right", fontsize=7)
-    fig.subplots_adjust(left=0.1, right=0.98, top=0.98, bottom=0.16, hspace=0.12)  # fixed: tight_layout draws twice
-    _replace(path, lambda tmp: fig.savefig(tmp, dpi=90, format="png"))
-    plt.close(fig)
-    return True

@@ -14,8 +14,8 @@ first), and writes into DIR:
   summary.parquet    one row per task (also summary.csv): packets found/CRC-valid/delivered, SER
                      and BER where the truth is known, goodput, range statistics, frames
                      dropped, wall time (columns: docs/campaign.md)
-  report.md          the table, the failed tasks with their errors, and campaign.png (plots;
-                     without matplotlib the report says it has none)
+  report.md          the table, the failed tasks with their errors, and campaign.svg (packets
+                     found/delivered, SER, median range with its MAE per task)
 
 MANIFEST is TOML ([[recording]] with left, right, config, calibration, truth; [[simulate]] with
 config, frames, seed, randomize) or CSV (a header row naming the same keys, a 'kind' column for
