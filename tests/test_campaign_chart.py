@@ -67,6 +67,8 @@ def test_without_truth_or_finished_tasks_it_says_so_and_names_are_escaped() -> N
     root = parse(campaign_svg([row("<x & y>", ser=None)]))
     texts = [t.text for t in root.iter(f"{NS}text")]
     assert "no truth: no SER" in texts and texts[-1] == "<x & y>"
+    nan = parse(campaign_svg([row("a", ser=float("nan"), median=float("inf"), mae=float("nan"))]))
+    assert {"no truth: no SER", "no ranges"} <= {t.text for t in nan.iter(f"{NS}text")}  # not a crash
     empty = parse(campaign_svg([row("a", status="failed")]))
     assert any("nothing to plot" in (t.text or "") for t in empty.iter(f"{NS}text"))
 

@@ -88,7 +88,7 @@ def campaign_svg(rows: Sequence[dict[str, Any]]) -> str:
         The summary's rows (:func:`iscd.campaign.summary.summary_rows`); only those with
         status ``ok`` are drawn, in order. Used: ``name``, ``packets_found``,
         ``packets_delivered``, ``ser`` (None: no truth), ``range_median_m`` and
-        ``range_mae_m`` (m; None: no ranges).
+        ``range_mae_m`` (m; None: no ranges). A non-finite SER or range counts as none.
 
     Returns
     -------
@@ -142,7 +142,8 @@ def campaign_svg(rows: Sequence[dict[str, Any]]) -> str:
                    f'<text x="{lx + 14:.1f}" y="{tops[0] - 7:.1f}">{name}</text>')
 
     # 2: SER, log scale, 0 drawn at the floor
-    ser = [(xi, float(r["ser"])) for xi, r in zip(x, ok) if r.get("ser") is not None]
+    ser = [(xi, float(r["ser"])) for xi, r in zip(x, ok)
+           if r.get("ser") is not None and math.isfinite(float(r["ser"]))]  # else: not measured
     floor = 0.5 / max(1, max(found) * 100)
     if ser:
         lo_dec = math.floor(math.log10(floor))

@@ -953,7 +953,7 @@ the first two (each attempt a 2^-32 chance of passing a wrong packet)."""
 
 
 def _mean_margin(res: PacketResult) -> float:
-    """Mean decision margin of a packet (which of two failed attempts fits better)."""
+    """Mean decision margin of a packet (which of the failed attempts fits best)."""
     return float(np.mean(res.margins)) if res.margins.size else 0.0
 
 
