@@ -110,6 +110,33 @@ def test_scene_frames_in_any_order_are_the_same_with_bumps():
             np.testing.assert_array_equal(x, y)
 
 
+def test_vibration_moves_the_background_with_the_spots():
+    """Rig vibration moves the whole image one way: a background feature moves by the
+    whole-pixel vibration in the same direction as the LEDs' centres (the simulator had the
+    background moving against them, twice the relative motion of a real rig)."""
+    cfg = override(single_led(default_config(), 40.0),
+                   scene={"vibration_model": "bumps", "vibration_px": 0.6, "jitter_px": 0.0,
+                          "background": "texture", "background_contrast": 0.6},
+                   sensor={"read_noise_e": 0.0})
+    s = Scene(cfg, noise=False)
+    n = np.arange(0, 4000, 7)
+    st = s.frame_state(n)
+    r = np.round(st["vib"]).astype(int)  # (F, 2) whole-pixel shifts (x, y)
+    still = int(np.flatnonzero((r == 0).all(axis=1))[0])
+    moved = [int(k) for k in np.flatnonzero((np.abs(r) >= 1).any(axis=1))[:6]]
+    assert moved, "no frame with a whole-pixel vibration"
+    ref = s.render_pair(int(n[still]))[0].astype(np.float64)
+    ys, xs = slice(40, 140), slice(40, 140)  # a background corner, far from the LED
+    for k in moved:
+        img = s.render_pair(int(n[k]))[0].astype(np.float64)
+        dx, dy = r[k]
+        with_spots = img[ys.start + dy:ys.stop + dy, xs.start + dx:xs.stop + dx]
+        against = img[ys.start - dy:ys.stop - dy, xs.start - dx:xs.stop - dx]
+        same = np.abs(with_spots - ref[ys, xs]).mean()
+        assert same < 0.5 * np.abs(against - ref[ys, xs]).mean(), (k, dx, dy)
+        assert same < 1.0  # DN: the same background, moved
+
+
 def test_vibration_keys_are_validated():
     with pytest.raises(ConfigError, match="scene.vibration_model"):
         loads('[scene]\nvibration_model = "wobble"')

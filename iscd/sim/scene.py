@@ -577,14 +577,20 @@ class Scene:
             self._render_camera_ref(c, n, st, i, out)
 
     def _origin(self, st: dict[str, np.ndarray], i: int) -> tuple[int, int]:
-        """(oy, ox): padded-array origin of image pixel (0, 0) (whole-pixel vibration)."""
+        """(oy, ox): padded-array origin of image pixel (0, 0) (whole-pixel vibration).
+
+        The rig's vibration (vx, vy) px moves the whole image, the background as the LEDs
+        (whose centres are ``+ vib``): image pixel p shows the padded background at
+        p + m - round(vib), so a background feature moves by +round(vib) with the spots.
+        (Before 2026-12-04 the origin was m + round(vib): the background moved against
+        the spots, twice the relative motion a real rig's pitch gives.)"""
         m = self.margin
         if not m:
             return 0, 0
         vx, vy = st["vib"][i]
         sx = min(max(int(round(vx)), -m), m)
         sy = min(max(int(round(vy)), -m), m)
-        return m + sy, m + sx
+        return m - sy, m - sx
 
     def _render_camera_compiled(self, c: _Camera, n: int, st: dict[str, np.ndarray], i: int,
                                 out: np.ndarray) -> None:
