@@ -43,6 +43,7 @@ from iscd.core.records import RangeFilteredRecord, RangeLedsRecord, RangeRecord
 from iscd.decode.pipe import PipeDemodWorker as DemodWorker
 from iscd.decode.tracking.follow_kernel import follow_and_measure_compiled
 from iscd.decode.tracking.luminance import PixelBackground, area_sigma, follow_and_measure, grid_sample, patch_half
+from iscd.decode.tracking.registered_background import RING_PX, RegisteredBackground, window_half
 from iscd.decode.tracking.partner import find_partner, reference_series
 from iscd.decode.tracking.detect import (GridFit, square_grid, detect_array, detect_auto, light_map, match_stereo, track_box,
                                          track_on_light)
@@ -64,6 +65,7 @@ class PipelineSettings:
     """Finding, following and measuring the LEDs: detection, tracking, the luminance window (docs/receiver.md)."""
 
     acquire_frames: int = field(default=64, metadata={"lo": 8, "hi": 1024, "doc": "frames per detection attempt"})
+    acquire_lookback_frames: int = field(default=128, metadata={"lo": 0, "hi": 4096, "doc": "frames kept while looking for the transmitter (the last ones; each attempt looks at the last acquire_frames of them): once found it is decoded from the first kept, so a packet whose header came during an attempt that failed (a far, dim LED found at the second try) is not lost; at most acquire_frames = only the finding attempt's own frames (before session 17)"})
     track_every_frames: int = field(default=32, metadata={"lo": 4, "hi": 4096, "doc": "re-fit the LED grid this often"})
     verify_packets: float = field(default=2.5, metadata={"lo": 1.2, "doc": "packets to wait for a header before rejecting a candidate"})
     exclude_packets: float = field(default=8.0, metadata={"lo": 0, "doc": "a rejected candidate is ignored this many packets"})
@@ -83,6 +85,7 @@ class PipelineSettings:
     max_transmitters: int = field(default=1, metadata={"lo": 1, "hi": 16, "doc": "transmitters decoded at once (each its own tracking, timing, channel, packets, ranging, and a tx index once its first packet is valid); 1 = the one strongest, as before; > 1: iscd.decode.multi.MultiDecoder (docs/receiver.md)"})
     shapes: str = field(default="auto", metadata={"doc": "with max_transmitters > 1, which transmitters to look for: \"auto\" (any shape, each inferred; v1 packets read with [transmitter]'s M, K, F), \"config\" (only [transmitter]'s rows x cols), or a list such as \"8x8, 1x1\""})
     search_every_frames: int = field(default=256, metadata={"lo": 8, "hi": 100000, "doc": "with max_transmitters > 1 and a transmitter tracked: look for another one every this many frames (each look reads acquire_frames whole frames)"})
+    registered_background: bool = field(default=True, metadata={"doc": "with the per-pixel background and one LED: the luminance takes the background from a map held in the scene's frame, at the image's own whole-pixel shift measured each frame on a ring of background pixels (iscd.decode.tracking.registered_background): rig vibration moves the texture under the spot with it; false = the image-indexed least value as before"})
     path_settle_px: float = field(default=0.5, metadata={"lo": 0.05, "hi": 5.0, "doc": "no further following pass once the path is within this of where the last pass started, px"})
 
     def __post_init__(self) -> None:
@@ -272,6 +275,9 @@ class StreamDecoder:
         self.per_led_every = rs.per_led_every_frames
         self.last_centres: tuple[np.ndarray, np.ndarray] | None = None
         """(left, right) (F, N, 2) LED centres px followed in the last block decoded."""
+        self.image_shifts: list[np.ndarray | None] = [None, None]
+        """Per camera the last block's image shifts (F, 2) px of the registered background
+        (``[tracking] registered_background``; None when it is not used)."""
         self.kalman = (RangeKalman(accel_psd=rs.accel_psd, gate=rs.kalman_gate)
                        if self.ranger is not None and rs.kalman else None)
         self.shape_auto = cfg.transmitter.shape_auto
@@ -331,6 +337,12 @@ class StreamDecoder:
         self._acq_l: deque[np.ndarray] = deque(maxlen=keep)
         self._acq_r: deque[np.ndarray] = deque(maxlen=keep)
         self._acq_ids: deque[tuple[int, float]] = deque(maxlen=keep)
+        self._own_lookback = False
+        """the look-back is the single decoder's ``acquire_lookback_frames`` (not a searcher's)"""
+        if self.settings.acquire_lookback_frames > self.settings.acquire_frames:
+            # an attempt looks at the last acquire_frames; a find decodes all kept frames
+            self.set_lookback(self.settings.acquire_frames, self.settings.acquire_lookback_frames)
+            self._own_lookback = True
         self._since_fit = 0
         self._last_id: int | None = None
         self._reach = 0  # px around an LED start that the following read last block (needed_windows)
@@ -351,6 +363,7 @@ class StreamDecoder:
         self.follow_passes_run = 0
         """following passes run after the first, over the decoder's life (follow_passes)"""
         self._backgrounds: list[PixelBackground] | None = None
+        self._registered: list[RegisteredBackground] | None = None
         self._spot_area: np.ndarray | None = None
         """per camera, the box light of a lit LED (following ignores LEDs far below it)"""
         self._win: tuple[tuple[int, int, int, int], tuple[int, int, int, int]] = ((0, 0, 0, 0), (0, 0, 0, 0))
@@ -832,6 +845,7 @@ class StreamDecoder:
         self._lum_floor = [None, None]
         self._path_end = [None, None]
         self._backgrounds = None
+        self._registered = None
         self._spot_area = None
         self._since_fit = 0
         self._acq_l.clear()
@@ -943,7 +957,9 @@ class StreamDecoder:
             spot_r = 0.5 * tr.left.pitch_px * max(growth) if self.rows * self.cols > 1 else 8.0
         # how far from an LED's start the following reads (its patch half, as the kernel
         # takes it): needed_windows() covers it for the next block
-        self._reach = max(patch_half(box), int(np.ceil(3.5 * max(sigmas))) + 1) + self.REACH_MARGIN_PX \
+        registered = subtract and self.settings.registered_background and self.rows * self.cols == 1
+        self._reach = max(patch_half(box), int(np.ceil(3.5 * max(sigmas))) + 1,
+                          window_half(max(sigmas)) + RING_PX if registered else 0) + self.REACH_MARGIN_PX \
             + int(np.ceil(PATH_REACH_PX * self.settings.follow_passes))
         backgrounds = self._backgrounds
         if self.settings.follow_passes > 0:
@@ -964,6 +980,15 @@ class StreamDecoder:
                 [left, right], starts, box, sigmas,
                 use=self._use, lit_light=self._lit_light, info=info,
                 backgrounds=backgrounds, spot_radius_px=spot_r, subtract=subtract)
+        if registered:
+            # the light above the background under the window in this frame: held in the
+            # scene's frame at the image's own shift (rig vibration moves the texture too)
+            if self._registered is None:
+                rise = self.settings.background_rise_dn
+                self._registered = [RegisteredBackground(left.shape[1:], rise),
+                                    RegisteredBackground(right.shape[1:], rise)]
+            lum_l, self.image_shifts[0] = self._registered[0].measure(left, c_l, sigmas[0], compiled=self.compiled)
+            lum_r, self.image_shifts[1] = self._registered[1].measure(right, c_r, sigmas[1], compiled=self.compiled)
         if spot_r is not None:
             self._fold_spot_area(info["spot_area"])
         # the light of a lit LED, held over dark stretches (halves in ~5 s of darkness)
@@ -1184,6 +1209,7 @@ class StreamDecoder:
         self._followed = [None, None]
         self._lit_light = None
         self._backgrounds = None
+        self._registered = None
         self._spot_area = None
         self.track = _Track(left=fl, right=fr, first_score=min(fl.score, fr.score),
                             roi_radius=(self._roi_radius(fl), self._roi_radius(fr)),
@@ -1197,6 +1223,13 @@ class StreamDecoder:
             self.kalman.reset()
         log.info("transmitter acquired at frame %d: left %.1f,%.1f right %.1f,%.1f pitch %.2f px", int(meta[-1, 0]),
                  *fl.center, *fr.center, fl.pitch_px)
+        if lookback and self._own_lookback and len(self._acq_ids) == meta.shape[0]:
+            # found by the first look, nothing kept before it: decoded as without a look-back
+            lookback = False
+            self._acq_l.clear()
+            self._acq_r.clear()
+            self._acq_ids.clear()
+            self._since_look = 0
         if lookback:  # decode from the first frame kept: a header before the look is not lost
             meta = np.array(self._acq_ids)
             kept = KeptFrames(meta[:, 0].astype(np.int64), meta[:, 1], list(self._acq_l), list(self._acq_r))
@@ -1291,6 +1324,7 @@ class StreamDecoder:
         blocks go on (the detection's numpy and OpenCV work releases the GIL), and its
         answer is taken at a later block; the frames kept since cover the wait."""
         A = self.settings.acquire_frames
+        self._own_lookback = False  # a searcher's (the caller sets it back for its own)
         if look_async and self._look_pool is None:
             self._look_pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="iscd-look")
         self._search_every = max(int(search_every), 1)

@@ -1,0 +1,458 @@
+"""A per-pixel background held in the moving image's own frame (the luminance of one LED
+over a textured background on a vibrating rig).
+
+The contract, once: each camera keeps a map ``bg`` of what every scene point of the
+background shows when no LED lights it (each point's least value over the frames that
+showed it, relaxed upward by ``rise_dn`` once per block that touches it, as
+:class:`~iscd.decode.tracking.luminance.PixelBackground`), but indexed by the background's
+position *in the scene*, not in the image: frame f shows scene point q at image pixel
+``p = q + s_f``, where ``s_f`` (px, whole pixels, (x, y)) is how far the rig's vibration has
+moved the image. A luminance window that follows the LED then subtracts, in every frame,
+the background that is under it in that frame, however far the image has moved.
+
+Why: rig vibration moves the whole image -- the LED's spot and the background texture
+behind it together. An image-indexed least value (PixelBackground) holds, at each pixel,
+the darkest texture that vibration has brought there, so the light above it changes as
+the image moves: at 100 m one PWM level is ~10 DN of a single LED's light, and a texture
+edge moved 1 px under the window shifted the luminance by 0.2-0.9 of a level for the
+tens of frames the image stayed moved (randomized 100 km/h scenes: bursts of 7-16
+consecutive symbols one level off, the first packet lost; with the background taken at
+the image's own shift, none).
+
+The shift is measured, not assumed: per frame, the whole-pixel shift within one pixel of
+the last frame's that best matches a ring of background pixels around the LEDs (between
+the luminance window and ``ring_px`` beyond it) to the map -- the least variance of
+their difference (an offset, e.g. the map's noise floor or glare, does not count). A
+shift is taken only when it matches clearly better (:data:`SWITCH`) than the last; where
+the background is flat every shift matches alike and the last one stays (and there it
+does not matter). Nothing is assumed about why the image moved (vibration, a bump, the
+LED's own slow drift across the texture is followed by the map's relaxation).
+
+:func:`measure_block` is the compiled kernel (one pass per frame: match, fold in,
+measure); :func:`measure_block_reference` the pure-numpy reference the tests compare it
+with.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from iscd.core.jit import njit
+
+MAX_SHIFT_PX = 8
+"""Largest image shift held, px (the map's margin): a road bump of 0.5 px RMS swings the
+image up to ~4 px."""
+
+RING_PX = 3
+"""The ring of background pixels that measures the shift: this far beyond the luminance
+window's box, px."""
+
+SWITCH = 0.6
+"""A new shift is taken when its ring matches with at most this share of the last
+shift's variance (on a flat background the variances of the shifts differ by noise alone:
+their estimates from ~150 pixels scatter by ~10 %, and the shift must not wander; a
+texture misregistered by a pixel: 2-25x the variance of the right shift on randomized
+scenes), and (:data:`SWITCH_Z`) significantly better."""
+
+SWITCH_Z = 2.0
+"""... by this many standard errors of the ring pixels' paired difference of squared
+residuals (texture edges make that difference heavy-tailed: a 1 px move seen with 5x
+less variance at the right shift scored only 3.9 standard errors; a missed move folds
+misregistered frames into the map, and it then matches neither shift well)."""
+
+
+SEARCH_RATIO = 1.5
+"""The other shifts are tried in a frame whose ring variance at the last shift is more
+than this times its running level (:data:`LEVEL_RISE`), and in every
+:data:`SEARCH_EVERY`-th frame: a pixel's move raises it 2-25x; most frames have not moved,
+and one pass over the ring is all they cost."""
+
+LEVEL_RISE = 1.05
+"""The running level is the least ring variance taken lately: it follows a lower one at
+once and rises by at most this factor a frame (the texture or the LED's glare in the ring
+may grow)."""
+
+SEARCH_EVERY = 8
+"""... and every this many frames the other shifts are tried anyway (a level taken while
+the map was still being built at a wrong shift is then corrected)."""
+
+MIN_SEEN = 0.6
+"""Share of the ring's pixels the map must already hold for a shift to be judged."""
+
+
+def window_half(sigma_px: float) -> int:
+    """Half-size of the Gaussian luminance window's box
+    (:func:`iscd.decode.tracking.luminance.gauss_mean`'s default radius).
+
+    Parameters
+    ----------
+    sigma_px : float
+        Gaussian window sigma, px.
+
+    Returns
+    -------
+    int
+        ceil(3.5 sigma), px.
+    """
+    return int(np.ceil(3.5 * float(sigma_px)))
+
+
+class RegisteredBackground:
+    """One camera's background map in the scene's frame (module docstring) and the image's
+    current whole-pixel shift.
+
+    Parameters
+    ----------
+    shape : tuple of int
+        (H, W) of the camera's frames, px.
+    rise_dn : float
+        Upward relaxation per block that touches a point, DN.
+    """
+
+    def __init__(self, shape: tuple[int, int], rise_dn: float = 0.25) -> None:
+        if not rise_dn >= 0:
+            raise ValueError(f"rise_dn: expected >= 0 DN per block, got {rise_dn}")
+        m = MAX_SHIFT_PX
+        H, W = int(shape[0]), int(shape[1])
+        self.shape = (H, W)
+        self.bg = np.full((H + 2 * m, W + 2 * m), np.inf, np.float32)
+        self.stamp = np.zeros(self.bg.shape, np.int64)
+        self.block = 0
+        self.rise_dn = float(rise_dn)
+        self.shift = np.zeros(2, np.int64)
+        """The last frame's image shift (x, y), px."""
+        self.level = np.array([np.inf, 0.0])
+        """The running ring variance at the shift taken, DN^2 (:data:`SEARCH_RATIO`), and
+        the frames judged so far."""
+
+    def measure(self, frames: np.ndarray, centres: np.ndarray, sigma_px: float, *,
+                compiled: bool = True) -> tuple[np.ndarray, np.ndarray]:
+        """Fold one block in and measure each LED's light above the background under it.
+
+        Parameters
+        ----------
+        frames : ndarray
+            (F, H, W) one camera's frames, DN (uint8 or uint16).
+        centres : ndarray
+            (F, N, 2) LED centres (x, y) in each frame, px.
+        sigma_px : float
+            Gaussian luminance window, px (> 0).
+        compiled : bool
+            The compiled kernel (else the numpy reference: the same numbers).
+
+        Returns
+        -------
+        lum : ndarray
+            (F, N) float64 Gaussian-weighted mean of the light above the background, DN.
+        shifts : ndarray
+            (F, 2) int64 the image shift (x, y) found in each frame, px.
+        """
+        if frames.ndim != 3 or tuple(frames.shape[1:]) != self.shape:
+            raise ValueError(f"frames: expected (F, {self.shape[0]}, {self.shape[1]}), got {frames.shape}")
+        c = np.asarray(centres, dtype=np.float64)
+        if c.ndim != 3 or c.shape[0] != frames.shape[0] or c.shape[2] != 2:
+            raise ValueError(f"centres: expected ({frames.shape[0]}, N, 2), got {c.shape}")
+        if not sigma_px > 0:
+            raise ValueError(f"sigma_px: expected > 0, got {sigma_px}")
+        self.block += 1
+        F, N = c.shape[0], c.shape[1]
+        lum = np.zeros((F, N))
+        shifts = np.zeros((F, 2), np.int64)
+        fn = measure_block if compiled else measure_block_reference
+        fn(np.ascontiguousarray(frames), np.ascontiguousarray(c), float(sigma_px), window_half(sigma_px),
+           RING_PX, self.bg, self.stamp, self.block, self.rise_dn, MAX_SHIFT_PX, self.shift, self.level, lum, shifts)
+        return lum, shifts
+
+
+def _box(cx: float, cy: float, half: int, H: int, W: int) -> tuple[int, int, int, int]:
+    """The box of half-size ``half`` around round(centre), inside the frame: x0, y0, x1, y1."""
+    xr, yr = int(np.rint(cx)), int(np.rint(cy))
+    return max(xr - half, 0), max(yr - half, 0), min(xr + half + 1, W), min(yr + half + 1, H)
+
+
+def measure_block_reference(frames: np.ndarray, centres: np.ndarray, sigma: float, half: int, ring: int,
+                            bg: np.ndarray, stamp: np.ndarray, blk: int, rise: float, m: int,
+                            shift: np.ndarray, level: np.ndarray, out_lum: np.ndarray,
+                            out_shift: np.ndarray) -> None:
+    """Pure-numpy reference of :func:`measure_block` (see
+    :meth:`RegisteredBackground.measure`). Per frame: the shift (ring match), then the
+    block's relaxation and the least value folded in over each LED's outer box; then, the
+    whole block folded in, per frame the Gaussian-weighted mean of ``frame - bg`` over each
+    LED's window box.
+
+    Parameters
+    ----------
+    frames : ndarray
+        (F, H, W) one camera's frames, DN.
+    centres : ndarray
+        (F, N, 2) LED centres (x, y), px.
+    sigma : float
+        Gaussian window sigma, px.
+    half : int
+        Half-size of the window's box, px (:func:`window_half`).
+    ring : int
+        Width of the ring of background pixels beyond it, px (:data:`RING_PX`).
+    bg, stamp : ndarray
+        The map (H + 2m, W + 2m) float32 DN (+inf: never seen) and the block that last
+        relaxed each point, int64 (updated in place).
+    blk : int
+        This block's number.
+    rise : float
+        Relaxation per block, DN.
+    m : int
+        The map's margin, px (:data:`MAX_SHIFT_PX`).
+    shift : ndarray
+        (2,) int64 the last frame's shift (x, y), px (updated in place).
+    level : ndarray
+        (2,) float64 the running ring variance (DN^2) and the frames judged (updated).
+    out_lum : ndarray
+        (F, N) float64 output: light above the map, DN.
+    out_shift : ndarray
+        (F, 2) int64 output: the shift found in each frame, px.
+    """
+    F, H, W = frames.shape
+    N = centres.shape[1]
+    outer = half + ring
+    for f in range(F):
+        img = frames[f].astype(np.float64)
+        boxes = [_box(centres[f, i, 0], centres[f, i, 1], outer, H, W) for i in range(N)]
+        inner = [_box(centres[f, i, 0], centres[f, i, 1], half, H, W) for i in range(N)]
+        # ---- the shift: candidates within 1 px of the last, judged on the ring pixels
+        # against the last shift's (paired, where the map holds both)
+        bx, by = int(shift[0]), int(shift[1])
+        best, best_var = (bx, by), np.inf
+        rings = []
+        for (x0, y0, x1, y1), (ix0, iy0, ix1, iy1) in zip(boxes, inner):
+            ys, xs = np.mgrid[y0:y1, x0:x1]
+            keep = ~((xs >= ix0) & (xs < ix1) & (ys >= iy0) & (ys < iy1))
+            rings.append((ys[keep], xs[keep], img[ys[keep], xs[keep]]))
+        n_all = sum(r[0].size for r in rings)
+        ys_r = np.concatenate([r[0] for r in rings]) if rings else np.zeros(0, np.int64)
+        xs_r = np.concatenate([r[1] for r in rings]) if rings else np.zeros(0, np.int64)
+        pix_r = np.concatenate([r[2] for r in rings]) if rings else np.zeros(0)
+        b0 = bg[ys_r - by + m, xs_r - bx + m].astype(np.float64)
+        seen0 = np.isfinite(b0)
+        k0 = int(seen0.sum())
+        judged = n_all > 0 and k0 >= MIN_SEEN * n_all and k0 >= 2
+        v_now = float(np.var(pix_r[seen0] - b0[seen0])) if judged else np.inf
+        search = judged and (not v_now <= SEARCH_RATIO * float(level[0]) or int(level[1]) % SEARCH_EVERY == 0)
+        for dy in (-1, 0, 1) if search else ():
+            for dx in (-1, 0, 1):
+                sx, sy = bx + dx, by + dy
+                if (dx == 0 and dy == 0) or abs(sx) > m or abs(sy) > m:
+                    continue
+                bc = bg[ys_r - sy + m, xs_r - sx + m].astype(np.float64)
+                ok = np.isfinite(b0) & np.isfinite(bc)
+                k = int(ok.sum())
+                if n_all == 0 or k < MIN_SEEN * n_all or k < 2:
+                    continue
+                d0, dc = pix_r[ok] - b0[ok], pix_r[ok] - bc[ok]
+                e0, ec = np.square(d0 - d0.mean()), np.square(dc - dc.mean())
+                v0, vc = float(e0.mean()), float(ec.mean())
+                diff = ec - e0
+                se = float(np.sqrt(max(np.mean(np.square(diff)) - np.mean(diff) ** 2, 0.0) / k))
+                if _better(v0, vc, se) and vc < best_var:
+                    best, best_var = (sx, sy), vc
+        shift[0], shift[1] = best
+        taken = best_var if best != (bx, by) else v_now
+        if judged:
+            level[0] = min(taken, float(level[0]) * LEVEL_RISE)
+            level[1] += 1
+        sx, sy = int(shift[0]), int(shift[1])
+        out_shift[f, 0], out_shift[f, 1] = sx, sy
+        # ---- fold the frame in: relax once per block, then the least value
+        for x0, y0, x1, y1 in boxes:
+            ys, xs = np.mgrid[y0:y1, x0:x1]
+            qy, qx = ys - sy + m, xs - sx + m
+            fresh = stamp[qy, qx] != blk
+            bg[qy[fresh], qx[fresh]] += np.float32(rise)
+            stamp[qy, qx] = blk
+            bg[qy, qx] = np.minimum(bg[qy, qx], img[y0:y1, x0:x1].astype(np.float32))
+    # ---- the light above it (every frame of the block folded in first, as
+    # PixelBackground): Gaussian weights around the exact centre, normalized
+    a = -0.5 / sigma ** 2
+    for f in range(F):
+        img = frames[f].astype(np.float64)
+        sx, sy = int(out_shift[f, 0]), int(out_shift[f, 1])
+        inner = [_box(centres[f, i, 0], centres[f, i, 1], half, H, W) for i in range(N)]
+        for i, (x0, y0, x1, y1) in enumerate(inner):
+            cx, cy = centres[f, i]
+            wx = np.exp(a * np.square(np.arange(x0, x1) - cx))
+            wy = np.exp(a * np.square(np.arange(y0, y1) - cy))
+            light = img[y0:y1, x0:x1] - bg[y0 - sy + m:y1 - sy + m, x0 - sx + m:x1 - sx + m].astype(np.float64)
+            s = wy.sum() * wx.sum()
+            out_lum[f, i] = float(wy @ light @ wx) / s if s > 0 else 0.0
+
+
+@njit(warm=lambda: (2.0, 1.0, 0.1))
+def _better(v0: float, vc: float, se: float) -> bool:
+    """Whether a candidate shift's ring variance ``vc`` beats the last shift's ``v0`` (DN^2)
+    clearly (:data:`SWITCH`, :data:`SWITCH_Z`), ``se`` the standard error of their paired
+    difference."""
+    return vc < SWITCH * v0 and v0 - vc > SWITCH_Z * se
+
+
+def _warm_args() -> tuple:
+    fr = np.zeros((2, 24, 24), np.uint8)
+    bg = np.full((24 + 2 * MAX_SHIFT_PX, 24 + 2 * MAX_SHIFT_PX), np.inf, np.float32)
+    return (fr, np.full((2, 1, 2), 12.0), 1.0, 4, RING_PX, bg, np.zeros(bg.shape, np.int64), 1, 0.25,
+            MAX_SHIFT_PX, np.zeros(2, np.int64), np.array([np.inf, 0.0]), np.zeros((2, 1)), np.zeros((2, 2), np.int64))
+
+
+def _warm_args16() -> tuple:
+    a = list(_warm_args())
+    a[0] = np.zeros((2, 24, 24), np.uint16)
+    return tuple(a)
+
+
+@njit(warm=_warm_args)
+def measure_block(frames: np.ndarray, centres: np.ndarray, sigma: float, half: int, ring: int,
+                  bg: np.ndarray, stamp: np.ndarray, blk: int, rise: float, m: int,
+                  shift: np.ndarray, level: np.ndarray, out_lum: np.ndarray, out_shift: np.ndarray) -> None:
+    """One camera's block (:meth:`RegisteredBackground.measure`): per frame the image shift
+    (ring match within 1 px of the last) and the frame folded into the map ``bg`` (H + 2m,
+    W + 2m) float32 / ``stamp`` int64 (relaxed by ``rise`` DN once per block ``blk``); then
+    per frame each LED's Gaussian-weighted mean light above the map (``sigma`` px over the box of
+    half-size ``half`` px) into out_lum (F, N); the shifts into out_shift (F, 2), the last
+    one into ``shift`` (2,) and the running ring variance and the frames judged into ``level`` (2,). The same numbers as :func:`measure_block_reference` (float64
+    sums in a different order: ~1e-12 relative)."""
+    F, H, W = frames.shape
+    N = centres.shape[1]
+    outer = half + ring
+    a = -0.5 / (sigma * sigma)
+    box = np.empty((N, 4), np.int64)
+    inner = np.empty((N, 4), np.int64)
+    ring_y = np.empty(N * (2 * outer + 1) ** 2, np.int64)  # every LED's outer box: enough
+    ring_x = np.empty(ring_y.size, np.int64)
+    d0 = np.empty(ring_y.size)  # the ring's residuals at the last shift and at a candidate
+    dc = np.empty(ring_y.size)
+    wx = np.empty(2 * half + 1)
+    for f in range(F):
+        for i in range(N):
+            xr = int(np.rint(centres[f, i, 0]))
+            yr = int(np.rint(centres[f, i, 1]))
+            box[i, 0], box[i, 1] = max(xr - outer, 0), max(yr - outer, 0)
+            box[i, 2], box[i, 3] = min(xr + outer + 1, W), min(yr + outer + 1, H)
+            inner[i, 0], inner[i, 1] = max(xr - half, 0), max(yr - half, 0)
+            inner[i, 2], inner[i, 3] = min(xr + half + 1, W), min(yr + half + 1, H)
+        # ---- the shift: the ring pixels and the map under them at the last shift
+        bx, by = shift[0], shift[1]
+        n_all = 0
+        for i in range(N):
+            for y in range(box[i, 1], box[i, 3]):
+                inside_y = inner[i, 1] <= y < inner[i, 3]
+                for x in range(box[i, 0], box[i, 2]):
+                    if inside_y and inner[i, 0] <= x < inner[i, 2]:
+                        continue
+                    ring_y[n_all] = y
+                    ring_x[n_all] = x
+                    n_all += 1
+        # the ring's variance at the last shift: the other shifts only when it has risen
+        k0 = 0
+        s1 = 0.0
+        s2 = 0.0
+        for j in range(n_all):
+            b0 = bg[ring_y[j] - by + m, ring_x[j] - bx + m]
+            if b0 < np.inf:  # (the map holds +inf where nothing was seen yet)
+                v = float(frames[f, ring_y[j], ring_x[j]]) - float(b0)
+                s1 += v
+                s2 += v * v
+                k0 += 1
+        judged = n_all > 0 and k0 >= MIN_SEEN * n_all and k0 >= 2
+        v_now = np.inf
+        if judged:
+            mu = s1 / k0
+            v_now = max(s2 / k0 - mu * mu, 0.0)
+        search = judged and (not v_now <= SEARCH_RATIO * level[0] or int(level[1]) % SEARCH_EVERY == 0)
+        best_x, best_y = bx, by
+        best_var = np.inf
+        for dy in range(-1, 2):
+            for dx in range(-1, 2):
+                sx, sy = bx + dx, by + dy
+                if not search or (dx == 0 and dy == 0) or abs(sx) > m or abs(sy) > m:
+                    continue
+                # both residuals where the map holds both, and their means
+                k = 0
+                m0 = 0.0
+                mc = 0.0
+                for j in range(n_all):
+                    y, x = ring_y[j], ring_x[j]
+                    b0 = bg[y - by + m, x - bx + m]
+                    bc = bg[y - sy + m, x - sx + m]
+                    if b0 < np.inf and bc < np.inf:
+                        v = float(frames[f, y, x])
+                        d0[k] = v - float(b0)
+                        dc[k] = v - float(bc)
+                        m0 += d0[k]
+                        mc += dc[k]
+                        k += 1
+                if n_all == 0 or k < MIN_SEEN * n_all or k < 2:
+                    continue
+                m0 /= k
+                mc /= k
+                s0 = 0.0
+                sc = 0.0
+                sd = 0.0
+                sd2 = 0.0
+                for j in range(k):
+                    e0 = (d0[j] - m0) ** 2
+                    ec = (dc[j] - mc) ** 2
+                    s0 += e0
+                    sc += ec
+                    sd += ec - e0
+                    sd2 += (ec - e0) ** 2
+                v0 = s0 / k
+                vc = sc / k
+                md = sd / k
+                se = np.sqrt(max(sd2 / k - md * md, 0.0) / k)
+                if _better(v0, vc, se) and vc < best_var:
+                    best_x, best_y, best_var = sx, sy, vc
+        shift[0], shift[1] = best_x, best_y
+        taken = best_var if (best_x != bx or best_y != by) else v_now
+        if judged:
+            level[0] = min(taken, level[0] * LEVEL_RISE)
+            level[1] += 1
+        sx, sy = shift[0], shift[1]
+        out_shift[f, 0], out_shift[f, 1] = sx, sy
+        # ---- fold the frame in
+        for i in range(N):
+            for y in range(box[i, 1], box[i, 3]):
+                qy = y - sy + m
+                for x in range(box[i, 0], box[i, 2]):
+                    qx = x - sx + m
+                    if stamp[qy, qx] != blk:
+                        bg[qy, qx] += np.float32(rise)
+                        stamp[qy, qx] = blk
+                    v = np.float32(frames[f, y, x])
+                    if v < bg[qy, qx]:
+                        bg[qy, qx] = v
+    # ---- the light above it (the whole block folded in first)
+    for f in range(F):
+        sx, sy = out_shift[f, 0], out_shift[f, 1]
+        for i in range(N):
+            xr = int(np.rint(centres[f, i, 0]))
+            yr = int(np.rint(centres[f, i, 1]))
+            inner[i, 0], inner[i, 1] = max(xr - half, 0), max(yr - half, 0)
+            inner[i, 2], inner[i, 3] = min(xr + half + 1, W), min(yr + half + 1, H)
+        for i in range(N):
+            cx, cy = centres[f, i, 0], centres[f, i, 1]
+            x0, x1 = inner[i, 0], inner[i, 2]
+            wsx = 0.0
+            for x in range(x0, x1):
+                wx[x - x0] = np.exp(a * (x - cx) * (x - cx))
+                wsx += wx[x - x0]
+            s = 0.0
+            wsy = 0.0
+            for y in range(inner[i, 1], inner[i, 3]):
+                wy = np.exp(a * (y - cy) * (y - cy))
+                wsy += wy
+                r = 0.0
+                for x in range(x0, x1):
+                    r += (float(frames[f, y, x]) - float(bg[y - sy + m, x - sx + m])) * wx[x - x0]
+                s += wy * r
+            out_lum[f, i] = s / (wsx * wsy) if wsx * wsy > 0 else 0.0
+
+
+from iscd.core.jit import register_warm  # noqa: E402
+
+register_warm(measure_block, _warm_args16)

@@ -1,0 +1,185 @@
+"""The background held in the scene's frame (iscd.decode.tracking.registered_background):
+the image shifts it finds against known whole-pixel shifts, the luminance of a spot over a
+textured background that vibration moves, the compiled kernel against its numpy reference,
+and bad input."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.ndimage import gaussian_filter
+
+from iscd.decode.tracking.registered_background import (MAX_SHIFT_PX, RegisteredBackground,
+                                                        measure_block, measure_block_reference,
+                                                        window_half)
+
+H = W = 64
+SIGMA = 1.0
+SPOT_SIGMA = 0.9
+
+
+def _texture(seed: int, contrast_dn: float = 25.0, size: int = H + 2 * 12) -> np.ndarray:
+    """A smooth random texture (larger than a frame: it is cut at each frame's shift), DN."""
+    rng = np.random.default_rng(seed)
+    t = gaussian_filter(rng.normal(size=(size, size)), 1.2)
+    return 40.0 + contrast_dn * t / t.std()
+
+
+def _spot(cx: float, cy: float, amp: float) -> np.ndarray:
+    ys, xs = np.mgrid[0:H, 0:W]
+    return amp * np.exp(-((xs - cx) ** 2 + (ys - cy) ** 2) / (2 * SPOT_SIGMA ** 2))
+
+
+def _scene(seed: int, n: int, shifts: np.ndarray, levels: np.ndarray, noise_dn: float = 0.0,
+           dtype=np.uint8, contrast_dn: float = 25.0):
+    """Frames of one LED at (32.3, 31.6) + shift over a texture that moves with it (the rig
+    vibrates: the whole image moves), level k of 7 lighting it with 20 k DN at its peak."""
+    tex = _texture(seed, contrast_dn)
+    rng = np.random.default_rng(seed + 1)
+    m = 12
+    frames = np.empty((n, H, W), dtype)
+    centres = np.empty((n, 1, 2))
+    for f in range(n):
+        sx, sy = shifts[f]
+        # image pixel p shows scene point p - s (the image moved by +s)
+        img = tex[m - sy:m - sy + H, m - sx:m - sx + W].copy()
+        cx, cy = 32.3 + sx, 31.6 + sy
+        img += _spot(cx, cy, 20.0 * levels[f])
+        if noise_dn:
+            img += rng.normal(0, noise_dn, img.shape)
+        frames[f] = np.clip(np.rint(img), 0, np.iinfo(dtype).max).astype(dtype)
+        centres[f, 0] = cx, cy
+    return frames, centres
+
+
+def _true_light(centres: np.ndarray, levels: np.ndarray) -> np.ndarray:
+    """The Gaussian-weighted mean of the spot alone (what the luminance should be)."""
+    out = np.empty(levels.size)
+    half = window_half(SIGMA)
+    for f in range(levels.size):
+        cx, cy = centres[f, 0]
+        xr, yr = int(np.rint(cx)), int(np.rint(cy))
+        xs, ys = np.arange(xr - half, xr + half + 1), np.arange(yr - half, yr + half + 1)
+        wx, wy = np.exp(-0.5 * (xs - cx) ** 2 / SIGMA ** 2), np.exp(-0.5 * (ys - cy) ** 2 / SIGMA ** 2)
+        s = _spot(cx, cy, 20.0 * levels[f])[ys[0]:ys[-1] + 1, xs[0]:xs[-1] + 1]
+        out[f] = wy @ s @ wx / (wx.sum() * wy.sum())
+    return out
+
+
+def _vibration(n: int, seed: int) -> np.ndarray:
+    """Whole-pixel image shifts (n, 2) of a vibrating rig: a smooth swing of up to 2 px."""
+    t = np.arange(n)
+    rng = np.random.default_rng(seed)
+    ph = rng.uniform(0, 2 * np.pi, 4)
+    x = 1.4 * np.sin(2 * np.pi * t / 37.0 + ph[0]) + 0.6 * np.sin(2 * np.pi * t / 11.0 + ph[1])
+    y = 1.2 * np.sin(2 * np.pi * t / 53.0 + ph[2]) + 0.7 * np.sin(2 * np.pi * t / 17.0 + ph[3])
+    return np.rint(np.stack([x, y], axis=1)).astype(np.int64)
+
+
+def _levels(n: int, seed: int) -> np.ndarray:
+    """Random levels 0..7 (0 = dark), a dark frame at least every 8 (the header/training's)."""
+    lv = np.random.default_rng(seed).integers(0, 8, n)
+    lv[::8] = 0
+    return lv
+
+
+def _run(bg: RegisteredBackground, frames: np.ndarray, centres: np.ndarray, block: int = 16,
+         compiled: bool = True) -> tuple[np.ndarray, np.ndarray]:
+    lum, sh = [], []
+    for s in range(0, frames.shape[0], block):
+        a, b = bg.measure(frames[s:s + block], centres[s:s + block], SIGMA, compiled=compiled)
+        lum.append(a)
+        sh.append(b)
+    return np.concatenate(lum), np.concatenate(sh)
+
+
+@pytest.mark.parametrize("seed", [1, 2, 3])
+def test_the_shifts_found_are_the_known_ones(seed: int) -> None:
+    n = 480
+    shifts = _vibration(n, seed)
+    frames, centres = _scene(seed, n, shifts, _levels(n, seed), noise_dn=1.0)
+    _, found = _run(RegisteredBackground((H, W)), frames, centres)
+    # relative to the first frame's shift (the map starts where the image is)
+    got = found - found[0] + shifts[0]
+    settle = 32  # the map needs a few frames of each shift before it can tell them apart
+    assert (got[settle:] == shifts[settle:]).all(axis=1).mean() >= 0.98
+    assert (np.abs(shifts) >= 1).any(axis=1).mean() > 0.3  # the image really moved
+
+
+@pytest.mark.parametrize("seed", [4, 5, 6])
+def test_luminance_over_a_moving_texture_is_the_spots_own(seed: int) -> None:
+    """The light above the registered background is the spot's, whatever the shift; the
+    image-indexed least value (each pixel's darkest texture that vibration brought there)
+    errs by a large share of a level wherever the image has moved."""
+    n = 640
+    shifts = _vibration(n, seed)
+    levels = _levels(n, seed)
+    frames, centres = _scene(seed, n, shifts, levels, noise_dn=0.5)
+    lum, _ = _run(RegisteredBackground((H, W)), frames, centres)
+    truth = _true_light(centres, levels)
+    level_dn = _true_light(centres[:1], np.array([1]))[0]  # one level, DN
+    late = slice(160, n)
+    err = np.abs(lum[late, 0] - truth[late])
+    assert np.median(err) < 0.1 * level_dn
+    assert np.percentile(err, 99) < 0.3 * level_dn
+    # the same frames with the map held at the image's pixels (no shifts): much worse
+    still = RegisteredBackground((H, W))
+    lum0 = []
+    for s in range(0, n, 16):
+        still.shift[:] = 0
+        a = np.empty((min(16, n - s), 1))
+        sh = np.zeros((a.shape[0], 2), np.int64)
+        measure_block_reference(frames[s:s + 16].astype(np.float64), centres[s:s + 16], SIGMA, window_half(SIGMA),
+                                0, still.bg, still.stamp, still.block + 1 + s, still.rise_dn, MAX_SHIFT_PX,
+                                still.shift, still.level, a, sh)  # ring 0: no ring, the shift stays 0
+        lum0.append(a)
+    err0 = np.abs(np.concatenate(lum0)[late, 0] - truth[late])
+    assert np.percentile(err0, 90) > 2 * np.percentile(err, 90)
+
+
+def test_a_flat_background_keeps_its_shift() -> None:
+    """Noise alone never moves the shift (hysteresis): on a flat background every shift
+    matches alike."""
+    n = 320
+    frames, centres = _scene(9, n, np.zeros((n, 2), np.int64), _levels(n, 9), noise_dn=2.0, contrast_dn=0.0)
+    _, found = _run(RegisteredBackground((H, W)), frames, centres)
+    assert (found == 0).all()
+
+
+@pytest.mark.parametrize("dtype", [np.uint8, np.uint16])
+def test_the_kernel_matches_the_reference(dtype) -> None:
+    n = 96
+    shifts = _vibration(n, 11)
+    frames, centres = _scene(11, n, shifts, _levels(n, 11), noise_dn=1.0, dtype=dtype)
+    centres = centres + np.random.default_rng(3).normal(0, 0.3, centres.shape)  # sub-pixel, off-grid
+    a, b = RegisteredBackground((H, W)), RegisteredBackground((H, W))
+    la, sa = _run(a, frames, centres, compiled=True)
+    lb, sb = _run(b, frames, centres, compiled=False)
+    np.testing.assert_array_equal(sa, sb)
+    np.testing.assert_allclose(la, lb, rtol=1e-9, atol=1e-9)
+    np.testing.assert_array_equal(a.bg, b.bg)
+    np.testing.assert_array_equal(a.stamp, b.stamp)
+    np.testing.assert_allclose(a.level, b.level, rtol=1e-9)
+    assert measure_block.signatures  # compiled
+
+
+def test_a_spot_at_the_frame_edge_is_measured_inside_the_frame() -> None:
+    n = 32
+    frames, centres = _scene(12, n, np.zeros((n, 2), np.int64), _levels(n, 12))
+    centres[:, 0] = (1.2, 62.4)  # the window and ring are cut at the edge
+    la, _ = _run(RegisteredBackground((H, W)), frames, centres, compiled=True)
+    lb, _ = _run(RegisteredBackground((H, W)), frames, centres, compiled=False)
+    assert np.isfinite(la).all()
+    np.testing.assert_allclose(la, lb, rtol=1e-9, atol=1e-9)
+
+
+def test_bad_input_is_refused_with_a_clear_message() -> None:
+    bg = RegisteredBackground((H, W))
+    with pytest.raises(ValueError, match="frames"):
+        bg.measure(np.zeros((2, 10, 10), np.uint8), np.zeros((2, 1, 2)), 1.0)
+    with pytest.raises(ValueError, match="centres"):
+        bg.measure(np.zeros((2, H, W), np.uint8), np.zeros((3, 1, 2)), 1.0)
+    with pytest.raises(ValueError, match="sigma_px"):
+        bg.measure(np.zeros((2, H, W), np.uint8), np.zeros((2, 1, 2)), 0.0)
+    with pytest.raises(ValueError, match="rise_dn"):
+        RegisteredBackground((H, W), rise_dn=-1.0)
