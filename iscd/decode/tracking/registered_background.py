@@ -28,9 +28,9 @@ the background is flat every shift matches alike and the last one stays (and the
 does not matter). Nothing is assumed about why the image moved (vibration, a bump, the
 LED's own slow drift across the texture is followed by the map's relaxation).
 
-:func:`measure_block` is the compiled kernel (one pass per frame: match, fold in,
-measure); :func:`measure_block_reference` the pure-numpy reference the tests compare it
-with.
+:func:`measure_block` is the compiled kernel (per frame: match, fold in; then, the whole
+block folded in, per frame: measure); :func:`measure_block_reference` the pure-numpy
+reference the tests compare it with.
 """
 
 from __future__ import annotations
