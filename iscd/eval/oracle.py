@@ -775,7 +775,7 @@ def run_oracle(cfg: Config, packets: int = 2, *, mode: ReceiverMode | None = Non
             for w in windows:  # the best of the true channels counts
                 ch = None if w == "receiver" else genie_channel(buf, e, true_lev, M, rx, w)
                 r = demodulate_packet(buf, clock.u0, air, e, p_nom, clock.p, p_sig, rcfg, clock=clock,
-                                      channel=ch)
+                                      channel=ch, grid=asm.grid)
                 if isinstance(r, PacketResult):
                     sc = _score_levels(sent, r.levels.astype(np.int64), r.crc_ok, bins)
                     if idx not in scores[name] or sc.errors < scores[name][idx].errors:

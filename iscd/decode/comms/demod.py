@@ -35,6 +35,7 @@ from iscd.core.airinterface_v2 import AirInterfaceV2
 from iscd.core.jit import njit, register_warm
 from iscd.decode.comms.channel import (ChannelModel, ChannelTrack, IscdChannelSettings, _iscd_camera,
                                    _select_kth, estimate_dissertation, estimate_iscd)
+from iscd.decode.comms.crosstalk import MIN_CROSSTALK, cancel_crosstalk, estimate_crosstalk, grid_neighbours
 from iscd.decode.comms.decide import CleanCosts, SpanDecision, clean_costs, clean_levels, decide_span
 from iscd.decode.comms.phy import INCOMPLETE, erasure_masks, read_phy_header
 from iscd.decode.comms.settings import ReceiverConfig
@@ -620,6 +621,19 @@ def _segment_symbols(window: int) -> int:
     return max(8, window // 3)
 
 
+def _tracking_step(window: int) -> int:
+    """Symbols the tracking pass decides with one model (fitted on the window's past half,
+    its light matched to the step's own frames): half a final-pass stretch, at least 8.
+
+    The model predicts ahead of the frames it was fitted on, so the step bounds how far an
+    LED's offset can move unseen: in a randomized 8x8 approach at 40 km/h (35 -> 25 m) an
+    LED's level-1 light rose 30 DN, 1.5 level spacings, within about 60 symbols; with steps
+    of 64 the tracking slipped it one level up for the rest of the packet (the model then
+    learns its own decisions), with steps of 16 it followed (docs/receiver.md, "Tracking
+    step")."""
+    return max(8, _segment_symbols(window) // 2)
+
+
 def _segments(k0: int, P: int, size: int) -> list[tuple[int, int]]:
     """Consecutive stretches [a, b) of at most ``size`` symbols covering k0 .. P - 1."""
     return [(a, min(P, a + size)) for a in range(k0, P, size)]
@@ -878,7 +892,7 @@ ChannelOf = Callable[[SymbolClock, int, int], ChannelModel]
 def demodulate_packet(L: np.ndarray, u_guess: float, air: AirInterface, e: float,
                       p_nominal: float, p_prior: float, p_sigma: float, cfg: ReceiverConfig,
                       *, clock: SymbolClock | None = None, channel: ChannelOf | None = None,
-                      ) -> PacketResult | Rejection:
+                      grid: tuple[int, int] | None = None) -> PacketResult | Rejection:
     """Demodulate the packet whose header starts near frame-unit time ``u_guess``.
 
     With ``channel_window_symbols`` the channel is first tracked along the packet; if that
@@ -887,6 +901,11 @@ def demodulate_packet(L: np.ndarray, u_guess: float, air: AirInterface, e: float
     tracking window :data:`WIDER_WINDOW` times longer, and the CRC decides which is
     delivered -- a valid CRC-32 from any of the three is still only a 2^-30 chance for a
     wrong packet. When all fail, the one with the largest mean decision margin is reported.
+
+    An array (``grid``) whose first attempt fails is first tried again with its neighbours'
+    light cancelled (:mod:`iscd.decode.comms.crosstalk`, estimated from that attempt's
+    decisions) when the estimate says there is any (:data:`~iscd.decode.comms.crosstalk.MIN_CROSSTALK`);
+    the two fallbacks then read the cancelled luminance.
 
     Parameters
     ----------
@@ -914,6 +933,9 @@ def demodulate_packet(L: np.ndarray, u_guess: float, air: AirInterface, e: float
         Diagnosis hook: ``channel(clock, a, b)`` replaces every channel estimate of the iscd
         rule (verification, tracking and final pass) for the stretch [a, b) of packet
         symbols.
+    grid : (int, int), optional
+        (rows, cols) of an LED array whose LED i sits at row i // cols (N = rows * cols > 1):
+        enables the crosstalk retry.
 
     Returns
     -------
@@ -929,6 +951,15 @@ def demodulate_packet(L: np.ndarray, u_guess: float, air: AirInterface, e: float
     if isinstance(res, PacketResult) and not res.crc_ok and res.channel == "tracked":
         best = res
         W = cfg.channel_window_symbols
+        Lx = _without_crosstalk(L, res, e, grid)
+        if Lx is not None:
+            alt = _demodulate(Lx, u_guess, air, e, p_nominal, p_prior, p_sigma, cfg, clock, channel)
+            if isinstance(alt, PacketResult):
+                if alt.crc_ok:
+                    return alt
+                if _mean_margin(alt) > _mean_margin(best):
+                    best = alt
+            L = Lx
         others = [0] + ([WIDER_WINDOW * W] if WIDER_WINDOW * W < res.air.packet_symbols else [])
         for w in others:
             alt = _demodulate(L, u_guess, air, e, p_nominal, p_prior, p_sigma,
@@ -950,6 +981,25 @@ decisions that its own window then learns (a randomized 40 km/h scene closing 35
 90 wrong symbols from the packet's middle on with 96 symbols, none with 192), while one
 channel for the whole packet cannot follow the light growing 2x. The CRC decides, as between
 the first two (each attempt a 2^-32 chance of passing a wrong packet)."""
+
+
+def _without_crosstalk(L: np.ndarray, res: PacketResult, e: float, grid: tuple[int, int] | None
+                       ) -> np.ndarray | None:
+    """``L`` with the array's neighbours' light cancelled, estimated from the data decided
+    in ``res`` (:mod:`iscd.decode.comms.crosstalk`); None for one LED, without a grid, or
+    when no camera shows :data:`~iscd.decode.comms.crosstalk.MIN_CROSSTALK`."""
+    air = res.air
+    N = air.n_leds
+    if grid is None or N < 2 or grid[0] * grid[1] != N or res.levels.shape != (air.data_symbols, N):
+        return None
+    nb = grid_neighbours(*grid)
+    k0 = air.data_offset
+    lev = res.levels.astype(np.int64) - 1
+    y, lv = clean_samples(L, SymbolClock(res.u0, res.p), e, lev, k0)
+    coef = estimate_crosstalk(y, lv, int(air.levels), nb)
+    if not np.nanmax(np.abs(coef)) >= MIN_CROSSTALK:
+        return None
+    return cancel_crosstalk(L, coef, nb)
 
 
 def _mean_margin(res: PacketResult) -> float:
@@ -1018,7 +1068,7 @@ def _demodulate(L: np.ndarray, u_guess: float, air: AirInterface, e: float,
     W = cfg.channel_window_symbols
     tracked = cfg.decision_directed and not cfg.dissertation and 0 < W < P
     chunk = cfg.chunk_symbols if p_sigma > 30e-6 * p_nominal else P
-    step = min(chunk, 2 * _segment_symbols(W)) if tracked else chunk
+    step = min(chunk, _tracking_step(W)) if tracked else chunk
     lev = np.full((P, N), -1, dtype=np.int64)
     lev[:n_known] = known
     # each camera's brightest value in the buffer (the cap of _match_gain), once per packet

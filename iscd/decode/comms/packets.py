@@ -125,6 +125,9 @@ class PacketAssembler:
             raise ValueError(f"{fps} fps is below 2 frames per symbol at {tx.symbol_rate_hz} Hz")
         self.cams = self.cfg.camera_indices
         self.N = self.air.n_leds
+        rows, cols = int(getattr(tx, "rows", 0) or 0), int(getattr(tx, "cols", 0) or 0)
+        self.grid: tuple[int, int] | None = (rows, cols) if self.N > 1 and rows * cols == self.N else None
+        """(rows, cols) of an array (crosstalk cancellation on a failed packet), else None."""
         self.packet_frames = self.air.packet_symbols * self.p_nom
         self.period_frames = self.air.period_symbols * self.p_nom
         self.max_gap = max_gap_frames if max_gap_frames is not None else int(self.packet_frames)
@@ -392,7 +395,7 @@ class PacketAssembler:
 
     def _demod(self, u: float) -> PacketResult | Rejection:
         return demodulate_packet(self._L[:, :self._n], u, self.air, self.e, self.p_nom,
-                                 self._p, self._p_sigma, self.cfg)
+                                 self._p, self._p_sigma, self.cfg, grid=self.grid)
 
     MAX_STEPS = 8
     """Most search/demodulation steps in one push: a safety net so that one push can never
