@@ -177,10 +177,12 @@ def test_clock_cost_matches_reference() -> None:
     track = ChannelTrack.single(model)
     mu_t, var_t, err_t = track.tables
     for p in (2.0, 2.0003, 1.9996):
-        a = _clock_cost(L, 0, L.shape[1], clock.u0, p, 0.9, truth, 0, np.zeros(1, np.int64),
-                        mu_t, var_t, err_t, 0.02, 3.0)
-        b = clock_cost_reference(L, 0, L.shape[1], clock.u0, p, 0.9, truth, 0, track, 0.02, 3.0)
-        assert a == pytest.approx(b, rel=1e-9) and a > 0
+        for log_var in (False, True):
+            a = _clock_cost(L, 0, L.shape[1], clock.u0, p, 0.9, truth, 0, np.zeros(1, np.int64),
+                            mu_t, var_t, err_t, 0.02, 3.0, log_var)
+            b = clock_cost_reference(L, 0, L.shape[1], clock.u0, p, 0.9, truth, 0, track, 0.02, 3.0,
+                                     log_var)
+            assert a == pytest.approx(b, rel=1e-9) and (a > 0 or log_var)
 
 
 def test_match_gain_matches_reference() -> None:

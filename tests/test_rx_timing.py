@@ -191,3 +191,80 @@ def test_search_ends_finds_the_clock_across_the_gap(drift: float) -> None:
     assert used > 100 and all_clean(found)
     assert abs(found.drift_ppm(2.0) - drift) < 60.0
     assert abs(ref.u0 - found.u0) < 1e-6 and abs(ref.p - found.p) < 1e-9
+
+
+@pytest.mark.parametrize("drift, n_leds", [(-144.0, 1), (-190.0, 1), (-190.0, 4)])
+def test_a_first_packet_finds_its_clock_when_the_header_leaves_it_at_the_gaps_far_edge(
+        drift: float, n_leds: int) -> None:
+    """Exposure 0.635 of the frame period; the LED's clock slow, its first boundary 0.02
+    frames before the end of the dark gap. The header fits any clock in the gap as well and
+    leaves it near the gap's start (0.33 frames early); the period is not yet known (prior
+    300 ppm). Each clock update along the packet now searches both ends of the decided span
+    across the gap: before, the Gauss-Newton updates pivoted on the span's wrong centre, the
+    period stayed 50-110 ppm off, and the final search (over a whole packet, whose far end
+    then lay beyond its reach) could not mend it (a randomized 8x8 approach, seed
+    2098650435, lost its first packet so: 2641 of 41 600 symbols)."""
+    from iscd.decode.comms.demod import PacketResult, demodulate_packet
+    from iscd.decode.comms.settings import ReceiverConfig
+
+    e = 0.635
+    air = AirInterface(levels=8, n_leds=n_leds, data_symbols=600)
+    cams = [SynthCamera(peak_dn=150), SynthCamera(peak_dn=40)]
+    frac = 0.98 if drift == -144.0 else 0.95
+    rec = synth_recording(air, cams, n_packets=1, phase_s=frac * 1e-3 + 0.0149e-3, drift_ppm=drift,
+                          seed=n_leds, exposure_s=e * 1e-3)
+    true = SymbolClock(rec.packet_starts_s[0] * 1000.0, 2.0 / (1 + drift * 1e-6))
+    assert e < true.u0 % 1.0 < 1.0
+    u_hdr, _ = fine_header(rec.L, true.u0 + 0.2, 2.0, e)
+    assert true.u0 - u_hdr > 0.25, "the case this test is for: the header's clock at the gap's start"
+    r = demodulate_packet(rec.L, true.u0 + 0.2, air, e, 2.0, 2.0, 2.0 * 300e-6, ReceiverConfig())
+    assert isinstance(r, PacketResult) and r.crc_ok
+    assert abs(r.drift_ppm - drift) < 15.0
+    assert abs(r.u0 - true.u0) < 0.05
+
+
+@pytest.mark.parametrize("e, frac, stuck", [(0.605, 0.63, True), (1.0, 0.63, False), (0.605, 0.40, False)])
+def test_period_sigma_says_when_a_packet_left_the_period_unknown(e: float, frac: float, stuck: bool) -> None:
+    """A first packet (prior 300 ppm) whose boundaries stay in the dark gap for the whole
+    packet (exposure 0.605 frames, boundaries from 0.648 to 0.908 of a frame: LED slow by
+    199 ppm) pins no period, whatever clock its fit settled on, and the assembler takes the
+    next packet's period as unknown too; a packet whose boundaries cross the windows (no
+    gap, or a boundary that starts in a window) pins it to a few ppm and the next packet is
+    locked (20 ppm). Each packet is decoded either way."""
+    from iscd.core.config import TransmitterConfig
+    from iscd.decode.comms.packets import PacketAssembler
+    import iscd.decode.comms.packets as packets
+
+    tx = TransmitterConfig(rows=1, cols=1, levels=8, data_symbols=600, idle_symbols=0)
+    air = AirInterface.from_config(tx)
+    rec = synth_recording(air, [SynthCamera(peak_dn=150), SynthCamera(peak_dn=40)], n_packets=2,
+                          drift_ppm=-199.0, phase_s=frac * 1e-3 + 0.0149e-3, seed=1,
+                          exposure_s=e * 1e-3)
+    asm = PacketAssembler(tx, rec.fps, rec.exposure_s)
+    priors: list[float] = []
+    results = []
+    real = packets.demodulate_packet
+
+    def spy(L, u, air_, e_, p_nom, p_prior, p_sigma, cfg, **kw):
+        priors.append(p_sigma / p_nom * 1e6)
+        r = real(L, u, air_, e_, p_nom, p_prior, p_sigma, cfg, **kw)
+        results.append(r)
+        return r
+
+    packets.demodulate_packet = spy
+    try:
+        out = []
+        for a in range(0, rec.t_s.size, 250):
+            i = np.arange(a, min(rec.t_s.size, a + 250))
+            out += asm.push(i, rec.t_s[i], rec.L[0][i], rec.L[1][i])
+        out += asm.flush()
+    finally:
+        packets.demodulate_packet = real
+    assert [p.crc_ok for p in out] == [True, True]
+    first = results[0].p_sigma / asm.p_nom * 1e6
+    assert priors[0] == pytest.approx(300.0)
+    if stuck:
+        assert first > 200.0 and priors[1] > 200.0
+    else:
+        assert first < 20.0 and priors[1] == pytest.approx(20.0)
+    assert abs(results[1].drift_ppm + 199.0) < 15.0

@@ -39,7 +39,8 @@ from iscd.decode.comms.crosstalk import MIN_CROSSTALK, cancel_crosstalk, estimat
 from iscd.decode.comms.decide import CleanCosts, SpanDecision, clean_costs, clean_levels, decide_span
 from iscd.decode.comms.phy import INCOMPLETE, erasure_masks, read_phy_header
 from iscd.decode.comms.settings import ReceiverConfig
-from iscd.decode.comms.timing import SymbolClock, _clip, _map_one, clean_frame, fine_header, refine_clock
+from iscd.decode.comms.timing import (SymbolClock, _clip, _map_one, clean_frame, fine_header, period_sigma,
+                                      refine_clock)
 
 
 @dataclass
@@ -76,6 +77,9 @@ class PacketResult:
     """v2: codewords beyond the code's reach (the packet is then failed)"""
     erased: int = 0
     """v2: bytes decoded as erasures (low-confidence symbols)"""
+    p_sigma: float = float("nan")
+    """how well the packet's frames pinned the period ``p``: its posterior RMS, frames
+    (:func:`~iscd.decode.comms.timing.period_sigma`; NaN where the clock was not fitted)"""
 
     @property
     def version(self) -> int:
@@ -1067,7 +1071,10 @@ def _demodulate(L: np.ndarray, u_guess: float, air: AirInterface, e: float,
     # ``chunk_symbols`` (a clock tracked over earlier packets needs no updates within this one)
     W = cfg.channel_window_symbols
     tracked = cfg.decision_directed and not cfg.dissertation and 0 < W < P
-    chunk = cfg.chunk_symbols if p_sigma > 30e-6 * p_nominal else P
+    # a period not yet known (a first packet): the clock is re-fitted every chunk, each time
+    # searching both ends of the decided span across the exposure gap (timing.refine_clock)
+    unlocked = p_sigma > 30e-6 * p_nominal
+    chunk = cfg.chunk_symbols if unlocked else P
     step = min(chunk, _tracking_step(W)) if tracked else chunk
     lev = np.full((P, N), -1, dtype=np.int64)
     lev[:n_known] = known
@@ -1090,9 +1097,10 @@ def _demodulate(L: np.ndarray, u_guess: float, air: AirInterface, e: float,
         if (k_b >= next_clock or k_b == P) and fixed_clock is None:
             next_clock += chunk
             clock, _ = refine_clock(L, clock, e, lev[:k_b], 0, ChannelTrack(tuple(starts), tuple(models)),
-                                    p_prior, p_sigma, iters=2, timing_sigma=ts)
+                                    p_prior, p_sigma, iters=2, timing_sigma=ts, search_ends=unlocked)
 
     # final pass
+    p_post = float("nan")
     if cfg.dissertation:
         # channel factors from the training (3.11); without one, from the header's 1 and M
         k0 = HEADER_SYMBOLS if air.training_symbols else 0
@@ -1113,6 +1121,7 @@ def _demodulate(L: np.ndarray, u_guess: float, air: AirInterface, e: float,
         if cfg.decision_directed and fixed_clock is None:
             clock, _ = refine_clock(L, clock, e, lev, 0, _track(segs, models), p_prior, p_sigma,
                                     timing_sigma=ts, search_ends=True)
+            p_post = period_sigma(L, clock, e, lev, 0, _track(segs, models), p_sigma, timing_sigma=ts)
         # after the packet: idle (level 1) if the packets have gaps, else the next header
         # (level M) or, when the transmission stops, darkness (level 1)
         edge = (0,) if air.idle_symbols else (0, M - 1)
@@ -1165,5 +1174,6 @@ def _demodulate(L: np.ndarray, u_guess: float, air: AirInterface, e: float,
                         crc_ok=bool(ok), drift_ppm=clock.drift_ppm(p_nominal),
                         header_r2=r2, training_rho=rho_t, contrast=contrast,
                         margins=margins, erasures=erasures,
-                        channel="tracked" if tracked else "static", reason=reason, air=air, **v2)
+                        channel="tracked" if tracked else "static", reason=reason, air=air,
+                        p_sigma=p_post, **v2)
 

@@ -363,7 +363,10 @@ class PacketAssembler:
             air = res.air or self.air  # (a v2 packet: the geometry its header said)
             self._geom = air
             self._p = p
-            self._p_sigma = max(20e-6 * self.p_nom, 0.0)
+            # the period as well known as this packet's frames pinned it (at least 20 ppm;
+            # a packet whose boundaries stayed in the exposure gap pins nothing)
+            post = res.p_sigma if np.isfinite(res.p_sigma) else 0.0
+            self._p_sigma = float(min(max(20e-6 * self.p_nom, post), self.cfg.drift_max_ppm * 1e-6 * self.p_nom))
             self._expect = res.u0 + air.period_symbols * p
             self._search = res.u0 + air.packet_symbols * p - 2 * p
         else:  # possibly a false header: search again right after it (a real header

@@ -654,11 +654,14 @@ register_warm(_clock_sums, _warm_clock_c)
 @njit(error_model="numpy")
 def _clock_cost(L: np.ndarray, n_lo: int, n_hi: int, u0: float, p: float, e: float,
                 lev: np.ndarray, k_first: int, starts: np.ndarray, mu_t: np.ndarray,
-                var_t: np.ndarray, err_t: np.ndarray, timing_sigma: float, huber: float) -> float:
+                var_t: np.ndarray, err_t: np.ndarray, timing_sigma: float, huber: float,
+                log_var: bool) -> float:
     """Robust cost of the clock (u0, p) on frames n_lo .. n_hi - 1: every frame whose window
     lies in labelled symbols, clean (the centroid of its level) or straddling (the response
-    of :func:`_clock_sums`), Huber's rho of the normalized residual. Element by element
-    :func:`clock_cost_reference` (sums in frame order)."""
+    of :func:`_clock_sums`), Huber's rho of the normalized residual; with ``log_var`` plus
+    the log of each residual's variance (a likelihood: without it a clock that makes frames
+    straddle by a hair, their variance widened by the timing term, costs less than one that
+    keeps them clean). Element by element :func:`clock_cost_reference` (sums in frame order)."""
     C = L.shape[0]
     S, N = lev.shape
     ts_e = timing_sigma / e
@@ -685,12 +688,14 @@ def _clock_cost(L: np.ndarray, n_lo: int, n_hi: int, u0: float, p: float, e: flo
                 mu, _, var = _response_at(mu_t, var_t, err_t, seg, c, i, q, la - lb, ts_e, not clean)
                 z = abs(obs - mu) / np.sqrt(var)
                 tot += z * z if z <= huber else 2.0 * huber * z - huber * huber
+                if log_var:
+                    tot += np.log(var)
     return tot
 
 
 def clock_cost_reference(L: np.ndarray, n_lo: int, n_hi: int, u0: float, p: float, e: float,
                          lev: np.ndarray, k_first: int, track: ChannelTrack, timing_sigma: float,
-                         huber: float) -> float:
+                         huber: float, log_var: bool = False) -> float:
     """Pure-numpy reference of :func:`_clock_cost` (the clock's robust cost on all labelled
     frames, clean and straddling).
 
@@ -717,10 +722,14 @@ def clock_cost_reference(L: np.ndarray, n_lo: int, n_hi: int, u0: float, p: floa
     huber : float
         Huber threshold of the normalized residual, noise RMS.
 
+    log_var : bool
+        Add each residual's log variance (as :func:`_clock_cost`).
+
     Returns
     -------
     float
-        Sum of Huber's rho of the normalized residuals.
+        Sum of Huber's rho of the normalized residuals (with ``log_var``: plus their log
+        variances, DN^2).
     """
     S, N = lev.shape
     frames = np.arange(n_lo, n_hi)
@@ -747,13 +756,15 @@ def clock_cost_reference(L: np.ndarray, n_lo: int, n_hi: int, u0: float, p: floa
     obs = L[:, frames, :]
     z = np.abs(obs - mu) / np.sqrt(var)
     rho = np.where(z <= huber, z * z, 2.0 * huber * z - huber * huber)
+    if log_var:
+        rho = rho + np.log(var)
     use = valid[None] & np.isfinite(obs)
     return float(np.where(use, rho, 0.0).sum())
 
 
 def _warm_cost() -> tuple:
     a = _warm_clock_c()
-    return a[:8] + a[9:]
+    return a[:8] + a[9:] + (False,)
 
 
 register_warm(_clock_cost, _warm_cost)
@@ -814,7 +825,7 @@ def _search_ends(L: np.ndarray, n_lo: int, n_hi: int, a0: float, b0: float, S: i
                 u0 = a0 + da
                 q = (b0 + db - u0) / S
                 c = _clock_cost(L, n_lo, n_hi, u0, q, e, lev, k_first, starts, mu_t, var_t, err_t,
-                                timing_sigma, huber) + ((q - p_prior) / p_sigma) ** 2
+                                timing_sigma, huber, False) + ((q - p_prior) / p_sigma) ** 2
                 if c < best_c - 1e-9 or (c <= best_c + 1e-9 and abs(da) + abs(db) < abs(best_a) + abs(best_b)):
                     best_c = c
                     best_a = da
@@ -889,8 +900,10 @@ def refine_clock(L: np.ndarray, clock: SymbolClock, e: float, lev: np.ndarray, k
     search_ends : bool
         With ``fit_p`` and an exposure gap of at least :data:`ENDS_MIN_GAP_FRAMES`: search the
         boundaries at the span's two ends over the gap first (a grid of
-        :data:`ENDS_STEP_FRAMES`, on at most :data:`ENDS_MAX_LEDS` LEDs; once per packet,
-        for its final clock).
+        :data:`ENDS_STEP_FRAMES`, on at most :data:`ENDS_MAX_LEDS` LEDs; for a packet's
+        final clock, and for every clock update of a packet whose period is not yet known:
+        a header that leaves the clock at the gap's far edge puts the end of a longer span
+        beyond the search's reach, gap + 0.1 frames).
 
     Returns
     -------
@@ -925,7 +938,7 @@ def refine_clock(L: np.ndarray, clock: SymbolClock, e: float, lev: np.ndarray, k
         lo, hi = n_lo, max(n_lo, n_hi)
         p = _search_period(lambda u0, q: _clock_cost(Lc, lo, hi, u0, q, float(e), levc, int(k_first),
                                                      starts, mu_t, var_t, err_t, float(timing_sigma),
-                                                     float(huber)),
+                                                     float(huber), False),
                            uc, kc, p, p_prior, p_sigma, S / 2.0)
     for _ in range(iters):
         n_sel, h00, h01, h11, b0, b1, n_used = _clock_sums(
@@ -952,6 +965,112 @@ def refine_clock(L: np.ndarray, clock: SymbolClock, e: float, lev: np.ndarray, k
         if abs(d_u) < 1e-3 and abs(d_p) * S < 1e-3:  # 1 us
             break
     return SymbolClock(uc - kc * p, p), used
+
+
+def period_sigma(L: np.ndarray, clock: SymbolClock, e: float, lev: np.ndarray, k_first: int,
+                 model: ChannelModel | ChannelTrack, p_sigma: float, huber: float = 3.0,
+                 timing_sigma: float = 0.02) -> float:
+    """How well a packet's frames pin the symbol period: its posterior RMS at ``clock``.
+
+    The Laplace approximation of :func:`refine_clock`'s fit: the inverse of its
+    Gauss-Newton normal matrix (phase and period, the period's prior ``p_sigma`` included),
+    at the fitted clock. Only frames that straddle a symbol boundary carry timing; where a
+    packet's boundaries stay in the dark gap between exposures (an exposure shorter than
+    the frame period) none does, and the period is known no better than its prior: a next
+    packet must not take it as known to a few ppm (a randomized 100 km/h scene, seed
+    2068419781: a first packet in the gap fitted 0 ppm for a true 199 ppm, the next packet,
+    locked to it at 20 ppm, lost 32 symbols where its boundaries left the gap).
+
+    Parameters
+    ----------
+    L : ndarray
+        (C, n, N) buffer luminance, DN (NaN = missing).
+    clock : SymbolClock
+        The fitted clock, frames.
+    e : float
+        Exposure window length, frames.
+    lev : ndarray
+        (S, N) 0-based levels of packet symbols ``k_first .. k_first + S - 1`` (-1 = unknown).
+    k_first : int
+        Packet symbol of ``lev[0]``, symbols.
+    model : ChannelModel or ChannelTrack
+        The channel, one for the span or a track along the packet.
+    p_sigma : float
+        The period's prior RMS, frames.
+    huber, timing_sigma : float
+        As :func:`refine_clock` (noise RMS; frames).
+
+    Returns
+    -------
+    float
+        Posterior RMS of the period, frames (at most ``p_sigma``).
+    """
+    track = model if isinstance(model, ChannelTrack) else ChannelTrack.single(model)
+    C, n, N = L.shape
+    S = lev.shape[0]
+    kc = k_first + S / 2.0
+    n_lo = int(max(0, np.floor(clock.boundary(k_first)) - 1))
+    n_hi = int(min(n, np.ceil(clock.boundary(k_first + S)) + 1))
+    mu_t, var_t, err_t = track.tables
+    Lc = L if L.dtype == np.float64 else L.astype(np.float64)
+    n_sel, h00, h01, h11, _, _, _ = _clock_sums(
+        Lc, n_lo, max(n_lo, n_hi), clock.u0, clock.p, float(e), np.ascontiguousarray(lev, dtype=np.int64),
+        int(k_first), float(kc), np.asarray(track.starts, dtype=np.int64), mu_t, var_t, err_t,
+        float(timing_sigma), float(huber))
+    prior = 1.0 / p_sigma ** 2
+    det = h00 * (h11 + prior) - h01 * h01
+    if n_sel == 0 or not h00 > 0 or not det > 0:
+        return float(p_sigma)
+    sig = float(np.sqrt(h00 / det))
+    if e <= 1.0 - ENDS_MIN_GAP_FRAMES and S > 0:  # the curvature is blind to a flat side
+        sig = max(sig, _flat_period(Lc, clock, e, lev, k_first, track, timing_sigma, huber))
+    return float(min(p_sigma, sig))
+
+
+FLAT_COST = 4.0
+"""Cost rise (Huber rho plus log variance: twice a negative log-likelihood) below which
+:func:`period_sigma` counts a moved clock as fitting as well as the fitted one."""
+
+
+def _flat_period(L: np.ndarray, clock: SymbolClock, e: float, lev: np.ndarray, k_first: int,
+                 track: ChannelTrack, timing_sigma: float, huber: float) -> float:
+    """Largest period change that moves one end of the span by up to the exposure gap
+    (1 - e frames; the other end held) and raises :func:`_clock_cost` by less than
+    :data:`FLAT_COST`, frames/symbol (0: none). Where a fitted clock sits at the gap's edge
+    its curvature measures only the steep side; the other side may be flat for the whole
+    gap. The cost is a likelihood (:func:`_clock_cost` with ``log_var``): without the log
+    variances a clock that makes frames straddle by a hair beats the true one (the timing
+    term widens their variance), so a fit at a window's edge looked pinned. Same frames for
+    every clock (those inside the span's symbols under all of them), on the
+    :func:`_ends_leds` of an array."""
+    S, N = lev.shape
+    a, b = clock.boundary(k_first), clock.boundary(k_first + S)
+    n_lo = int(max(0, np.floor(a) + 2))
+    n_hi = int(min(L.shape[1], np.ceil(b) - 2))
+    if n_hi <= n_lo:
+        return 0.0
+    sel = _ends_leds(N)
+    mu_t, var_t, err_t = track.tables
+    Ls = np.ascontiguousarray(L[:, :, sel])
+    ls = np.ascontiguousarray(lev[:, sel], dtype=np.int64)
+    starts = np.asarray(track.starts, dtype=np.int64)
+    tabs = (np.ascontiguousarray(mu_t[:, :, sel]), np.ascontiguousarray(var_t[:, :, sel]),
+            np.ascontiguousarray(err_t[:, :, sel]))
+
+    def cost(u0: float, q: float) -> float:
+        return _clock_cost(Ls, n_lo, n_hi, u0, q, float(e), ls, int(k_first), starts, *tabs,
+                           float(timing_sigma), float(huber), True)
+
+    c0 = cost(clock.u0, clock.p)
+    g = 1.0 - e
+    wide = 0.0
+    for d in (-g, -g / 2, g / 2, g):
+        q = clock.p + d / S
+        # the end moved by d (the start held), or the start moved by -d (the end held)
+        for u0 in (a - k_first * q, b - (k_first + S) * q):
+            if cost(u0, q) - c0 < FLAT_COST:
+                wide = max(wide, abs(d) / S)
+    return wide
 
 
 def refine_clock_reference(L: np.ndarray, clock: SymbolClock, e: float, lev: np.ndarray, k_first: int,
@@ -992,8 +1111,10 @@ def refine_clock_reference(L: np.ndarray, clock: SymbolClock, e: float, lev: np.
     search_ends : bool
         With ``fit_p`` and an exposure gap of at least :data:`ENDS_MIN_GAP_FRAMES`: search the
         boundaries at the span's two ends over the gap first (a grid of
-        :data:`ENDS_STEP_FRAMES`, on at most :data:`ENDS_MAX_LEDS` LEDs; once per packet,
-        for its final clock).
+        :data:`ENDS_STEP_FRAMES`, on at most :data:`ENDS_MAX_LEDS` LEDs; for a packet's
+        final clock, and for every clock update of a packet whose period is not yet known:
+        a header that leaves the clock at the gap's far edge puts the end of a longer span
+        beyond the search's reach, gap + 0.1 frames).
 
     Returns
     -------
