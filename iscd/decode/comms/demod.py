@@ -625,16 +625,22 @@ def _segment_symbols(window: int) -> int:
     return max(8, window // 3)
 
 
-def _tracking_step(window: int) -> int:
+def _tracking_step(window: int, n_leds: int) -> int:
     """Symbols the tracking pass decides with one model (fitted on the window's past half,
-    its light matched to the step's own frames): half a final-pass stretch, at least 8.
+    its light matched to the step's own frames).
 
-    The model predicts ahead of the frames it was fitted on, so the step bounds how far an
-    LED's offset can move unseen: in a randomized 8x8 approach at 40 km/h (35 -> 25 m) an
-    LED's level-1 light rose 30 DN, 1.5 level spacings, within about 60 symbols; with steps
-    of 64 the tracking slipped it one level up for the rest of the packet (the model then
-    learns its own decisions), with steps of 16 it followed (docs/receiver.md, "Tracking
+    For an array, half a final-pass stretch (at least 8): the model predicts ahead of the
+    frames it was fitted on and the light match (:func:`_match_gain`) moves each camera's
+    span, not one LED's offset, so the step bounds how far an LED's offset can move unseen:
+    in a randomized 8x8 approach at 40 km/h (35 -> 25 m) an LED's level-1 light rose 30 DN,
+    1.5 level spacings, within about 60 symbols; with steps of 64 the tracking slipped it one
+    level up for the rest of the packet (the model then learns its own decisions), with steps
+    of 16 it followed. For one LED the camera's span is the LED's own, the match follows it
+    within the step, and the longer step (two stretches) is steadier: on randomized 100 km/h
+    scenes steps of 16 cost single symbols that 64 did not (docs/receiver.md, "Tracking
     step")."""
+    if n_leds == 1:
+        return 2 * _segment_symbols(window)
     return max(8, _segment_symbols(window) // 2)
 
 
@@ -1075,7 +1081,7 @@ def _demodulate(L: np.ndarray, u_guess: float, air: AirInterface, e: float,
     # searching both ends of the decided span across the exposure gap (timing.refine_clock)
     unlocked = p_sigma > 30e-6 * p_nominal
     chunk = cfg.chunk_symbols if unlocked else P
-    step = min(chunk, _tracking_step(W)) if tracked else chunk
+    step = min(chunk, _tracking_step(W, N)) if tracked else chunk
     lev = np.full((P, N), -1, dtype=np.int64)
     lev[:n_known] = known
     # each camera's brightest value in the buffer (the cap of _match_gain), once per packet
