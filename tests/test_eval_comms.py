@@ -322,3 +322,59 @@ def test_a_header_during_a_failed_first_attempt_is_decoded_once_the_led_is_found
     print(f"packets ok / bad / acquisitions: keeping 128 frames {got[128]}, 64 {got[64]}")
     assert got[128][0] == 2 and got[128][1] == 0
     assert got[64][0] == 1  # the scene still needs the second attempt (else this tests nothing)
+
+
+def test_an_arrays_first_packet_finds_its_clock_across_the_exposure_gap() -> None:
+    """A regression scene (issue 12; randomized physics, seed 2098650435 of the motion case
+    8x8-40kmh-0.3px under smooth vibration, found in an unseen seed set): exposure 0.635
+    frames, the LED clock 144 ppm slow, its first packet's symbol boundaries at the end of
+    the dark gap between exposures; the header left the clock at the gap's start and the
+    first packet's clock updates, pivoting on a wrong centre, stayed at 7 ppm (2 641 wrong
+    symbols with the true positions). Now each update searches both ends of the decided span
+    (iscd.decode.comms.demod, timing.refine_clock(search_ends=True)): both packets bit-exact."""
+    from iscd.eval.suites import MOTION_CASES, motion_cfg
+
+    case = next(c for c in MOTION_CASES if c.key == "8x8-40kmh-0.3px")
+    cfg, note = motion_cfg(default_config(), case, 2098650435, scene={"vibration_model": "smooth"}, randomize=True)
+    assert note.startswith("randomized")
+    e = cfg.camera.exposure_s * cfg.camera.fps
+    assert e < 0.9, "the case this test is for: an exposure gap"
+    (res,) = run_comms(cfg, [ReceiverMode("HDR f/4+f/8", "both")], 2, block=16)
+    print(f"found {res.found}/{res.packets_sent}, exact {res.exact}, SER {res.ser:.3g}")
+    _check_delivery(res)
+    assert res.exact == res.packets_sent == 2
+    assert res.ser == 0.0
+
+
+SECOND_PACKET_CLOCK = ("seed 1987386013 (set 43001, smooth): the second packet, its period locked at "
+                       "20 ppm around the first packet's 179 ppm for a true 187 ppm, loses 451-456 "
+                       "symbols at its end (the true clock: none); the first packet's period_sigma "
+                       "said 1.3 ppm. Open (issue 12).")
+
+
+@pytest.mark.parametrize("model", [pytest.param("smooth", marks=pytest.mark.xfail(reason=SECOND_PACKET_CLOCK, strict=True)),
+                                   pytest.param("bumps", marks=pytest.mark.slow),
+                                   pytest.param("engine", marks=pytest.mark.slow)])
+def test_an_8x8_array_approaching_on_randomized_physics_stays_below_1e3(model: str) -> None:
+    """Issue 12's must-show for the array: 8x8 HDR f/4 + f/8, PWM-8, closing at 40 km/h from
+    50 m to 25 m with 0.3 px of vibration, three scenes whose physics the randomizer draws
+    (seed set 43001, the same seeds `iscd eval --suite motion --seed 43001 --randomize` uses;
+    first run after the session's other measurements, not tuned on): SER <= 1e-3 over the
+    three scenes' two packets each, and every packet found. Smooth vibration does not meet
+    it yet (:data:`SECOND_PACKET_CLOCK`: one scene at SER 5.9e-3, the three at 2.0e-3)."""
+    from iscd.eval.suites import MOTION_CASES, motion_cfg
+
+    case = next(c for c in MOTION_CASES if c.key == "8x8-40kmh-0.3px")
+    errors = symbols = 0
+    for i in range(3):
+        cfg, note = motion_cfg(default_config(), case, point_seed(43001, "motion", case.key, i),
+                               scene={"vibration_model": model}, randomize=True)
+        assert note.startswith("randomized")
+        (res,) = run_comms(cfg, [ReceiverMode("HDR f/4+f/8", "both")], 2, block=16)
+        print(f"scene {i}: found {res.found}/{res.packets_sent}, exact {res.exact}, SER {res.ser:.3g}")
+        _check_delivery(res)
+        assert res.found == res.packets_sent == 2
+        errors += res.symbol_errors
+        symbols += res.symbols
+    assert symbols == 3 * 2 * 600 * 64
+    assert errors / symbols <= 1e-3
