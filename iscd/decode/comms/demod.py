@@ -641,6 +641,13 @@ def _tracking_step(window: int, n_leds: int) -> int:
     step")."""
     if n_leds == 1:
         return 2 * _segment_symbols(window)
+    return _short_step(window)
+
+
+def _short_step(window: int) -> int:
+    """An array's tracking step (:func:`_tracking_step`): half a final-pass stretch, at
+    least 8 symbols. One LED's packet that fails with its own step is tried once more with
+    this one (:func:`demodulate_packet`)."""
     return max(8, _segment_symbols(window) // 2)
 
 
@@ -895,6 +902,26 @@ REUSE_UNCHANGED = True
 model, clean costs, the levels one symbol either side) are unchanged -- exactly what
 deciding again would give (``tests/test_demod_reuse.py``); False decides every time."""
 
+LOCKED_PPM = 30.0
+"""A period prior at most this wide (ppm of the nominal period) is locked: the packet's
+clock is fitted once over the whole packet, not re-fitted along it (:func:`_locked`)."""
+
+
+def _locked(p_sigma: float, p_nominal: float) -> bool:
+    """Whether a period prior of RMS ``p_sigma`` frames is locked (:data:`LOCKED_PPM`)."""
+    return not p_sigma > LOCKED_PPM * 1e-6 * p_nominal  # (NaN: locked)
+
+
+SHORT_STEP_RETRY = True
+"""One LED's packet that every other attempt of :func:`demodulate_packet` failed is tried
+once more with an array's tracking step (:func:`_short_step`); False skips that attempt (the
+receiver before it: tests compare the two)."""
+
+UNLOCKED_RETRY = True
+"""A packet whose period was locked on a delivered packet's, and which every other attempt
+failed, is demodulated once more with the period free (:func:`demodulate_packet`,
+``retry_unlocked``); False skips that attempt (tests compare the two)."""
+
 ChannelOf = Callable[[SymbolClock, int, int], ChannelModel]
 """``channel(clock, a, b)``: a channel model for packet symbols [a, b) (an oracle's)."""
 
@@ -902,7 +929,8 @@ ChannelOf = Callable[[SymbolClock, int, int], ChannelModel]
 def demodulate_packet(L: np.ndarray, u_guess: float, air: AirInterface, e: float,
                       p_nominal: float, p_prior: float, p_sigma: float, cfg: ReceiverConfig,
                       *, clock: SymbolClock | None = None, channel: ChannelOf | None = None,
-                      grid: tuple[int, int] | None = None) -> PacketResult | Rejection:
+                      grid: tuple[int, int] | None = None, retry_unlocked: bool = False
+                      ) -> PacketResult | Rejection:
     """Demodulate the packet whose header starts near frame-unit time ``u_guess``.
 
     With ``channel_window_symbols`` the channel is first tracked along the packet; if that
@@ -915,7 +943,22 @@ def demodulate_packet(L: np.ndarray, u_guess: float, air: AirInterface, e: float
     An array (``grid``) whose first attempt fails is first tried again with its neighbours'
     light cancelled (:mod:`iscd.decode.comms.crosstalk`, estimated from that attempt's
     decisions) when the estimate says there is any (:data:`~iscd.decode.comms.crosstalk.MIN_CROSSTALK`);
-    the two fallbacks then read the cancelled luminance.
+    the two fallbacks then read the cancelled luminance. One LED's packet that all three
+    fail is tried last with an array's shorter tracking step (:data:`SHORT_STEP_RETRY`):
+    over ten randomized one-LED seed sets the two steps delivered the same number of
+    packets, each losing marginal scenes the other kept (docs/receiver.md, "Tracking
+    step"). Only a CRC pass of that attempt counts; its failure changes no report.
+
+    With ``retry_unlocked`` (the caller's period prior came from a delivered packet), a
+    packet whose period was locked (``p_sigma`` at most :data:`LOCKED_PPM`) and which every
+    attempt above failed is demodulated once more as a first packet is, its period free
+    within ``cfg.drift_max_ppm`` (the clock re-fitted along the packet, searching across the
+    exposure gap): a delivered packet's period can be a few ppm off while its own spread
+    said it was pinned (an 8x8 seed whose first packet came out at 179 ppm for a true 187 ppm
+    lost its second packet's last 456 symbols to the lock). Again only a CRC pass counts.
+    It costs one unlocked demodulation (0.9 s of CPU for an 8x8 packet, in the worker)
+    and runs at most once per delivered packet: the prior after a failed packet is not
+    a delivered one's.
 
     Parameters
     ----------
@@ -946,6 +989,9 @@ def demodulate_packet(L: np.ndarray, u_guess: float, air: AirInterface, e: float
     grid : (int, int), optional
         (rows, cols) of an LED array whose LED i sits at row i // cols (N = rows * cols > 1):
         enables the crosstalk retry.
+    retry_unlocked : bool
+        ``p_prior`` is a delivered packet's period: a locked packet that fails is tried
+        once more with the period free (above).
 
     Returns
     -------
@@ -979,6 +1025,21 @@ def demodulate_packet(L: np.ndarray, u_guess: float, air: AirInterface, e: float
                     return alt
                 if _mean_margin(alt) > _mean_margin(best):
                     best = alt
+        if SHORT_STEP_RETRY and res.air.n_leds == 1:
+            # one LED: the array's shorter tracking step (a CRC pass only; a failure here
+            # leaves the report as it was)
+            alt = _demodulate(L, u_guess, air, e, p_nominal, p_prior, p_sigma, cfg, clock, channel,
+                              tracking_step=_short_step(W))
+            if isinstance(alt, PacketResult) and alt.crc_ok:
+                return alt
+        wide = cfg.drift_max_ppm * 1e-6 * p_nominal
+        if UNLOCKED_RETRY and retry_unlocked and clock is None and _locked(p_sigma, p_nominal) \
+                and not _locked(wide, p_nominal):
+            # last, the period as a first packet finds it: the lock is an assumption (the
+            # last delivered packet's period), and a CRC failure is evidence against it
+            alt = _demodulate(L, u_guess, air, e, p_nominal, p_prior, wide, cfg, clock, channel)
+            if isinstance(alt, PacketResult) and alt.crc_ok:
+                return alt
         return best
     return res
 
@@ -1020,8 +1081,9 @@ def _mean_margin(res: PacketResult) -> float:
 def _demodulate(L: np.ndarray, u_guess: float, air: AirInterface, e: float,
                 p_nominal: float, p_prior: float, p_sigma: float, cfg: ReceiverConfig,
                 fixed_clock: SymbolClock | None = None, channel: ChannelOf | None = None,
-                ) -> PacketResult | Rejection:
-    """One demodulation attempt (:func:`demodulate_packet`), channel as ``cfg`` says."""
+                tracking_step: int | None = None) -> PacketResult | Rejection:
+    """One demodulation attempt (:func:`demodulate_packet`), channel as ``cfg`` says
+    (``tracking_step``: the tracking pass's step, symbols, instead of :func:`_tracking_step`'s)."""
     C, n, N = L.shape
     st = IscdChannelSettings(var_floor_dn=cfg.var_floor_dn)
     kind = cfg.noise_model
@@ -1039,7 +1101,7 @@ def _demodulate(L: np.ndarray, u_guess: float, air: AirInterface, e: float,
             # packet (few LEDs: H > 13 + K + F): decoded as v1, as a v1 receiver always did
             # (a v2 packet is then seen only by a receiver whose v1 packet is not shorter)
             return _demodulate(L, u_guess, air, e, p_nominal, p_prior, p_sigma, replace(cfg, air_v2=False),
-                               fixed_clock, channel)
+                               fixed_clock, channel, tracking_step)
         if hdr is not None:
             air = AirInterfaceV2.from_header(hdr)  # type: ignore[arg-type]
     M = air.levels
@@ -1079,9 +1141,9 @@ def _demodulate(L: np.ndarray, u_guess: float, air: AirInterface, e: float,
     tracked = cfg.decision_directed and not cfg.dissertation and 0 < W < P
     # a period not yet known (a first packet): the clock is re-fitted every chunk, each time
     # searching both ends of the decided span across the exposure gap (timing.refine_clock)
-    unlocked = p_sigma > 30e-6 * p_nominal
+    unlocked = not _locked(p_sigma, p_nominal)
     chunk = cfg.chunk_symbols if unlocked else P
-    step = min(chunk, _tracking_step(W, N)) if tracked else chunk
+    step = min(chunk, tracking_step or _tracking_step(W, N)) if tracked else chunk
     lev = np.full((P, N), -1, dtype=np.int64)
     lev[:n_known] = known
     # each camera's brightest value in the buffer (the cap of _match_gain), once per packet

@@ -140,6 +140,7 @@ class PacketAssembler:
         self._search = 0.0  # buffer position (frames) from which headers are still searched
         self._p = self.p_nom
         self._p_sigma = self.cfg.drift_max_ppm * 1e-6 * self.p_nom
+        self._prior_delivered = False  # _p, _p_sigma are a CRC-valid packet's (demodulate_packet's retry_unlocked)
         self._expect: float | None = None  # expected next header start (buffer frames)
         self._wait_until = 0.0  # no new search before the buffer has this many rows
         self._last_u: float | None = None  # absolute start (frames) of the last emitted packet
@@ -367,6 +368,7 @@ class PacketAssembler:
             # a packet whose boundaries stayed in the exposure gap pins nothing)
             post = res.p_sigma if np.isfinite(res.p_sigma) else 0.0
             self._p_sigma = float(min(max(20e-6 * self.p_nom, post), self.cfg.drift_max_ppm * 1e-6 * self.p_nom))
+            self._prior_delivered = bool(res.crc_ok)
             self._expect = res.u0 + air.period_symbols * p
             self._search = res.u0 + air.packet_symbols * p - 2 * p
         else:  # possibly a false header: search again right after it (a real header
@@ -398,7 +400,8 @@ class PacketAssembler:
 
     def _demod(self, u: float) -> PacketResult | Rejection:
         return demodulate_packet(self._L[:, :self._n], u, self.air, self.e, self.p_nom,
-                                 self._p, self._p_sigma, self.cfg, grid=self.grid)
+                                 self._p, self._p_sigma, self.cfg, grid=self.grid,
+                                 retry_unlocked=self._prior_delivered)
 
     MAX_STEPS = 8
     """Most search/demodulation steps in one push: a safety net so that one push can never
