@@ -65,7 +65,7 @@ class PipelineSettings:
     """Finding, following and measuring the LEDs: detection, tracking, the luminance window (docs/receiver.md)."""
 
     acquire_frames: int = field(default=64, metadata={"lo": 8, "hi": 1024, "doc": "frames per detection attempt"})
-    acquire_lookback_frames: int = field(default=128, metadata={"lo": 0, "hi": 4096, "doc": "frames kept while looking for the transmitter (the last ones; each attempt looks at the last acquire_frames of them): once found it is decoded from the first kept, so a packet whose header came during an attempt that failed (a far, dim LED found at the second try) is not lost; at most acquire_frames = only the finding attempt's own frames (before session 17)"})
+    acquire_lookback_frames: int = field(default=256, metadata={"lo": 0, "hi": 4096, "doc": "frames kept while looking for the transmitter (the last ones; each attempt looks at the last acquire_frames of them): once found it is decoded from the first kept, so a packet whose header came during attempts that failed (a far, dim LED found at the second to fourth try) is not lost; at most acquire_frames = only the finding attempt's own frames (before session 17; 128 in sessions 17-18)"})
     track_every_frames: int = field(default=32, metadata={"lo": 4, "hi": 4096, "doc": "re-fit the LED grid this often"})
     verify_packets: float = field(default=2.5, metadata={"lo": 1.2, "doc": "packets to wait for a header before rejecting a candidate"})
     exclude_packets: float = field(default=8.0, metadata={"lo": 0, "doc": "a rejected candidate is ignored this many packets"})
