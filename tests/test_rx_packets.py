@@ -298,3 +298,36 @@ def test_a_packet_after_a_long_dark_period_and_a_single_camera() -> None:
                             None if right is None else right[a:a + 10])
         got += asm.flush()
         assert len(got) == 1 and got[0].crc_ok and got[0].payload == payload
+
+
+def test_the_retry_with_the_period_free_is_asked_at_most_once_per_delivered_packet(monkeypatch) -> None:
+    """demodulate_packet's ``retry_unlocked`` (a failed packet whose period was locked on a
+    delivered packet's is tried again with it free): the assembler asks it only while its
+    prior is a CRC-valid packet's, so a run of failing packets costs at most one such retry."""
+    from types import SimpleNamespace
+
+    import iscd.decode.comms.packets as packets
+
+    asked: list[bool] = []
+
+    def fake(*a, retry_unlocked: bool = False, **k):
+        asked.append(retry_unlocked)
+        return None
+
+    monkeypatch.setattr(packets, "demodulate_packet", fake)
+    tx = _tx()
+    asm = PacketAssembler(tx, 1000.0, 1e-3)
+    air = AirInterface.from_config(tx)
+
+    def res(ok: bool, rho: float = 0.95) -> SimpleNamespace:
+        return SimpleNamespace(crc_ok=ok, training_rho=rho, p=asm.p_nom, p_sigma=1e-6, u0=0.0, air=air)
+
+    asm._demod(0.0)  # no packet yet: the period is not a delivered packet's
+    asm._accept(res(True))
+    asm._demod(0.0)
+    asm._accept(res(False))  # failed (a real packet: the lock moves to it)
+    asm._demod(0.0)
+    asm._accept(res(True))
+    asm._accept(res(False, rho=0.1))  # failed, not even a real packet: the lock stays, the retry not
+    asm._demod(0.0)
+    assert asked == [False, True, False, False]

@@ -357,6 +357,8 @@ class PacketAssembler:
     def _accept(self, res: PacketResult) -> None:
         """Lock on a demodulated packet: the next header is one period later."""
         real = res.crc_ok or res.training_rho >= 0.9
+        # the retry with the period free runs at most once per delivered packet
+        self._prior_delivered = bool(res.crc_ok)
         # a clock fit on bad data must not stall the search: the period stays within
         # +-2000 ppm of nominal and the next header is always ahead of this one
         p = float(np.clip(res.p, self.p_nom * (1 - 2e-3), self.p_nom * (1 + 2e-3))) if np.isfinite(res.p) else self.p_nom
@@ -368,7 +370,6 @@ class PacketAssembler:
             # a packet whose boundaries stayed in the exposure gap pins nothing)
             post = res.p_sigma if np.isfinite(res.p_sigma) else 0.0
             self._p_sigma = float(min(max(20e-6 * self.p_nom, post), self.cfg.drift_max_ppm * 1e-6 * self.p_nom))
-            self._prior_delivered = bool(res.crc_ok)
             self._expect = res.u0 + air.period_symbols * p
             self._search = res.u0 + air.packet_symbols * p - 2 * p
         else:  # possibly a false header: search again right after it (a real header
