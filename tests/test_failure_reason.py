@@ -76,3 +76,24 @@ def test_a_saturated_close_led_says_so_in_its_packet_record() -> None:
     assert len(seen[8.0]) == 1 and not seen[8.0][0]["crc_ok"]
     assert seen[8.0][0]["reason"].startswith("saturated")
     assert len(seen[30.0]) == 1 and seen[30.0][0]["crc_ok"] and "reason" not in seen[30.0][0]
+
+
+def test_evenly_spaced_levels_lost_in_noise_are_low_light_not_saturation() -> None:
+    """One LED at 100 m (randomized physics, seed 2115230248; the models of its failed packet):
+    an f/4 camera's levels 4 DN apart, evenly, with the upper levels' shot noise the larger,
+    and a dim f/8 camera. The upper levels are closest in noise RMS, but nothing clips: the
+    label is low light, where it was "saturated" before the squeeze test."""
+    f4 = [1.0, 5.2, 9.4, 13.7, 17.7, 22.2, 26.5, 30.3]
+    f8 = [0.7, 1.6, 2.5, 3.8, 4.8, 6.0, 7.0, 8.2]
+    mu = np.array([f4, f8])[:, None, :]
+    sd = np.array([[0.5, 0.6, 0.6, 0.6, 0.7, 0.8, 1.4, 1.4], [0.3] * 8])[:, None, :]
+    m = ChannelModel(mu=mu, var=sd ** 2, kind="t")
+    assert (level_separation(m)[..., 4:] < SEPARATION_MIN).any(axis=-1).all()  # the old rule's case
+    assert failure_reason([m], np.full(600, 3.0)).startswith("low light")
+    # the f/4 camera's top squeezed by clipping: saturated where both cameras clip, low
+    # light where the other one is only dim
+    f4c = [1.0, 5.2, 9.4, 13.7, 17.7, 19.0, 19.8, 20.2]
+    both = ChannelModel(mu=np.array([f4c, f4c])[:, None, :], var=sd[[0, 0]] ** 2, kind="t")
+    assert failure_reason([both], np.full(600, 3.0)).startswith("saturated: levels 5-8")
+    one = ChannelModel(mu=np.array([f4c, f8])[:, None, :], var=sd ** 2, kind="t")
+    assert failure_reason([one], np.full(600, 3.0)).startswith("low light")

@@ -30,7 +30,7 @@ def _run(tx: TransmitterConfig, rec: SynthRecording, block: int = 250,
     for a in range(0, ids.size, block):
         i = ids[a:a + block]
         out += asm.push(i + 1000, rec.t_s[i], L[0][i], L[1][i])
-    return out, asm
+    return out + asm.flush(), asm  # (the end of the stream: a failed packet held for its anchor)
 
 
 def _match(rec: SynthRecording, air: AirInterface, pk: list[Packet]) -> list[tuple[int, Packet, float]]:
@@ -331,3 +331,67 @@ def test_the_retry_with_the_period_free_is_asked_at_most_once_per_delivered_pack
     asm._accept(res(False, rho=0.1))  # failed, not even a real packet: the lock stays, the retry not
     asm._demod(0.0)
     assert asked == [False, True, False, False]
+
+
+def _corrupted(seed: int = 10) -> tuple[TransmitterConfig, AirInterface, SynthRecording, np.ndarray]:
+    """Two one-LED packets, the first with data symbol 300's frames overwritten by another
+    level's luminance: a failure no channel estimate can mend."""
+    tx = _tx(8)
+    air = AirInterface.from_config(tx)
+    rec = synth_recording(air, [SynthCamera(peak_dn=100)] * 2, n_packets=2, drift_ppm=0,
+                          phase_s=0.0005, seed=seed)
+    L = rec.L.copy()
+    t_sym = rec.packet_starts_s[0] + (air.data_offset + 300) * 2e-3
+    n = np.flatnonzero((rec.t_s >= t_sym - 1e-3) & (rec.t_s < t_sym + 2e-3))
+    src = np.flatnonzero(rec.x[:, 0] == 0)[:n.size]
+    L[:, n] = L[:, src] if rec.x[n, 0].min() > 0.1 else L[:, np.flatnonzero(rec.x[:, 0] == 1)[:n.size]]
+    return tx, air, rec, L
+
+
+def _summary(pk: list[Packet]) -> list[tuple[int, bool, bytes]]:
+    return [(p.frame, p.crc_ok, p.levels.tobytes()) for p in pk]
+
+
+@pytest.mark.parametrize("block", [1, 16, 250, 10_000])
+def test_a_failed_packet_held_for_its_anchor_comes_out_as_it_was(block: int, monkeypatch: pytest.MonkeyPatch) -> None:
+    """demod.ANCHOR_RETRY: a failed packet waits for the next packet's header and training
+    and is demodulated once more anchored on them; where that fails too (a corrupted symbol)
+    the same record comes out as without the retry, before the next packet, whatever the
+    block size (the wait spans blocks and buffer trims)."""
+    from iscd.decode.comms import demod
+
+    tx, air, rec, L = _corrupted()
+    pk, asm = _run(tx, rec, L=L, block=block)
+    assert [p.crc_ok for p in pk] == [False, True]
+    assert asm.stats["anchored_tries"] == 1 and asm.stats["anchored_delivered"] == 0
+    assert "channel_anchored" not in pk[0].quality
+    monkeypatch.setattr(demod, "ANCHOR_RETRY", False)
+    off, asm_off = _run(tx, rec, L=L, block=block)
+    assert asm_off.stats["anchored_tries"] == 0
+    assert _summary(pk) == _summary(off)
+
+
+def test_a_held_packet_is_not_lost_at_a_gap_or_the_end_of_the_stream() -> None:
+    """A failed packet held for the frames after it comes out when a long gap resets the
+    receiver before they arrive, and at the end of the stream (flush): nothing decoded is
+    dropped."""
+    tx, air, rec, L = _corrupted()
+    ids = np.arange(rec.t_s.size)
+    end0 = int(np.ceil((rec.packet_starts_s[0] + air.packet_symbols * 2e-3) * rec.fps)) + 6
+    for how in ("gap", "flush", "reset"):
+        asm = PacketAssembler(tx, rec.fps, rec.exposure_s)
+        out: list[Packet] = []
+        for a in range(0, end0, 50):
+            i = ids[a:min(a + 50, end0)]
+            out += asm.push(i, rec.t_s[i], L[0][i], L[1][i])
+        assert out == [] and asm._held is not None, how  # held: the anchor is not in yet
+        if how == "gap":
+            i = ids[end0:end0 + 10] + 5000
+            out += asm.push(i, i / rec.fps, L[0][ids[end0:end0 + 10]], L[1][ids[end0:end0 + 10]])
+            assert asm.stats["resyncs"] == 1
+        elif how == "flush":
+            out += asm.flush()
+        else:
+            out += asm.reset()
+        assert [p.crc_ok for p in out] == [False], how
+        assert asm._held is None

@@ -260,6 +260,8 @@ class StreamDecoder:
         """the demodulation worker (``demod_worker``: a slot of one shared by several
         transmitters, :class:`iscd.decode.worker.SlotWorker`)"""
         self._pending: deque[tuple[Future, int]] = deque()
+        self._late: list[Packet] = []
+        """packets a replaced assembler still held (synchronous decoding): the next records"""
         """asynchronous demodulation steps in order, each with the frames it pushes (a
         track's header wait counts frames once they are demodulated: a worker that is
         still starting must not condemn the transmitter)"""
@@ -460,6 +462,12 @@ class StreamDecoder:
     def _new_assembler(self) -> None:
         """A fresh assembler (a new track); steps already queued finish on the old one."""
         if self._worker is None:
+            old = getattr(self, "assembler", None)
+            if old is not None:  # a failed packet it held for the frames after it is not dropped
+                if self._pool is None:
+                    self._late += old.reset()
+                else:
+                    self._pending.append((self._pool.submit(old.reset), 0))
             self.assembler = self._make_assembler()
         else:
             self._pending.append((self._worker.submit("new", self.tx, self.fps,
@@ -477,17 +485,21 @@ class StreamDecoder:
         self._pending.append((self._pool.submit(self.assembler.push, frame_ids, t_s, lum_l, lum_r), n))
         return []
 
-    def _reset_assembler(self) -> None:
+    def _reset_assembler(self) -> list[dict]:
+        """Restart the packet search; returns the records of a failed packet the assembler
+        held (decoded synchronously; with a worker or pool they come with its steps)."""
         if self._worker is not None:
             self._pending.append((self._worker.submit("reset"), 0))
         elif self._pool is None:
-            self.assembler.reset()
+            return self._records(self.assembler.reset())
         else:  # in order with the pushes already queued
-            self._pending.append((self._pool.submit(lambda a=self.assembler: a.reset() or []), 0))
+            self._pending.append((self._pool.submit(self.assembler.reset), 0))
+        return []
 
     def _collect(self, wait: bool = False) -> list[dict]:
         """Records of the finished asynchronous demodulation steps, in order."""
-        out: list[dict] = []
+        out: list[dict] = self._records(self._late) if self._late else []
+        self._late = []
         while self._pending and (wait or self._pending[0][0].done()):
             fut, nf = self._pending.popleft()
             try:
@@ -717,7 +729,7 @@ class StreamDecoder:
         bounds = [0, *cuts.tolist(), n]
         for a, b in zip(bounds[:-1], bounds[1:]):
             if a in cuts:
-                self._reset_assembler()
+                records += self._reset_assembler()
                 self.counters["assembler_resets"] += 1
                 tr.since_frame = int(frame_ids[a])  # the header wait starts again
                 tr.frames_since_header = 0

@@ -107,8 +107,9 @@ def _call(op: str, *args: Any) -> list[Packet]:
         return []
     if op == "new":
         tx, fps, exposure_s, cfg = args
+        held = _assembler.reset() if _assembler is not None else []  # (nothing decoded is dropped)
         _assembler = PacketAssembler(tx, fps=fps, exposure_s=exposure_s, cfg=cfg)
-        return []
+        return held
     if _assembler is None:
         raise RuntimeError(f"demodulation worker: {op!r} before the assembler was made")
     if op == "push":
@@ -117,8 +118,7 @@ def _call(op: str, *args: Any) -> list[Packet]:
             _report.tick(len(out))
         return out
     if op == "reset":
-        _assembler.reset()
-        return []
+        return _assembler.reset()
     if op == "flush":
         return _assembler.flush()
     raise ValueError(f"demodulation worker: unknown operation {op!r}")

@@ -61,7 +61,7 @@ from iscd.eval.sweeps import (CommsResult, ReceiverMode, _blocks, _decoder_cfg, 
                               frames_for_packets)
 from iscd.decode.stream import StreamDecoder
 from iscd.decode.comms.channel import ChannelModel, IscdChannelSettings, estimate_iscd
-from iscd.decode.comms.demod import PacketResult, clean_samples, demodulate_packet
+from iscd.decode.comms.demod import PacketResult, clean_samples, demodulate_packet, known_levels
 from iscd.decode.tracking.luminance import gather_patches, gauss_mean
 from iscd.decode.comms.packets import PacketAssembler
 from iscd.decode.comms.settings import ReceiverConfig, receiver_config
@@ -602,8 +602,10 @@ def run_oracle(cfg: Config, packets: int = 2, *, mode: ReceiverMode | None = Non
     """Decode a simulated recording with the receiver and with the oracle stages.
 
     Renders ``packets`` whole packets of ``cfg``'s scene (as
-    :func:`iscd.eval.sweeps.run_comms`), decodes them with the receiver and again with
-    the stages of the module docstring.
+    :func:`iscd.eval.sweeps.run_comms`) and the next packet's header and training (a
+    transmitter keeps sending: a car's receiver sees the header after the last packet
+    scored, which :data:`~iscd.decode.comms.demod.ANCHOR_RETRY` reads for a failed packet),
+    decodes them with the receiver and again with the stages of the module docstring.
 
     Parameters
     ----------
@@ -647,7 +649,7 @@ def run_oracle(cfg: Config, packets: int = 2, *, mode: ReceiverMode | None = Non
     air = AirInterface.from_config(cfg.transmitter)
     tx = cfg.transmitter
     if truth is None:
-        n_frames = frames_for_packets(scene, air, packets)
+        n_frames = frames_for_packets(scene, air, packets, after_symbols=known_levels(air).shape[0])
         truth = scene.truth(np.arange(n_frames))
     else:
         n_frames = len(truth)

@@ -152,9 +152,11 @@ def _decoder_cfg(cfg: Config, mode: ReceiverMode | None, ranging: bool = False) 
     return out
 
 
-def frames_for_packets(scene: Scene, air: AirInterface | AirInterfaceV2, packets: int, tail_frames: int = 8) -> int:
-    """Frames (from 0) that hold the first ``packets`` whole packets, plus ``tail_frames``."""
-    t_end = float(scene.clock.symbol_start_cam(packets * air.period_symbols))
+def frames_for_packets(scene: Scene, air: AirInterface | AirInterfaceV2, packets: int, tail_frames: int = 8,
+                       after_symbols: int = 0) -> int:
+    """Frames (from 0) that hold the first ``packets`` whole packets (their idle symbols
+    included) and ``after_symbols`` symbols of the next, plus ``tail_frames``."""
+    t_end = float(scene.clock.symbol_start_cam(packets * air.period_symbols + after_symbols))
     return int(math.ceil((t_end + scene.exposure_s) * scene.fps)) + tail_frames
 
 

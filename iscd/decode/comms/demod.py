@@ -65,7 +65,8 @@ class PacketResult:
     margins: np.ndarray = field(repr=False)
     erasures: int = 0
     channel: str = "static"
-    """``tracked`` (re-estimated along the packet) or ``static`` (one channel per packet)"""
+    """``tracked`` (re-estimated along the packet), ``static`` (one channel per packet) or
+    ``anchored`` (tracked backwards from the next packet's header, :func:`demodulate_anchored`)"""
     reason: str = ""
     """why a packet that failed its CRC could not be decoded (:func:`failure_reason`);
     empty when the CRC passed"""
@@ -101,7 +102,8 @@ class PacketResult:
         mn, p01, med, weak = margin_summary(self.margins)
         return {**self.v2_fields(), "margin_min": mn, "margin_p01": p01, "margin_median": med, "weak_symbols": weak,
                 "erasures": int(self.erasures), "drift_ppm": float(self.drift_ppm),
-                "channel_tracked": self.channel == "tracked",
+                "channel_tracked": self.channel in ("tracked", "anchored"),
+                **({"channel_anchored": True} if self.channel == "anchored" else {}),
                 "header_r2": float(self.header_r2), "training_rho": float(self.training_rho),
                 "contrast": float(self.contrast),
                 **({"reason": self.reason} if not self.crc_ok and self.reason else {})}
@@ -259,9 +261,13 @@ def failure_reason(models: list[ChannelModel], margins: np.ndarray) -> str:
     """Why a packet failed its CRC, from the receiver's own channel estimates: one line.
 
     * ``"saturated"`` -- in every camera some LED's upper levels (above M / 2) lie closer
-      than :data:`SEPARATION_MIN` noise RMS: its spot clips (too close, or too bright for
-      both apertures) and its levels live only in the wings;
-    * ``"low light"`` -- the same among the lower levels (too far, too dim);
+      than :data:`SEPARATION_MIN` noise RMS *and* their centroids are squeezed together,
+      less than :data:`CLIP_SQUEEZE` of the lower levels' spacing in DN: its spot clips
+      (too close, or too bright for both apertures) and its levels live only in the wings;
+    * ``"low light"`` -- in every camera some LED's adjacent levels lie closer than
+      :data:`SEPARATION_MIN` noise RMS without that squeeze: evenly spaced levels too few
+      DN apart for the noise (too far, too dim; one LED at 100 m: 4 DN apart in an f/4
+      camera with 0.5-1 DN of noise, the upper levels' shot noise the larger);
     * ``"weak decisions"`` -- the levels are apart but many decisions are weak (noise,
       motion, timing);
     * otherwise ``"few symbol errors"`` -- a handful of wrong symbols (v1 has no FEC).
@@ -287,18 +293,31 @@ def failure_reason(models: list[ChannelModel], margins: np.ndarray) -> str:
     noisy = [m for m in models if m.kind != "euclid"]  # (the dissertation's rule has no variances)
     if not noisy:
         return f"weak decisions: {detail}" if n_weak > 0.02 * max(margins.size, 1) else f"few symbol errors: {detail}"
-    sep = np.min([level_separation(m) for m in noisy], axis=0)  # (C, N, M - 1)
-    M1 = sep.shape[-1]
+    M1 = noisy[0].mu.shape[-1] - 1
     half = M1 // 2
-    bad = sep < SEPARATION_MIN
-    if bad[..., half:].any(axis=-1).any(axis=-1).all():
-        lo = int(np.argmax(bad[..., half:].any(axis=(0, 1)))) + half + 1
+    clipped = np.zeros((noisy[0].mu.shape[0], M1 - half), dtype=bool)  # (C, upper gaps): in any LED, stretch
+    overlap = np.zeros(noisy[0].mu.shape[0], dtype=bool)  # (C,)
+    for m in noisy:
+        sep = level_separation(m)  # (C, N, M - 1), noise RMS
+        gap = np.diff(m.mu, axis=-1)  # DN
+        lower = np.median(gap[..., :half], axis=-1, keepdims=True) if half else np.full(gap.shape[:-1] + (1,), np.inf)
+        close = sep < SEPARATION_MIN
+        clipped |= (close[..., half:] & (gap[..., half:] < CLIP_SQUEEZE * lower)).any(axis=1)
+        overlap |= close.any(axis=(1, 2))
+    if clipped.any(axis=-1).all():
+        lo = int(np.argmax(clipped.any(axis=0))) + half + 1
         return f"saturated: levels {lo}-{M1 + 1} overlap in every camera (too close or too bright); {detail}"
-    if bad[..., :half].any(axis=-1).any(axis=-1).all():
-        return f"low light: the lower levels overlap in every camera (too far or too dim); {detail}"
+    if overlap.all():
+        return f"low light: adjacent levels overlap in every camera (too far or too dim); {detail}"
     if margins.size and n_weak > 0.02 * margins.size:
         return f"weak decisions: {detail}"
     return f"few symbol errors: {detail}"
+
+
+CLIP_SQUEEZE = 0.5
+"""Upper levels whose centroids lie closer than this share of the lower levels' median
+spacing (DN) are squeezed by clipping (:func:`failure_reason`); PWM light is linear in the
+level, so an unclipped LED's levels are evenly spaced in DN whatever the noise."""
 
 
 def known_levels(air: AirInterface | AirInterfaceV2) -> np.ndarray:
@@ -1044,6 +1063,81 @@ def demodulate_packet(L: np.ndarray, u_guess: float, air: AirInterface, e: float
     return res
 
 
+ANCHOR_RETRY = True
+"""A packet that every attempt of :func:`demodulate_packet` failed is demodulated once more
+when the frames after it are in (the :class:`~iscd.decode.comms.packets.PacketAssembler`
+holds it back for them, about 13 + K symbols): :func:`demodulate_anchored`, the channel
+tracked backwards from the next packet's header and training."""
+
+
+def after_levels(air: AirInterface | AirInterfaceV2) -> np.ndarray:
+    """0-based levels (G + 13 + K, N) of the symbols after a packet when another one like it
+    follows: its G idle symbols (level 1), then the next packet's header and training (v2:
+    its PHY header too, :func:`known_levels`).
+
+    Parameters
+    ----------
+    air : AirInterface or AirInterfaceV2
+        The packet's geometry.
+
+    Returns
+    -------
+    ndarray of int64
+        (G + 13 + K, N) levels 0 .. M-1, symbol time major.
+    """
+    idle = np.zeros((air.idle_symbols, air.n_leds), dtype=np.int64)
+    return np.concatenate([idle, known_levels(air)])
+
+
+def demodulate_anchored(L: np.ndarray, failed: PacketResult, e: float, p_nominal: float,
+                        cfg: ReceiverConfig) -> PacketResult | Rejection:
+    """A failed packet demodulated once more with the next packet's header and training as
+    the anchor of its channel.
+
+    Decision-directed tracking forwards from the training can slip: a stretch of wrong
+    decisions that the window then learns carries the model one level off for the rest of
+    the packet (a randomized 100 km/h approach, 100 -> 64 m: the packet's second half, 63
+    wrong symbols, while the true channel per 96 symbols decodes it). The symbols after the
+    packet are known when another packet follows (:func:`after_levels`), so the tracking pass
+    here starts from them and runs backwards, each step decided with the model of the
+    decided symbols after it; the final pass is the usual one, its windows near the packet's
+    end holding the anchor. The clock starts from ``failed``'s (its period as a prior of at
+    least 20 ppm RMS) and is re-fitted in the final pass. Only a CRC pass is worth anything
+    (the caller keeps ``failed`` otherwise): one more 2^-32 chance for a wrong payload.
+
+    Parameters
+    ----------
+    L : ndarray
+        (C, n, N) luminance, DN (NaN = missing), covering the packet and the symbols after it
+        (:func:`after_levels`) in the frame positions of ``failed``.
+    failed : PacketResult
+        The failed packet (its geometry ``air``, clock ``u0``, ``p`` and ``p_sigma``).
+    e : float
+        Exposure window length, frames (exposure_s * fps).
+    p_nominal : float
+        Nominal symbol period fps / symbol rate, frames.
+    cfg : ReceiverConfig
+        Receiver settings (a tracked channel: ``channel_window_symbols`` > 0, else the
+        result is as :func:`demodulate_packet`'s static channel would be).
+
+    Returns
+    -------
+    PacketResult or Rejection
+        With ``channel = "anchored"``; a Rejection ``"incomplete"`` when ``L`` ends before
+        the anchor's last symbol.
+    """
+    air = failed.air
+    if air is None:
+        raise ValueError("demodulate_anchored: the failed packet has no geometry (air)")
+    floor = 20e-6 * p_nominal
+    p_sigma = max(failed.p_sigma, floor) if np.isfinite(failed.p_sigma) else cfg.drift_max_ppm * 1e-6 * p_nominal
+    p = failed.p if np.isfinite(failed.p) else p_nominal
+    res = _demodulate(L, failed.u0, air, e, p_nominal, p, p_sigma, cfg, after=after_levels(air))
+    if isinstance(res, PacketResult) and res.channel == "tracked":
+        res.channel = "anchored"
+    return res
+
+
 WIDER_WINDOW = 2
 """A packet whose tracked channel fails its CRC, and again with one channel for the whole
 packet, is tried once more with a window this many times longer (when that is still shorter
@@ -1081,9 +1175,12 @@ def _mean_margin(res: PacketResult) -> float:
 def _demodulate(L: np.ndarray, u_guess: float, air: AirInterface, e: float,
                 p_nominal: float, p_prior: float, p_sigma: float, cfg: ReceiverConfig,
                 fixed_clock: SymbolClock | None = None, channel: ChannelOf | None = None,
-                tracking_step: int | None = None) -> PacketResult | Rejection:
+                tracking_step: int | None = None, after: np.ndarray | None = None) -> PacketResult | Rejection:
     """One demodulation attempt (:func:`demodulate_packet`), channel as ``cfg`` says
-    (``tracking_step``: the tracking pass's step, symbols, instead of :func:`_tracking_step`'s)."""
+    (``tracking_step``: the tracking pass's step, symbols, instead of :func:`_tracking_step`'s;
+    ``after``: the 0-based levels (A, N) of the A symbols right after the packet, known --
+    :func:`demodulate_anchored`: ``L`` must cover them, the tracked channel's tracking pass
+    runs backwards from them and the final pass fits them too)."""
     C, n, N = L.shape
     st = IscdChannelSettings(var_floor_dn=cfg.var_floor_dn)
     kind = cfg.noise_model
@@ -1108,7 +1205,8 @@ def _demodulate(L: np.ndarray, u_guess: float, air: AirInterface, e: float,
     known = known_levels(air)
     n_known = known.shape[0]
     P = air.packet_symbols
-    last = clean_frame(np.array([P - 1]), clock, e)[0]  # the last symbol's clean frame
+    A = 0 if after is None else int(after.shape[0])
+    last = clean_frame(np.array([P + A - 1]), clock, e)[0]  # the last symbol's clean frame
     if last + 1 > n:
         return Rejection(u0, "incomplete", last + 4 if isinstance(air, AirInterfaceV2) else None)
     y, lv = clean_samples(L, clock, e, known, 0)
@@ -1144,28 +1242,40 @@ def _demodulate(L: np.ndarray, u_guess: float, air: AirInterface, e: float,
     unlocked = not _locked(p_sigma, p_nominal)
     chunk = cfg.chunk_symbols if unlocked else P
     step = min(chunk, tracking_step or _tracking_step(W, N)) if tracked else chunk
-    lev = np.full((P, N), -1, dtype=np.int64)
+    lev = np.full((P + A, N), -1, dtype=np.int64)
     lev[:n_known] = known
+    if A:
+        lev[P:] = after
     # each camera's brightest value in the buffer (the cap of _match_gain), once per packet
     tops = _camera_tops(L).tolist() if tracked else None  # (NaN: an absent camera, never used)
     starts, models = [0], [model]
     next_clock = n_known + chunk
-    for k_a in range(n_known, P, step):
-        k_b = min(P, k_a + step)
-        if tracked and channel is not None:
-            model = channel(clock, k_a, k_b)
-        elif tracked:
-            model = _fit(L, clock, e, lev, max(0, k_a - W // 2), k_a, M, st, cfg)
+    if A and tracked and channel is None:
+        # the known symbols after the packet anchor the channel: decided backwards from them,
+        # each step with the model of the decided symbols after it (the clock as given:
+        # the final pass re-fits it on the whole packet and the anchor)
+        for k_b in range(P, n_known, -step):
+            k_a = max(n_known, k_b - step)
+            model = _fit(L, clock, e, lev, k_b, min(P + A, k_b + W // 2), M, st, cfg)
             model = _match_gain(model, L, clock, e, lev, k_a, k_b, tops)
-        # (decide_span without straddling frames: the levels are all this pass keeps)
-        lev[k_a:k_b] = clean_levels(clean_costs(L, clock, e, k_a, k_b, model).costs)
-        if tracked:
-            starts.append(k_a)
-            models.append(model)
-        if (k_b >= next_clock or k_b == P) and fixed_clock is None:
-            next_clock += chunk
-            clock, _ = refine_clock(L, clock, e, lev[:k_b], 0, ChannelTrack(tuple(starts), tuple(models)),
-                                    p_prior, p_sigma, iters=2, timing_sigma=ts, search_ends=unlocked)
+            lev[k_a:k_b] = clean_levels(clean_costs(L, clock, e, k_a, k_b, model).costs)
+    else:
+        for k_a in range(n_known, P, step):
+            k_b = min(P, k_a + step)
+            if tracked and channel is not None:
+                model = channel(clock, k_a, k_b)
+            elif tracked:
+                model = _fit(L, clock, e, lev, max(0, k_a - W // 2), k_a, M, st, cfg)
+                model = _match_gain(model, L, clock, e, lev, k_a, k_b, tops)
+            # (decide_span without straddling frames: the levels are all this pass keeps)
+            lev[k_a:k_b] = clean_levels(clean_costs(L, clock, e, k_a, k_b, model).costs)
+            if tracked:
+                starts.append(k_a)
+                models.append(model)
+            if (k_b >= next_clock or k_b == P) and fixed_clock is None:
+                next_clock += chunk
+                clock, _ = refine_clock(L, clock, e, lev[:k_b], 0, ChannelTrack(tuple(starts), tuple(models)),
+                                        p_prior, p_sigma, iters=2, timing_sigma=ts, search_ends=unlocked)
 
     # final pass
     p_post = float("nan")
@@ -1175,7 +1285,7 @@ def _demodulate(L: np.ndarray, u_guess: float, air: AirInterface, e: float,
         yt, lt = clean_samples(L, clock, e, known[k0:], k0)
         dmodel = estimate_dissertation(yt, lt, M)
         d = decide_span(L, clock, e, n_known, P, dmodel, None, 0, False, ts)
-        lev[n_known:] = d.levels
+        lev[n_known:P] = d.levels
         margins, erasures = d.margin, int((d.n_obs == 0).sum())
     else:
         segs = _segments(n_known, P, _segment_symbols(W) if tracked else P)
@@ -1225,7 +1335,7 @@ def _demodulate(L: np.ndarray, u_guess: float, air: AirInterface, e: float,
                 parts.append(d)
         margins = np.concatenate([d.margin for d in parts])
         erasures = int(sum((d.n_obs == 0).sum() for d in parts))
-    levels = (lev[n_known:] + 1).astype(np.uint8)
+    levels = (lev[n_known:P] + 1).astype(np.uint8)
     v2 = {}
     if isinstance(air, AirInterfaceV2):  # de-interleave, Reed-Solomon (erasures from the margins), CRC-32
         unobserved = np.concatenate([d.n_obs for d in parts]) == 0 if not cfg.dissertation else d.n_obs == 0

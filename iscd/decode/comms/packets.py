@@ -17,7 +17,7 @@ valid.
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -27,7 +27,8 @@ from iscd.core.airinterface_v2 import AirInterfaceV2, header_symbols
 from iscd.core.config import TransmitterConfig
 from iscd.core.jit import njit, register_warm
 from iscd.core.records import PacketRecord
-from iscd.decode.comms.demod import PacketResult, Rejection, demodulate_packet
+from iscd.decode.comms import demod
+from iscd.decode.comms.demod import PacketResult, Rejection, after_levels, demodulate_anchored, demodulate_packet
 from iscd.decode.comms.settings import ReceiverConfig
 from iscd.decode.comms.timing import coarse_header_search, luminance_range, normalized_mean
 
@@ -149,8 +150,11 @@ class PacketAssembler:
         self._flushing = False
         self._geom: AirInterface | AirInterfaceV2 = self.air  # the last packet's geometry
         self._expect_wait = 0.0  # the expected packet is longer: not before this many rows
+        self._held: PacketResult | None = None  # a failed packet waiting for the frames after it
+        self._held_need = 0.0  # the buffer rows its anchored attempt needs
         self.stats = {"frames_in": 0, "frames_missing": 0, "frames_rejected": 0,
-                      "packets_ok": 0, "packets_bad": 0, "false_headers": 0, "resyncs": 0}
+                      "packets_ok": 0, "packets_bad": 0, "false_headers": 0, "resyncs": 0,
+                      "anchored_tries": 0, "anchored_delivered": 0}
 
     # ---- buffer ----------------------------------------------------------------------
     def _reserve(self, extra: int) -> None:
@@ -175,6 +179,8 @@ class PacketAssembler:
         cut = int(min(np.floor(self._search), self._n - self.keep)) - 8
         if self._expect is not None:
             cut = min(cut, int(np.floor(self._expect)) - 8)
+        if self._held is not None:
+            cut = min(cut, int(np.floor(self._held.u0)) - 8)
         if cut < self.TRIM_MIN:
             return
         self._L = self._L[:, cut:]
@@ -187,9 +193,22 @@ class PacketAssembler:
         self._range_at -= cut
         if self._expect is not None:
             self._expect -= cut
+        if self._held is not None:
+            self._held = replace(self._held, u0=self._held.u0 - cut, first_frame=self._held.first_frame - cut)
+            self._held_need -= cut
 
-    def reset(self) -> None:
-        """Forget buffered frames and the lock (e.g. after a long gap)."""
+    def reset(self) -> list[Packet]:
+        """Forget buffered frames and the lock (e.g. after a long gap).
+
+        Returns
+        -------
+        list of Packet
+            A failed packet that was waiting for the frames after it
+            (:data:`~iscd.decode.comms.demod.ANCHOR_RETRY`), as it is: nothing decoded is
+            dropped.
+        """
+        out: list[Packet] = []
+        self._release(out, force=True)
         self._last_u = None
         self._n = 0
         self._base = None
@@ -198,6 +217,7 @@ class PacketAssembler:
         self._wait_until = 0.0
         self._expect_wait = 0.0
         self._range = None
+        return out
 
     def push(self, frame_ids: np.ndarray, t_s: np.ndarray, L_left: np.ndarray | None,
              L_right: np.ndarray | None = None) -> list[Packet]:
@@ -230,6 +250,7 @@ class PacketAssembler:
         ids = np.asarray(frame_ids, dtype=np.int64).reshape(-1)
         ts = np.asarray(t_s, dtype=np.float64).reshape(-1)
         n = ids.size
+        early: list[Packet] = []  # a held packet released by a resynchronization
         if self._fast_push(ids, ts, L_left, L_right):
             out = self._process()
             self._trim()
@@ -274,7 +295,7 @@ class PacketAssembler:
         elif ids[0] - last - 1 > self.max_gap:
             log.warning("gap of %d frames: receiver resynchronizes", ids[0] - last - 1)
             self.stats["resyncs"] += 1
-            self.reset()
+            early = self.reset()
             self._base = int(ids[0])
         rows = ids - self._base
         span = int(rows[-1]) + 1 - self._n
@@ -303,7 +324,7 @@ class PacketAssembler:
         self._n += span
         out = self._process()
         self._trim()
-        return out
+        return early + out
 
     def _fast_push(self, ids: np.ndarray, ts: np.ndarray, L_left: np.ndarray | None,
                    L_right: np.ndarray | None) -> bool:
@@ -341,6 +362,41 @@ class PacketAssembler:
             self.stats["duplicates_suppressed"] = self.stats.get("duplicates_suppressed", 0) + 1
             return
         self._last_u = u_abs
+        self._release(out, force=True)  # (released already: its anchor precedes this packet)
+        if self._holds(res):
+            self._held = res
+            self._held_need = res.u0 + after_levels(res.air).shape[0] * res.p + res.air.packet_symbols * res.p + 3
+            self._release(out)
+            return
+        out.append(self._emit(res))
+
+    def _holds(self, res: PacketResult) -> bool:
+        """Whether a demodulated packet waits for the frames after it: a real packet (the
+        lock's test) that every attempt failed, read by a receiver that tracks the channel
+        along a packet (:data:`~iscd.decode.comms.demod.ANCHOR_RETRY`)."""
+        cfg = self.cfg
+        tracks = cfg.decision_directed and not cfg.dissertation and cfg.channel_window_symbols > 0
+        return (demod.ANCHOR_RETRY and tracks and not res.crc_ok and res.channel != "anchored"
+                and res.air is not None and res.training_rho >= 0.9 and np.isfinite(res.p))
+
+    def _release(self, out: list[Packet], force: bool = False) -> None:
+        """Emit the held failed packet once the frames after it are in: demodulated again
+        anchored on the next packet's header and training
+        (:func:`~iscd.decode.comms.demod.demodulate_anchored`), delivered if that passes its
+        CRC, else as it was. ``force``: now, as it was when those frames are not in (a
+        reset, the end of the stream, a packet after it)."""
+        res = self._held
+        if res is None or (self._n < self._held_need and not force):
+            return
+        self._held = None
+        if self._n >= self._held_need or (force and self._flushing):
+            self.stats["anchored_tries"] += 1
+            alt = demodulate_anchored(self._L[:, :self._n], res, self.e, self.p_nom, self.cfg)
+            if isinstance(alt, PacketResult) and alt.crc_ok:
+                self.stats["anchored_delivered"] += 1
+                res = alt
+                if not force:  # (waiting for the next packet still: lock on the delivered one)
+                    self._accept(alt)
         out.append(self._emit(res))
 
     def _emit(self, res: PacketResult) -> Packet:
@@ -395,7 +451,9 @@ class PacketAssembler:
         self._flushing = True
         self._wait_until = 0.0
         try:
-            return self._process()
+            out = self._process()
+            self._release(out, force=True)
+            return out
         finally:
             self._flushing = False
 
@@ -410,6 +468,7 @@ class PacketAssembler:
 
     def _process(self) -> list[Packet]:
         out: list[Packet] = []
+        self._release(out)
         for _ in range(self.MAX_STEPS):
             if self._expect is not None:
                 if self._need(self._expect, expected=True) > self._n or self._n < self._expect_wait:
