@@ -356,6 +356,26 @@ def test_an_arrays_first_packet_finds_its_clock_across_the_exposure_gap() -> Non
     assert res.ser == 0.0
 
 
+def _with_and_without(flag: str, key: str, seed: int, vibration: str, mode: ReceiverMode,
+                      monkeypatch: pytest.MonkeyPatch) -> tuple[CommsResult, CommsResult]:
+    """A randomized motion scene (2 packets) decoded as it is and with the receiver's
+    ``iscd.decode.comms.demod.<flag>`` attempt off."""
+    from iscd.decode.comms import demod
+    from iscd.eval.suites import MOTION_CASES, motion_cfg
+
+    case = next(c for c in MOTION_CASES if c.key == key)
+    cfg, note = motion_cfg(default_config(), case, seed, scene={"vibration_model": vibration}, randomize=True)
+    assert note.startswith("randomized")
+    (res,) = run_comms(cfg, [mode], 2, block=16)
+    print(f"with {flag}: found {res.found}/{res.packets_sent}, exact {res.exact}, errors {res.symbol_errors}")
+    _check_delivery(res)
+    monkeypatch.setattr(demod, flag, False)
+    (without,) = run_comms(cfg, [mode], 2, block=16)
+    print(f"without: found {without.found}/{without.packets_sent}, exact {without.exact}, "
+          f"errors {without.symbol_errors}")
+    return res, without
+
+
 @pytest.mark.parametrize("key, seed, exact", [("1led-hdr-40kmh-0.5px", 1711133418, 2),
                                               ("1led-hdr-100kmh-0.3px", 1909465834, 1)])
 def test_one_leds_failed_packet_is_tried_with_an_arrays_tracking_step(key: str, seed: int, exact: int,
@@ -366,20 +386,8 @@ def test_one_leds_failed_packet_is_tried_with_an_arrays_tracking_step(key: str, 
     the array's 16-symbol step (iscd.decode.comms.demod.SHORT_STEP_RETRY). Without that
     attempt one packet fewer is exact; the first packet of 1909465834 (100 -> 64 m) is lost
     either way (the oracle's genie luminance with the true channel loses it too)."""
-    from iscd.decode.comms import demod
-    from iscd.eval.suites import MOTION_CASES, motion_cfg
-
-    case = next(c for c in MOTION_CASES if c.key == key)
-    cfg, note = motion_cfg(default_config(), case, seed, scene={"vibration_model": "smooth"}, randomize=True)
-    assert note.startswith("randomized")
-    (res,) = run_comms(cfg, [DIVERSITY], 2, block=16)
-    print(f"with the retry: found {res.found}/{res.packets_sent}, exact {res.exact}, errors {res.symbol_errors}")
-    _check_delivery(res)
+    res, without = _with_and_without("SHORT_STEP_RETRY", key, seed, "smooth", DIVERSITY, monkeypatch)
     assert res.exact == exact
-    monkeypatch.setattr(demod, "SHORT_STEP_RETRY", False)
-    (without,) = run_comms(cfg, [DIVERSITY], 2, block=16)
-    print(f"without: found {without.found}/{without.packets_sent}, exact {without.exact}, "
-          f"errors {without.symbol_errors}")
     assert without.found == 2 and without.exact == exact - 1
     assert without.symbol_errors > res.symbol_errors
 
@@ -391,20 +399,9 @@ def test_a_failed_packet_is_tried_anchored_on_the_next_header(monkeypatch: pytes
     it. Demodulated once more with the channel tracked backwards from the second packet's
     header and training (demod.ANCHOR_RETRY, held by the assembler until those frames are
     in), it is delivered bit-exact; without that attempt it is lost."""
-    from iscd.decode.comms import demod
-    from iscd.eval.suites import MOTION_CASES, motion_cfg
-
-    case = next(c for c in MOTION_CASES if c.key == "1led-hdr-100kmh-0.3px")
-    cfg, note = motion_cfg(default_config(), case, 1174170399, scene={"vibration_model": "bumps"}, randomize=True)
-    assert note.startswith("randomized")
-    (res,) = run_comms(cfg, [DIVERSITY], 2, block=16)
-    print(f"anchored: found {res.found}/{res.packets_sent}, exact {res.exact}, errors {res.symbol_errors}")
-    _check_delivery(res)
+    res, without = _with_and_without("ANCHOR_RETRY", "1led-hdr-100kmh-0.3px", 1174170399, "bumps", DIVERSITY,
+                                     monkeypatch)
     assert res.exact == 2 and res.symbol_errors == 0
-    monkeypatch.setattr(demod, "ANCHOR_RETRY", False)
-    (without,) = run_comms(cfg, [DIVERSITY], 2, block=16)
-    print(f"without: found {without.found}/{without.packets_sent}, exact {without.exact}, "
-          f"errors {without.symbol_errors}")
     assert without.found == 2 and without.exact == 1 and without.symbol_errors > 10
 
 
@@ -414,19 +411,9 @@ def test_a_packet_locked_on_a_delivered_packets_period_is_tried_with_it_free(mon
     (timing.period_sigma) said 1.3 ppm; the second, its period locked at 20 ppm around that,
     loses its last 456 symbols. Retried with the period free (as a first packet; demod
     UNLOCKED_RETRY), it is delivered; without that attempt it is not."""
-    from iscd.decode.comms import demod
-    from iscd.eval.suites import MOTION_CASES, motion_cfg
-
-    case = next(c for c in MOTION_CASES if c.key == "8x8-40kmh-0.3px")
-    cfg, _ = motion_cfg(default_config(), case, 1987386013, scene={"vibration_model": "smooth"}, randomize=True)
-    mode = ReceiverMode("HDR f/4+f/8", "both")
-    (res,) = run_comms(cfg, [mode], 2, block=16)
-    print(f"with the retry: found {res.found}/{res.packets_sent}, exact {res.exact}, SER {res.ser:.3g}")
-    _check_delivery(res)
+    res, without = _with_and_without("UNLOCKED_RETRY", "8x8-40kmh-0.3px", 1987386013, "smooth",
+                                     ReceiverMode("HDR f/4+f/8", "both"), monkeypatch)
     assert res.exact == 2 and res.ser == 0.0
-    monkeypatch.setattr(demod, "UNLOCKED_RETRY", False)
-    (without,) = run_comms(cfg, [mode], 2, block=16)
-    print(f"without: found {without.found}/{without.packets_sent}, exact {without.exact}, SER {without.ser:.3g}")
     assert without.found == 2 and without.exact == 1
     assert without.symbol_errors > 100
 
