@@ -129,6 +129,9 @@ def figures(records: Iterable[dict[str, Any]], cfg: Any, truth_dir: str | Path |
         out["packets_delivered"] = len(ok)
     out["goodput_kbps"] = delivered_bits / duration_s / 1000.0 if duration_s > 0 else None
     if ranges:
+        # in frame order: the sums then do not depend on the order the records came out in
+        # (a loaded machine reorders range records that a worker and the frame loop emit)
+        ranges = sorted(ranges, key=lambda r: (r[0], r[1]))
         z = np.array([v for _, v in ranges])
         out.update(range_median_m=float(np.median(z)), range_mean_m=float(np.mean(z)), range_std_m=float(np.std(z)))
         if truth is not None:
