@@ -73,8 +73,9 @@ def test_select_candidates_is_numpys_argpartition(M: int) -> None:
 
 
 def test_finish_kernels_match_numpy() -> None:
-    """Argmin (first of equal minima) and runner-up margins: :func:`decide._finish_kernel`,
-    :func:`decide.clean_levels` and :func:`decide._finish_span` as numpy's :func:`decide._finish`."""
+    """Argmin (first of equal minima), runner-up margins and runner-up levels:
+    :func:`decide._finish_kernel`, :func:`decide.clean_levels` and :func:`decide._finish_span`
+    as numpy's :func:`decide._finish`."""
     rng = np.random.default_rng(2)
     for t in range(300):
         S, N, M = int(rng.integers(1, 6)), int(rng.integers(1, 6)), int(rng.integers(1, 9))
@@ -82,8 +83,14 @@ def test_finish_kernels_match_numpy() -> None:
         if t % 3 == 0:
             c = np.round(c * 2).astype(np.float32) / 2
         ref = decide._finish(0, c, np.zeros((S, N), np.int64))
-        lev, mar = decide._finish_kernel(c)
+        lev, mar, run = decide._finish_kernel(c)
         np.testing.assert_array_equal(lev, ref.levels)
+        np.testing.assert_array_equal(run, ref.runner_up)
+        if M >= 2:  # the runner-up is another level, of the least cost but the decision's
+            assert (run != lev).all()
+            got = np.take_along_axis(c, run[..., None], -1)[..., 0]
+            np.testing.assert_array_equal(got - np.take_along_axis(c, lev[..., None], -1)[..., 0],
+                                          mar.astype(np.float32))
         np.testing.assert_array_equal(mar, ref.margin)  # (numpy's partition may order -0, +0 otherwise)
         np.testing.assert_array_equal(decide.clean_levels(c), ref.levels)
         if M >= 2:
@@ -93,13 +100,16 @@ def test_finish_kernels_match_numpy() -> None:
             full = rng.normal(0, 1, (S, N, M)).astype(np.float32)
             n_obs = rng.integers(0, 3, (S, N))
             no_clean = n_obs == 0
-            lv, mr, nob = decide._finish_span(c, cand, extra, full, n_obs, n_obs, no_clean, True)
+            lv, mr, nob, ru = decide._finish_span(c, cand, extra, full, n_obs, n_obs, no_clean, True)
             r1 = decide._finish(0, np.take_along_axis(c, cand, -1) + extra, n_obs)
             r2 = decide._finish(0, c + full, n_obs)
             want_lev = np.where(no_clean, r2.levels, np.take_along_axis(cand, r1.levels[..., None], -1)[..., 0])
             np.testing.assert_array_equal(lv, want_lev)
             np.testing.assert_array_equal(mr, np.where(no_clean, r2.margin, r1.margin))
             np.testing.assert_array_equal(nob, 2 * n_obs)
+            want_run = np.where(no_clean, r2.runner_up,
+                                np.take_along_axis(cand, r1.runner_up[..., None], -1)[..., 0])
+            np.testing.assert_array_equal(ru, want_run)
 
 
 def test_margin_summary_is_numpys() -> None:

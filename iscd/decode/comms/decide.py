@@ -33,12 +33,15 @@ from iscd.decode.comms.timing import SymbolClock, frame_map, frame_map_range
 @dataclass
 class SpanDecision:
     """Decisions for packet symbols ``k_a .. k_a + S - 1``: 0-based levels (S, N), margins
-    (S, N) and the number of camera-frame observations that touched each symbol (S, N)."""
+    (S, N), the number of camera-frame observations that touched each symbol (S, N) and the
+    runner-up levels (S, N, 0-based; the level whose cost is ``margin`` above the decision's,
+    the same level where there is no other)."""
 
     k_a: int
     levels: np.ndarray
     margin: np.ndarray
     n_obs: np.ndarray
+    runner_up: np.ndarray
 
 
 def _scatter_add(out: np.ndarray, idx: np.ndarray, vals: np.ndarray) -> None:
@@ -248,11 +251,13 @@ def decide_span_reference(L: np.ndarray, clock: SymbolClock, e: float, k_a: int,
             _scatter_add(n_obs, j, valid_obs[idx])
     dc = _finish(k_a, c_cand + extra, n_obs)
     dc.levels = np.take_along_axis(cand, dc.levels[..., None], axis=-1)[..., 0]
+    dc.runner_up = np.take_along_axis(cand, dc.runner_up[..., None], axis=-1)[..., 0]
     if full_costs is not None:
         # symbols without a clean frame: decided over all M from the straddle costs
         df = _finish(k_a, full_costs, n_obs)
         dc.levels = np.where(no_clean, df.levels, dc.levels)
         dc.margin = np.where(no_clean, df.margin, dc.margin)
+        dc.runner_up = np.where(no_clean, df.runner_up, dc.runner_up)
     return dc
 
 
@@ -262,9 +267,14 @@ def _finish(k_a: int, costs: np.ndarray, n_obs: np.ndarray) -> SpanDecision:
     if costs.shape[-1] > 1:
         two = np.partition(costs, 1, axis=-1)
         margin = (two[..., 1] - two[..., 0]).astype(np.float64)
+        # the runner-up: the first level of least cost once the decision is set aside
+        rest = costs.copy()
+        np.put_along_axis(rest, levels[..., None], np.inf, axis=-1)
+        runner_up = rest.argmin(-1)
     else:
         margin = np.full(levels.shape, np.inf)
-    return SpanDecision(k_a=k_a, levels=levels, margin=margin, n_obs=n_obs)
+        runner_up = levels.copy()
+    return SpanDecision(k_a=k_a, levels=levels, margin=margin, n_obs=n_obs, runner_up=runner_up)
 
 
 # ---- compiled kernels ------------------------------------------------------------------
@@ -680,9 +690,10 @@ def _straddle_kernel(Lf: np.ndarray, k: np.ndarray, alpha: np.ndarray, valid: np
 
 
 @njit(inline="always")
-def _finish_row(row: np.ndarray, K: int) -> tuple[int, float]:
-    """Argmin (the first of equal minima) and margin (runner-up minus best, float32 then
-    float64; inf when K = 1) of row[:K] float32."""
+def _finish_row(row: np.ndarray, K: int) -> tuple[int, float, int]:
+    """Argmin (the first of equal minima), margin (runner-up minus best, float32 then
+    float64; inf when K = 1) and the runner-up (the first of the least once the argmin is
+    set aside; the argmin when K = 1) of row[:K] float32."""
     b = 0
     bv = row[0]
     for u in range(1, K):  # selects, not branches (the same comparisons)
@@ -690,6 +701,7 @@ def _finish_row(row: np.ndarray, K: int) -> tuple[int, float]:
         b = u if lt else b
         bv = row[u] if lt else bv
     mar = np.inf
+    r = b
     if K > 1:
         m2 = np.float32(np.inf)
         first = True
@@ -697,22 +709,24 @@ def _finish_row(row: np.ndarray, K: int) -> tuple[int, float]:
             x = row[u]
             take = (u != b) & (first | (x < m2))
             m2 = x if take else m2
+            r = u if take else r
             first = first & (u == b)
         mar = np.float64(m2 - bv)
-    return b, mar
+    return b, mar, r
 
 
 @njit(warm=lambda: (np.zeros((2, 2, 3), np.float32),))
-def _finish_kernel(costs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Argmin (first of equal minima) and margin (runner-up minus best, float64) over the
-    last axis of costs (S, N, T) float32 (:func:`_finish`)."""
+def _finish_kernel(costs: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Argmin (first of equal minima), margin (runner-up minus best, float64) and runner-up
+    over the last axis of costs (S, N, T) float32 (:func:`_finish`)."""
     S, N, T = costs.shape
     lev = np.zeros((S, N), np.int64)
     mar = np.full((S, N), np.inf)
+    run = np.zeros((S, N), np.int64)
     for j in range(S):
         for i in range(N):
-            lev[j, i], mar[j, i] = _finish_row(costs[j, i], T)
-    return lev, mar
+            lev[j, i], mar[j, i], run[j, i] = _finish_row(costs[j, i], T)
+    return lev, mar, run
 
 
 @njit(warm=lambda: (np.zeros((2, 2, 3), np.float32),))
@@ -833,28 +847,30 @@ def _warm_finish_span() -> tuple:
 @njit(warm=_warm_finish_span)
 def _finish_span(costs: np.ndarray, cand: np.ndarray, extra: np.ndarray, full: np.ndarray,
                  n_obs: np.ndarray, dn: np.ndarray, no_clean: np.ndarray, want_full: bool
-                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """:func:`decide_span`'s last step in one pass: per symbol and LED the candidates'
-    costs ``costs[cand] + extra`` -> the best candidate's level and the margin
-    (:func:`_finish_kernel`'s rule), over all M levels (``costs + full``) for symbols
-    without a clean frame when ``want_full``; the observation counts n_obs + dn."""
+    costs ``costs[cand] + extra`` -> the best candidate's level, the margin and the
+    runner-up's level (:func:`_finish_kernel`'s rule), over all M levels (``costs + full``)
+    for symbols without a clean frame when ``want_full``; the observation counts n_obs + dn."""
     S, N, T = cand.shape
     M = costs.shape[2]
     lev = np.zeros((S, N), np.int64)
     mar = np.full((S, N), np.inf)
+    run = np.zeros((S, N), np.int64)
     tot = np.empty(max(T, M), np.float32)
     for j in range(S):
         for i in range(N):
             if want_full and no_clean[j, i]:
                 for s in range(M):
                     tot[s] = costs[j, i, s] + full[j, i, s]
-                lev[j, i], mar[j, i] = _finish_row(tot, M)
+                lev[j, i], mar[j, i], run[j, i] = _finish_row(tot, M)
             else:
                 for u in range(T):
                     tot[u] = costs[j, i, cand[j, i, u]] + extra[j, i, u]
-                b, mar[j, i] = _finish_row(tot, T)
+                b, mar[j, i], r = _finish_row(tot, T)
                 lev[j, i] = cand[j, i, b]
-    return lev, mar, n_obs + dn
+                run[j, i] = cand[j, i, r]
+    return lev, mar, n_obs + dn, run
 
 
 def _kind_args(model: ChannelModel) -> tuple[int, np.float32, np.float32]:
@@ -954,8 +970,8 @@ def decide_span(L: np.ndarray, clock: SymbolClock, e: float, k_a: int, k_b: int,
     """
     cc = pre if pre is not None else clean_costs(L, clock, e, k_a, k_b, model)
     if not (straddle and ctx is not None):
-        lev, mar = _finish_kernel(cc.costs)
-        return SpanDecision(k_a, lev, mar, cc.n_obs)
+        lev, mar, run = _finish_kernel(cc.costs)
+        return SpanDecision(k_a, lev, mar, cc.n_obs, run)
     M = model.levels
     S, N = cc.n_obs.shape
     T = M if candidates <= 0 or candidates >= M else candidates
@@ -976,8 +992,8 @@ def decide_span(L: np.ndarray, clock: SymbolClock, e: float, k_a: int, k_b: int,
     extra, dn, full = _straddle_kernel(Lf, cc.k, cc.alpha, valid, ctx, int(k_first), int(k_a), cand,
                                        no_clean, want_full, _edge_array(edge_levels), mu_t, var_t,
                                        model._interp_error32, gain, timing, M, *_kind_args(model))
-    lev, mar, n_obs = _finish_span(cc.costs, cand, extra, full, cc.n_obs, dn, no_clean, want_full)
-    return SpanDecision(k_a, lev, mar, n_obs)
+    lev, mar, n_obs, run = _finish_span(cc.costs, cand, extra, full, cc.n_obs, dn, no_clean, want_full)
+    return SpanDecision(k_a, lev, mar, n_obs, run)
 
 
 _EDGES: dict[tuple[int, ...], np.ndarray] = {}

@@ -81,6 +81,12 @@ class PacketResult:
     p_sigma: float = float("nan")
     """how well the packet's frames pinned the period ``p``: its posterior RMS, frames
     (:func:`~iscd.decode.comms.timing.period_sigma`; NaN where the clock was not fitted)"""
+    runner_up: np.ndarray | None = field(default=None, repr=False)
+    """(F, N) levels 1..M second to ``levels`` in each decision (the level ``margins`` above
+    it; :func:`~iscd.decode.comms.listdecode.list_decode` tries them)"""
+    list_flips: int = 0
+    """symbols set to their runner-up by :func:`~iscd.decode.comms.listdecode.list_decode`
+    for the CRC to pass (0: as decided)"""
 
     @property
     def version(self) -> int:
@@ -104,6 +110,7 @@ class PacketResult:
                 "erasures": int(self.erasures), "drift_ppm": float(self.drift_ppm),
                 "channel_tracked": self.channel in ("tracked", "anchored"),
                 **({"channel_anchored": True} if self.channel == "anchored" else {}),
+                **({"list_flips": int(self.list_flips)} if self.list_flips else {}),
                 "header_r2": float(self.header_r2), "training_rho": float(self.training_rho),
                 "contrast": float(self.contrast),
                 **({"reason": self.reason} if not self.crc_ok and self.reason else {})}
@@ -1287,6 +1294,7 @@ def _demodulate(L: np.ndarray, u_guess: float, air: AirInterface, e: float,
         d = decide_span(L, clock, e, n_known, P, dmodel, None, 0, False, ts)
         lev[n_known:P] = d.levels
         margins, erasures = d.margin, int((d.n_obs == 0).sum())
+        runner = d.runner_up
     else:
         segs = _segments(n_known, P, _segment_symbols(W) if tracked else P)
         models = [model]
@@ -1334,6 +1342,7 @@ def _demodulate(L: np.ndarray, u_guess: float, air: AirInterface, e: float,
                 lev[a:b] = d.levels
                 parts.append(d)
         margins = np.concatenate([d.margin for d in parts])
+        runner = np.concatenate([d.runner_up for d in parts])
         erasures = int(sum((d.n_obs == 0).sum() for d in parts))
     levels = (lev[n_known:P] + 1).astype(np.uint8)
     v2 = {}
@@ -1353,5 +1362,5 @@ def _demodulate(L: np.ndarray, u_guess: float, air: AirInterface, e: float,
                         header_r2=r2, training_rho=rho_t, contrast=contrast,
                         margins=margins, erasures=erasures,
                         channel="tracked" if tracked else "static", reason=reason, air=air,
-                        p_sigma=p_post, **v2)
+                        p_sigma=p_post, runner_up=(runner + 1).astype(np.uint8), **v2)
 

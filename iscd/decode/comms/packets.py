@@ -27,7 +27,7 @@ from iscd.core.airinterface_v2 import AirInterfaceV2, header_symbols
 from iscd.core.config import TransmitterConfig
 from iscd.core.jit import njit, register_warm
 from iscd.core.records import PacketRecord
-from iscd.decode.comms import demod
+from iscd.decode.comms import demod, listdecode
 from iscd.decode.comms.demod import PacketResult, Rejection, after_levels, demodulate_anchored, demodulate_packet
 from iscd.decode.comms.settings import ReceiverConfig
 from iscd.decode.comms.timing import coarse_header_search, luminance_range, normalized_mean
@@ -154,7 +154,7 @@ class PacketAssembler:
         self._held_need = 0.0  # the buffer rows its anchored attempt needs
         self.stats = {"frames_in": 0, "frames_missing": 0, "frames_rejected": 0,
                       "packets_ok": 0, "packets_bad": 0, "false_headers": 0, "resyncs": 0,
-                      "anchored_tries": 0, "anchored_delivered": 0}
+                      "anchored_tries": 0, "anchored_delivered": 0, "list_tries": 0, "list_delivered": 0}
 
     # ---- buffer ----------------------------------------------------------------------
     def _reserve(self, extra: int) -> None:
@@ -389,15 +389,34 @@ class PacketAssembler:
         if res is None or (self._n < self._held_need and not force):
             return
         self._held = None
+        tries = [res]
         if self._n >= self._held_need or (force and self._flushing):
             self.stats["anchored_tries"] += 1
             alt = demodulate_anchored(self._L[:, :self._n], res, self.e, self.p_nom, self.cfg)
-            if isinstance(alt, PacketResult) and alt.crc_ok:
-                self.stats["anchored_delivered"] += 1
-                res = alt
-                if not force:  # (waiting for the next packet still: lock on the delivered one)
-                    self._accept(alt)
+            if isinstance(alt, PacketResult):
+                self.stats["anchored_delivered"] += int(alt.crc_ok)
+                tries.insert(0, alt)
+        good = tries[0] if tries[0].crc_ok else (self._list_decode(tries) if listdecode.LIST_DECODE else None)
+        if good is not None:
+            res = good
+            if not force:  # (waiting for the next packet still: lock on the delivered one)
+                self._accept(res)
         out.append(self._emit(res))
+
+    def _list_decode(self, tries: list[PacketResult]) -> PacketResult | None:
+        """The last resort for a held packet that every attempt failed: CRC-aided list
+        decoding (:func:`~iscd.decode.comms.listdecode.list_decode`) of the anchored
+        attempt's decisions, then of the first attempt's (v1 packets only)."""
+        for r in tries:
+            if r.runner_up is None or not isinstance(r.air, AirInterface) or isinstance(r.air, AirInterfaceV2):
+                continue
+            self.stats["list_tries"] += 1
+            got = listdecode.list_decode(r.air, r.levels, r.margins, r.runner_up)
+            if got is not None:
+                levels, raw, flips, _ = got
+                self.stats["list_delivered"] += 1
+                return replace(r, levels=levels, raw=raw, crc_ok=True, reason="", list_flips=flips)
+        return None
 
     def _emit(self, res: PacketResult) -> Packet:
         base = self._base or 0
