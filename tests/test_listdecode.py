@@ -104,3 +104,44 @@ def test_shapes_are_checked() -> None:
     z = np.ones((600, 1), np.uint8)
     with pytest.raises(ValueError, match=r"\(600, 1\)"):
         list_decode(air, z[:10], np.ones((10, 1)), z[:10])
+
+
+def test_two_attempts_combine_where_they_disagree() -> None:
+    """Per symbol the more confident attempt's level; where they disagree the margins'
+    difference and the other level as the alternative; where they agree the chosen one's
+    own margin and runner-up."""
+    la = np.array([[1], [2], [3], [4]], np.uint8)
+    lb = np.array([[1], [3], [3], [5]], np.uint8)
+    ma = np.array([[5.0], [2.0], [9.0], [7.0]])
+    mb = np.array([[6.0], [8.0], [1.0], [3.0]])
+    ra = np.array([[2], [1], [4], [3]], np.uint8)
+    rb = np.array([[8], [4], [2], [6]], np.uint8)
+    lev, mar, run = listdecode.combine((la, ma, ra), (lb, mb, rb))
+    np.testing.assert_array_equal(lev[:, 0], [1, 3, 3, 4])
+    np.testing.assert_allclose(mar[:, 0], [6.0, 6.0, 9.0, 4.0])
+    np.testing.assert_array_equal(run[:, 0], [8, 2, 4, 5])
+    assert lev.dtype == run.dtype == np.uint8
+    with pytest.raises(ValueError, match="one shape"):
+        listdecode.combine((la, ma, ra), (lb[:2], mb[:2], rb[:2]))
+
+
+def test_two_attempts_wrong_in_different_places_are_recovered_combined() -> None:
+    """Two attempts at one real packet, each with 6 wrong symbols, none in common (each
+    wrong decision weak, the other attempt sure there): neither alone is on its own list
+    within 3 candidates, the combination is the sent packet itself."""
+    rng = np.random.default_rng(21)
+    air = _air(1)
+    payload = rng.integers(0, 256, air.payload_bytes, dtype=np.uint8).tobytes()
+    sent = air.encode_data(payload).astype(np.uint8)
+    up = np.where(sent < 8, sent + 1, sent - 1).astype(np.uint8)
+    idx = rng.choice(600, 12, replace=False)
+    atts = []
+    for part in (idx[:6], idx[6:]):
+        lev, mar = sent.copy(), rng.uniform(10.0, 60.0, sent.shape)
+        lev.reshape(-1)[part] = up.reshape(-1)[part]
+        mar.reshape(-1)[part] = rng.uniform(1.0, 5.0, 6)
+        atts.append((lev, mar, up.copy()))
+    for a in atts:
+        assert list_decode(air, *a, candidates=3) is None
+    lev, mar, run = listdecode.combine(*atts)
+    np.testing.assert_array_equal(lev, sent)

@@ -85,8 +85,8 @@ class PacketResult:
     """(F, N) levels 1..M second to ``levels`` in each decision (the level ``margins`` above
     it; :func:`~iscd.decode.comms.listdecode.list_decode` tries them)"""
     list_flips: int = 0
-    """symbols set to their runner-up by :func:`~iscd.decode.comms.listdecode.list_decode`
-    for the CRC to pass (0: as decided)"""
+    """symbols that CRC-aided list decoding (:mod:`~iscd.decode.comms.listdecode`) changed from
+    this attempt's decisions for the CRC to pass (0: as decided)"""
 
     @property
     def version(self) -> int:

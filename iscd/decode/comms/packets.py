@@ -405,17 +405,23 @@ class PacketAssembler:
 
     def _list_decode(self, tries: list[PacketResult]) -> PacketResult | None:
         """The last resort for a held packet that every attempt failed: CRC-aided list
-        decoding (:func:`~iscd.decode.comms.listdecode.list_decode`) of the anchored
-        attempt's decisions, then of the first attempt's (v1 packets only)."""
-        for r in tries:
-            if r.runner_up is None or not isinstance(r.air, AirInterface) or isinstance(r.air, AirInterfaceV2):
-                continue
+        decoding (:func:`~iscd.decode.comms.listdecode.list_decode`) of the anchored and the
+        first attempt's decisions combined (:func:`~iscd.decode.comms.listdecode.combine`,
+        where they disagree), then of each alone (v1 packets only)."""
+        usable = [r for r in tries if r.runner_up is not None and r.margins.shape == r.levels.shape
+                  and isinstance(r.air, AirInterface) and not isinstance(r.air, AirInterfaceV2)]
+        lists = [(r, (r.levels, r.margins, r.runner_up)) for r in usable]
+        if len(usable) == 2 and usable[0].levels.shape == usable[1].levels.shape \
+                and (usable[0].levels != usable[1].levels).any():
+            lists.insert(0, (usable[0], listdecode.combine(lists[0][1], lists[1][1])))
+        for r, (levels, margins, runner) in lists:
             self.stats["list_tries"] += 1
-            got = listdecode.list_decode(r.air, r.levels, r.margins, r.runner_up)
+            got = listdecode.list_decode(r.air, levels, margins, runner)
             if got is not None:
-                levels, raw, flips, _ = got
+                fixed, raw, flips, _ = got
                 self.stats["list_delivered"] += 1
-                return replace(r, levels=levels, raw=raw, crc_ok=True, reason="", list_flips=flips)
+                return replace(r, levels=fixed, raw=raw, crc_ok=True, reason="",
+                               list_flips=int((fixed != r.levels).sum()))
         return None
 
     def _emit(self, res: PacketResult) -> Packet:
