@@ -365,6 +365,10 @@ def test_a_failed_packet_held_for_its_anchor_comes_out_as_it_was(block: int, mon
     assert [p.crc_ok for p in pk] == [False, True]
     assert asm.stats["anchored_tries"] == 1 and asm.stats["anchored_delivered"] == 0
     assert "channel_anchored" not in pk[0].quality
+    # the last resort tried the anchored attempt's and the first attempt's lists, in vain
+    # (the overwritten symbol is a confident decision, not a weak one)
+    assert asm.stats["list_tries"] >= 2 and asm.stats["list_delivered"] == 0
+    assert "list_flips" not in pk[0].quality
     monkeypatch.setattr(demod, "ANCHOR_RETRY", False)
     off, asm_off = _run(tx, rec, L=L, block=block)
     assert asm_off.stats["anchored_tries"] == 0
@@ -395,3 +399,34 @@ def test_a_held_packet_is_not_lost_at_a_gap_or_the_end_of_the_stream() -> None:
             out += asm.reset()
         assert [p.crc_ok for p in out] == [False], how
         assert asm._held is None
+
+
+def test_a_packet_one_weak_decision_off_is_list_decoded() -> None:
+    """One mid-level data symbol of the first packet (level 4, both cameras) given the light
+    of 0.6 of a level step more, in each frame by the share of its exposure within the
+    symbol: every attempt decides the level above, with a small margin and the level sent
+    as runner-up. CRC-aided list decoding (listdecode.LIST_DECODE) delivers the sent
+    payload with that one symbol changed; without it the packet fails."""
+    import pytest as _pytest
+
+    from iscd.decode.comms import listdecode
+
+    tx = _tx(8)
+    air = AirInterface.from_config(tx)
+    rec = synth_recording(air, [SynthCamera(peak_dn=100)] * 2, n_packets=2, drift_ppm=0,
+                          phase_s=0.0005, seed=12)
+    d0 = int(rec.packet_symbol0[0]) + air.data_offset
+    j = 300 + int(np.flatnonzero(rec.levels[d0 + 300:d0 + 600, 0] == 4)[0])
+    t_sym = rec.packet_starts_s[0] + (air.data_offset + j) * 2e-3
+    share = np.clip((np.minimum(rec.t_s + 1e-3, t_sym + 2e-3) - np.maximum(rec.t_s, t_sym)) / 1e-3, 0, 1)
+    step = 100.0 * float(SynthCamera(peak_dn=100).profile.mean()) / (air.levels - 1)  # DN a level
+    L = rec.L + 0.6 * step * share[None, :, None]
+    pk, asm = _run(tx, rec, L=L)
+    assert [p.crc_ok for p in pk] == [True, True]
+    assert [p.payload for p in pk] == rec.payloads[:2]
+    assert pk[0].quality["list_flips"] == 1 and "list_flips" not in pk[1].quality
+    assert asm.stats["list_delivered"] == 1
+    with _pytest.MonkeyPatch.context() as mp:
+        mp.setattr(listdecode, "LIST_DECODE", False)
+        off, _ = _run(tx, rec, L=L)
+    assert [p.crc_ok for p in off] == [False, True]
