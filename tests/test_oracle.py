@@ -153,9 +153,14 @@ def test_static_clean_scene_every_stage_is_error_free() -> None:
 def approach() -> oracle.OracleResult:
     """One LED closing at 40 km/h from 50 to 25 m with 0.5 px vibration, decoded without the
     per-pixel background (``background_one_led = false``, the receiver before issue 12's
-    session 11): the receiver fails (with it, this scene decodes at SER 0)."""
+    session 11) and without list decoding (session 21, which delivers its packets even so):
+    the receiver fails (with the background, this scene decodes at SER 0)."""
+    from iscd.decode.comms import listdecode
+
     cfg = chapter3_cfg(default_config(), 50.0, 8, 7, speed_mps=40 / 3.6, vibration_px=0.5, min_distance_m=25.0)
-    return run_oracle(cfg.with_keys("tracking", background_one_led=False), 2)
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(listdecode, "LIST_DECODE", False)
+        return run_oracle(cfg.with_keys("tracking", background_one_led=False), 2)
 
 
 def test_true_everything_is_not_worse_than_the_receiver_on_an_approach(approach: oracle.OracleResult) -> None:
