@@ -23,8 +23,8 @@ alternative the other attempt's level; the list then starts from that.
 **Integrity.** Each candidate that is not the sent packet passes CRC-32 with probability
 about 2^-32, so trying C candidates accepts a wrong payload with probability at most
 C 2^-32 per failed packet (the assembler's three lists of 256: 1.8e-7; a delivered packet
-says how many symbols were changed, ``list_flips``). Only air interface v1 packets are list-decoded: v2 carries its
-own Reed-Solomon code, whose erasures already use the margins.
+says how many symbols were changed, ``list_flips``). Only air interface v1 packets are
+list-decoded: v2 carries its own Reed-Solomon code, whose erasures already use the margins.
 
 References
 ----------
@@ -46,7 +46,7 @@ from iscd.decode.comms.demod import decode_data
 
 LIST_DECODE = True
 """A held packet that every attempt failed, the anchored one too, is list-decoded
-(:meth:`~iscd.decode.comms.packets.PacketAssembler`); False: reported failed as it was."""
+(:class:`~iscd.decode.comms.packets.PacketAssembler`); False: reported failed as it was."""
 
 LIST_CANDIDATES = 256
 """Candidate packets tried beyond the one as decided (each one more 2^-32 chance that a
