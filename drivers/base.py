@@ -198,6 +198,12 @@ class StereoPairSource(abc.ABC):
     (:class:`iscd.rig.acquisition.Acquisition`); cameras offer one through
     ``Camera.pair_source()``, which returns None where they cannot."""
 
+    waits_for_consumer: bool = False
+    """True for a source without a clock of its own (the mock rig with ``rig.pace = false``):
+    it makes the next pair when asked, so nothing is lost by waiting. The acquisition then
+    waits for room in the ring instead of dropping the oldest pair (a run that is as fast
+    as the decoder and loses nothing however busy the machine: tests, replays)."""
+
     @abc.abstractmethod
     def read_pair_into(self, left: np.ndarray, right: np.ndarray, timeout_s: float = 1.0) -> PairMeta:
         """Fill ``left`` and ``right`` ((H, W), the cameras' dtype) with the next pair.

@@ -146,6 +146,11 @@ class MockRig(StereoPairSource):
     def stats(self, camera: int) -> CameraStats:
         return self._cams[camera].stats
 
+    @property
+    def waits_for_consumer(self) -> bool:  # type: ignore[override]
+        """Unpaced (``rig.pace = false``): frames are made when read, none is ever due."""
+        return not self.pace
+
     # ----------------------------------------------------------------- faults
     @property
     def faults(self) -> tuple[FaultConfig, ...]:

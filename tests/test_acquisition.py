@@ -328,3 +328,47 @@ duration_ms = 40
             assert np.array_equal(limg, want_l) and np.array_equal(rimg, want_r)
             checked += 1
     assert checked > 20
+
+
+def test_unpaced_mock_rig_waits_for_a_slow_consumer() -> None:
+    """The mock rig with ``rig.pace = false`` has no clock of its own: the acquisition waits
+    for room in a 4-pair ring instead of dropping (``waits_for_consumer``). A consumer that
+    takes 5 ms a pair reads every trigger in order, 0, 1, 2, ..., and the ring dropped none.
+    With ``pace = true`` the same rig is a camera: nothing waits (the contrast)."""
+    mock = pytest.importorskip("iscd.drivers.mock")
+    from iscd.core.config import loads
+
+    text = """
+[transmitter]
+rows = 1
+cols = 1
+symbol_rate_hz = 100
+[camera]
+fps = 200
+exposure_s = 0.002
+width = 64
+height = 48
+[rig]
+pace = %s
+"""
+    paced = mock.MockRig.from_config(loads(text % "true"))[0].rig
+    assert paced.waits_for_consumer is False
+    left, right = mock.MockRig.from_config(loads(text % "false"))
+    assert left.rig.waits_for_consumer is True
+    ring = StereoRing.create(height=48, width=64, capacity=4)
+    try:
+        acq = Acquisition(left, right, ring)
+        acq.start()
+        ids = []
+        while len(ids) < 60:
+            p = ring.read(timeout_s=5.0)
+            assert p is not None, "the unpaced rig stopped delivering"
+            with p:
+                ids.append(p.frame_id)
+                time.sleep(0.005)  # a slow decode step
+        acq.stop()
+        rs = ring.stats()
+    finally:
+        ring.close()
+    assert ids == list(range(60))
+    assert rs.dropped_overflow == 0

@@ -502,6 +502,11 @@ class MultiDecoder:
             if had:
                 self._track_ended(s, now)
 
+    def wait_for_worker(self, most: int) -> None:
+        """:meth:`StreamDecoder.wait_for_worker` for every transmitter's decoder."""
+        for s in self.slots:
+            s.dec.wait_for_worker(most)
+
     def wait_ready(self, timeout_s: float = 300.0) -> bool:
         return all(s.dec.wait_ready(timeout_s) for s in self.slots)
 

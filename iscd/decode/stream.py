@@ -454,6 +454,16 @@ class StreamDecoder:
         """Demodulation steps handed to the worker and not yet collected."""
         return len(self._pending)
 
+    def wait_for_worker(self, most: int) -> None:
+        """Block until at most ``most`` demodulation steps are in flight (done steps are
+        collected by the next :meth:`push` as ever). For a source that waits for the
+        consumer: the frame loop must not run ahead of the worker without bound."""
+        if len(self._pending) > most:
+            try:
+                self._pending[len(self._pending) - most - 1][0].result()  # steps finish in order
+            except Exception:  # noqa: BLE001 - a dead worker: _collect handles it
+                pass
+
     @property
     def worker_pids(self) -> list[int]:
         """Process ids of the demodulation worker (``async_demod="process"``), else []."""

@@ -19,7 +19,9 @@ never blocks the other); frames go through one lock into the pairer and complete
 are copied into the ring. A rig that delivers both frames of a trigger at once
 (:class:`iscd.drivers.base.StereoPairSource`, the mock rig without injected faults) instead
 fills each ring slot itself from one thread: no pairing and no copies; on any camera
-error it falls back to the per-camera readers. A frame that must wait for its partner is copied first (drivers
+error it falls back to the per-camera readers. A pair source without a clock of its own (the
+unpaced mock rig: ``waits_for_consumer``) is waited for: the worker waits for room in the ring
+instead of letting it drop its oldest pair. A frame that must wait for its partner is copied first (drivers
 may reuse the buffer on the next read). Camera faults never end the worker:
 
 * :class:`CameraTimeout`: counted (``timeouts_<side>``), reading goes on;
@@ -446,7 +448,10 @@ class Acquisition:
         readers, which handle losses and reopening."""
         opt = self.options
         ring, c = self.ring, self.pairer.counters
+        wait = bool(getattr(src, "waits_for_consumer", False))
         while not self._stop.is_set():
+            if wait and not self._wait_for_room():
+                break
             slot = ring.reserve()
             try:
                 meta = src.read_pair_into(slot.left, slot.right, timeout_s=opt.read_timeout_s)
@@ -472,6 +477,20 @@ class Acquisition:
                 c.frames_left += 1
                 c.frames_right += 1
                 self._publish()
+
+    def _wait_for_room(self) -> bool:
+        """Sleep until the ring has room for one more pair (for a source that waits for the
+        consumer, :attr:`~iscd.drivers.base.StereoPairSource.waits_for_consumer`: nothing is
+        dropped); False if the acquisition was stopped meanwhile. The counters (and the
+        heartbeat) are still published while it waits."""
+        ring, delay = self.ring, 50e-6
+        while ring.queued >= ring.capacity:
+            if self._stop.wait(delay):
+                return False
+            delay = min(2 * delay, 1e-3)
+            with self._lock:
+                self._publish()
+        return True
 
     def _reader(self, side: str, running: bool) -> None:
         opt = self.options

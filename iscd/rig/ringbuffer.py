@@ -702,11 +702,6 @@ class StereoRing:
         return int(self._hdr[_H_DROPPED])
 
     @property
-    def queued(self) -> int:
-        self._check()
-        return int(self._hdr[_H_W] - self._hdr[_H_R])
-
-    @property
     def finished(self) -> bool:
         self._check()
         return bool(self._hdr[_H_FINISHED])

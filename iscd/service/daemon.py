@@ -65,6 +65,11 @@ class DaemonSettings:
 
 
 
+LOSSLESS_STEPS = 32
+"""Demodulation steps the frame loop may run ahead of the worker with a source that waits
+for the consumer (``_Run.lossless``)."""
+
+
 class _UnpairedWatch:
     """Says, once a stats interval while it lasts, that pairing fails: more than
     :attr:`SHARE` of the frames that came in since the last stats record found no partner
@@ -290,6 +295,10 @@ class _Run:
         self.ahead = 0
         """pairs of the block being read whose range records are already out (range_part)"""
         self.last_t_s: float | None = None
+        self.lossless = cfg.rig.scheme == "mock" and not cfg.rig.pace and not cfg.rig.faults
+        """the unpaced mock rig: it waits for the consumer (the acquisition waits for room in
+        the ring, this loop for the demodulation worker), so no frame is dropped however busy
+        the machine is (tests, a laptop); overload shedding does not apply"""
         self.t_start = self.next_stats = self.t_spawn = time.monotonic()
         # --duration counts from when the acquisition runs (its cameras opened and started),
         # not from the process start: the start-up (spawning the worker, the scene or the
@@ -503,7 +512,7 @@ class _Run:
         block. A decoder error here is counted and logged as in :meth:`decode_block` (the
         push then ranges every pair)."""
         b = self.blocks
-        self.svc = self.overload.service(self.ring.stats().queued / self.ring.capacity)
+        self.svc = self.overload.service(self.ring_fill())
         try:
             records = self.decoder.range_ahead(b.ids[:k].copy(), b.t_s[:k].copy(), b.left[:k], b.right[:k],
                                                ranging_every=self.svc.ranging_every, per_led=self.svc.per_led)
@@ -537,7 +546,7 @@ class _Run:
         svc, self.svc = self.svc, None
         ahead, self.ahead = self.ahead, 0
         if svc is None:
-            svc = self.overload.service(self.ring.stats().queued / self.ring.capacity)
+            svc = self.overload.service(self.ring_fill())
         if self.recorder is not None:  # what is shed (and ranged ahead) goes into the recording: its replay does the same
             self.recorder.note_block(b.blocks_read - 1, svc.ranging_every, svc.per_led, ahead)
         try:
@@ -572,6 +581,13 @@ class _Run:
             decoder.restart()
         if self.view is not None:
             self._draw(n, svc.images)
+        if self.lossless:  # the source waits for the frame loop; the loop waits for the worker
+            decoder.wait_for_worker(LOSSLESS_STEPS)
+
+    def ring_fill(self) -> float:
+        """The ring's fill (0..1) that the overload policy sheds by; 0 for a source that
+        waits for the consumer (nothing falls behind there: the ring is full by design)."""
+        return 0.0 if self.lossless else self.ring.stats().queued / self.ring.capacity
 
     def _draw(self, n: int, images: bool) -> None:
         """The Rerun view's luminance plots and (at its image rate) the block's last pair
