@@ -37,6 +37,17 @@ def chessboard_pairs():  # type: ignore[no-untyped-def]
     return make_pairs(20, seed=11)
 
 
+@pytest.fixture(scope="module")
+def chessboard_obs(chessboard_pairs):  # type: ignore[no-untyped-def]
+    """The pairs' detected corners (each test that changes them takes a copy of the list)."""
+    return tuple(observe(chessboard_pairs, chessboard_pairs.board))
+
+
+@pytest.fixture(scope="module")
+def chessboard_cal(chessboard_obs):  # type: ignore[no-untyped-def]
+    return calibrate_stereo(list(chessboard_obs), (512, 512))
+
+
 def test_truth_rig_is_what_the_issue_asks_for() -> None:
     t = default_rig()
     assert t.image_size == (512, 512)
@@ -61,11 +72,10 @@ def test_corner_detection_is_subpixel_accurate(chessboard_pairs) -> None:  # typ
     assert e.max() < 0.4
 
 
-def test_recovers_known_rig(chessboard_pairs) -> None:  # type: ignore[no-untyped-def]
+def test_recovers_known_rig(chessboard_pairs, chessboard_obs, chessboard_cal) -> None:  # type: ignore[no-untyped-def]
     sp = chessboard_pairs
-    obs = observe(sp, sp.board)
-    assert len(obs) >= 18
-    res = calibrate_stereo(obs, (512, 512))
+    assert len(chessboard_obs) >= 18
+    res = chessboard_cal
     c, t = res.calibration, sp.truth
     for est, true in ((c.M1, t.M1), (c.M2, t.M2)):
         for idx in ((0, 0), (1, 1), (0, 2), (1, 2)):  # fx, fy, cx, cy
@@ -79,10 +89,10 @@ def test_recovers_known_rig(chessboard_pairs) -> None:  # type: ignore[no-untype
     assert not res.rejected
 
 
-def test_distortion_is_modelled(chessboard_pairs) -> None:  # type: ignore[no-untyped-def]
+def test_distortion_is_modelled(chessboard_pairs, chessboard_cal) -> None:  # type: ignore[no-untyped-def]
     """Image points through the estimated model land where the true model puts them."""
     sp = chessboard_pairs
-    res = calibrate_stereo(observe(sp, sp.board), (512, 512))
+    res = chessboard_cal
     c, t = res.calibration, sp.truth
     gx, gy = np.meshgrid(np.linspace(20, 490, 12), np.linspace(20, 490, 12))
     pts = np.column_stack([gx.ravel(), gy.ravel()]).reshape(-1, 1, 2)
@@ -92,9 +102,9 @@ def test_distortion_is_modelled(chessboard_pairs) -> None:  # type: ignore[no-un
         assert np.max(np.linalg.norm(ray_e - ray_t, axis=1)) * Mt[0, 0] < 1.0  # px
 
 
-def test_outlier_pair_is_rejected_with_reason(chessboard_pairs) -> None:  # type: ignore[no-untyped-def]
+def test_outlier_pair_is_rejected_with_reason(chessboard_pairs, chessboard_obs) -> None:  # type: ignore[no-untyped-def]
     sp = chessboard_pairs
-    obs = observe(sp, sp.board)
+    obs = list(chessboard_obs)
     bad = obs[3]
     # Corrupt the right view of one pair: 1.5 px of extra shift in one corner row region.
     shifted = bad.right_points.copy()

@@ -284,8 +284,8 @@ def test_one_leds_background_is_taken_at_the_images_own_shift() -> None:
 
 @pytest.mark.parametrize("key, seed, model, short", [
     ("1led-hdr-100kmh-0.5px", 1410139778, "smooth", 64),
-    ("1led-hdr-100kmh-0.5px", 1153262362, "smooth", 128),
-    ("1led-hdr-40kmh-0.5px", 1375409207, "engine", 128)])
+    pytest.param("1led-hdr-100kmh-0.5px", 1153262362, "smooth", 128, marks=pytest.mark.slow),
+    pytest.param("1led-hdr-40kmh-0.5px", 1375409207, "engine", 128, marks=pytest.mark.slow)])
 def test_a_header_during_failed_first_attempts_is_decoded_once_the_led_is_found(key: str, seed: int, model: str,
                                                                                short: int) -> None:
     """Regression scenes (issue 12; randomized physics, each found in a seed set nobody had
@@ -386,7 +386,8 @@ def _with_and_without(flag: str, key: str, seed: int, vibration: str, mode: Rece
 
 
 @pytest.mark.parametrize("key, seed, exact", [("1led-hdr-40kmh-0.5px", 1711133418, 2),
-                                              ("1led-hdr-100kmh-0.3px", 1909465834, 1)])
+                                              pytest.param("1led-hdr-100kmh-0.3px", 1909465834, 1,
+                                                           marks=pytest.mark.slow)])
 def test_one_leds_failed_packet_is_tried_with_an_arrays_tracking_step(key: str, seed: int, exact: int,
                                                                      monkeypatch: pytest.MonkeyPatch) -> None:
     """Two randomized one-LED approaches under smooth vibration (seeds of sets 35001 and
