@@ -86,6 +86,7 @@ class PipelineSettings:
     shapes: str = field(default="auto", metadata={"doc": "with max_transmitters > 1, which transmitters to look for: \"auto\" (any shape, each inferred; v1 packets read with [transmitter]'s M, K, F), \"config\" (only [transmitter]'s rows x cols), or a list such as \"8x8, 1x1\""})
     search_every_frames: int = field(default=256, metadata={"lo": 8, "hi": 100000, "doc": "with max_transmitters > 1 and a transmitter tracked: look for another one every this many frames (each look reads acquire_frames whole frames)"})
     registered_background: bool = field(default=True, metadata={"doc": "with the per-pixel background and one LED: the luminance takes the background from a map held in the scene's frame, at the image's own whole-pixel shift measured each frame on a ring of background pixels (iscd.decode.tracking.registered_background): rig vibration moves the texture under the spot with it; false = the image-indexed least value as before"})
+    shift_hint: bool = field(default=True, metadata={"doc": "with registered_background: the right camera takes the left camera's image shift in a frame where its own ring matches that shift at least as well (a rigid rig's cameras move together; a defocused camera's blurred texture often cannot tell a 1 px move by itself)"})
     path_settle_px: float = field(default=0.5, metadata={"lo": 0.05, "hi": 5.0, "doc": "no further following pass once the path is within this of where the last pass started, px"})
 
     def __post_init__(self) -> None:
@@ -1010,7 +1011,9 @@ class StreamDecoder:
                 self._registered = [RegisteredBackground(left.shape[1:], rise),
                                     RegisteredBackground(right.shape[1:], rise)]
             lum_l, self.image_shifts[0] = self._registered[0].measure(left, c_l, sigmas[0], compiled=self.compiled)
-            lum_r, self.image_shifts[1] = self._registered[1].measure(right, c_r, sigmas[1], compiled=self.compiled)
+            hint = self.image_shifts[0] if self.settings.shift_hint else None
+            lum_r, self.image_shifts[1] = self._registered[1].measure(right, c_r, sigmas[1], hint=hint,
+                                                                      compiled=self.compiled)
         if spot_r is not None:
             self._fold_spot_area(info["spot_area"])
         # the light of a lit LED, held over dark stretches (halves in ~5 s of darkness)

@@ -76,6 +76,14 @@ the map was still being built at a wrong shift is then corrected)."""
 MIN_SEEN = 0.6
 """Share of the ring's pixels the map must already hold for a shift to be judged."""
 
+HINT_SWITCH = 1.0
+"""A hinted shift (the other camera's, :meth:`RegisteredBackground.measure` ``hint``) is
+taken when its ring matches at least as well as the last shift's (at most this share of its
+variance): the cameras of a rigid rig move together, so a move the sharper camera saw needs
+no more from the other than that its own ring does not speak against it (a defocused
+camera's texture blurs, and its own evidence for a 1 px move is then often below
+:data:`SWITCH`)."""
+
 
 def window_half(sigma_px: float) -> int:
     """Half-size of the Gaussian luminance window's box
@@ -123,7 +131,7 @@ class RegisteredBackground:
         the frames judged so far."""
 
     def measure(self, frames: np.ndarray, centres: np.ndarray, sigma_px: float, *,
-                compiled: bool = True) -> tuple[np.ndarray, np.ndarray]:
+                hint: np.ndarray | None = None, compiled: bool = True) -> tuple[np.ndarray, np.ndarray]:
         """Fold one block in and measure each LED's light above the background under it.
 
         Parameters
@@ -134,6 +142,10 @@ class RegisteredBackground:
             (F, N, 2) LED centres (x, y) in each frame, px.
         sigma_px : float
             Gaussian luminance window, px (> 0).
+        hint : ndarray, optional
+            (F, 2) int the shifts another camera of the rig found in the same frames, px:
+            where its own search did not move, a frame takes the hinted shift if its ring
+            matches it at least as well (:data:`HINT_SWITCH`).
         compiled : bool
             The compiled kernel (else the numpy reference: the same numbers).
 
@@ -155,9 +167,16 @@ class RegisteredBackground:
         F, N = c.shape[0], c.shape[1]
         lum = np.zeros((F, N))
         shifts = np.zeros((F, 2), np.int64)
+        if hint is None:
+            h = np.zeros((0, 2), np.int64)
+        else:
+            h = np.ascontiguousarray(hint, dtype=np.int64)
+            if h.shape != (F, 2):
+                raise ValueError(f"hint: expected ({F}, 2) shifts, got {h.shape}")
         fn = measure_block if compiled else measure_block_reference
         fn(np.ascontiguousarray(frames), np.ascontiguousarray(c), float(sigma_px), window_half(sigma_px),
-           RING_PX, self.bg, self.stamp, self.block, self.rise_dn, MAX_SHIFT_PX, self.shift, self.level, lum, shifts)
+           RING_PX, self.bg, self.stamp, self.block, self.rise_dn, MAX_SHIFT_PX, self.shift, self.level, lum, shifts,
+           h)
         return lum, shifts
 
 
@@ -170,7 +189,7 @@ def _box(cx: float, cy: float, half: int, H: int, W: int) -> tuple[int, int, int
 def measure_block_reference(frames: np.ndarray, centres: np.ndarray, sigma: float, half: int, ring: int,
                             bg: np.ndarray, stamp: np.ndarray, blk: int, rise: float, m: int,
                             shift: np.ndarray, level: np.ndarray, out_lum: np.ndarray,
-                            out_shift: np.ndarray) -> None:
+                            out_shift: np.ndarray, hint: np.ndarray | None = None) -> None:
     """Pure-numpy reference of :func:`measure_block` (see
     :meth:`RegisteredBackground.measure`). Per frame: the shift (ring match), then the
     block's relaxation and the least value folded in over each LED's outer box; then, the
@@ -206,8 +225,11 @@ def measure_block_reference(frames: np.ndarray, centres: np.ndarray, sigma: floa
         (F, N) float64 output: light above the map, DN.
     out_shift : ndarray
         (F, 2) int64 output: the shift found in each frame, px.
+    hint : ndarray, optional
+        (F, 2) int64 another camera's shifts in these frames, px ((0, 2): none).
     """
     F, H, W = frames.shape
+    hint = np.zeros((0, 2), np.int64) if hint is None else hint
     N = centres.shape[1]
     outer = half + ring
     for f in range(F):
@@ -247,6 +269,17 @@ def measure_block_reference(frames: np.ndarray, centres: np.ndarray, sigma: floa
                 v0, vc = float(np.var(d0)), float(np.var(dc))
                 if vc < SWITCH * v0 and vc < best_var:
                     best, best_var = (sx, sy), vc
+        if judged and best == (bx, by) and f < hint.shape[0]:
+            hx, hy = int(hint[f, 0]), int(hint[f, 1])
+            if (hx, hy) != (bx, by) and abs(hx) <= m and abs(hy) <= m:
+                bc = bg[ys_r - hy + m, xs_r - hx + m].astype(np.float64)
+                ok = np.isfinite(b0) & np.isfinite(bc)
+                k = int(ok.sum())
+                if k >= MIN_SEEN * n_all and k >= 2:
+                    v0 = float(np.var(pix_r[ok] - b0[ok]))
+                    vc = float(np.var(pix_r[ok] - bc[ok]))
+                    if vc <= HINT_SWITCH * v0:
+                        best, best_var = (hx, hy), vc
         shift[0], shift[1] = best
         taken = best_var if best != (bx, by) else v_now
         if judged:
@@ -282,7 +315,8 @@ def _warm_args() -> tuple:
     fr = np.zeros((2, 24, 24), np.uint8)
     bg = np.full((24 + 2 * MAX_SHIFT_PX, 24 + 2 * MAX_SHIFT_PX), np.inf, np.float32)
     return (fr, np.full((2, 1, 2), 12.0), 1.0, 4, RING_PX, bg, np.zeros(bg.shape, np.int64), 1, 0.25,
-            MAX_SHIFT_PX, np.zeros(2, np.int64), np.array([np.inf, 0.0]), np.zeros((2, 1)), np.zeros((2, 2), np.int64))
+            MAX_SHIFT_PX, np.zeros(2, np.int64), np.array([np.inf, 0.0]), np.zeros((2, 1)), np.zeros((2, 2), np.int64),
+            np.zeros((0, 2), np.int64))
 
 
 def _warm_args16() -> tuple:
@@ -294,9 +328,11 @@ def _warm_args16() -> tuple:
 @njit(warm=_warm_args)
 def measure_block(frames: np.ndarray, centres: np.ndarray, sigma: float, half: int, ring: int,
                   bg: np.ndarray, stamp: np.ndarray, blk: int, rise: float, m: int,
-                  shift: np.ndarray, level: np.ndarray, out_lum: np.ndarray, out_shift: np.ndarray) -> None:
+                  shift: np.ndarray, level: np.ndarray, out_lum: np.ndarray, out_shift: np.ndarray,
+                  hint: np.ndarray) -> None:
     """One camera's block (:meth:`RegisteredBackground.measure`): per frame the image shift
-    (ring match within 1 px of the last) and the frame folded into the map ``bg`` (H + 2m,
+    (ring match within 1 px of the last, or the ``hint`` (F, 2) of another camera -- (0, 2):
+    none -- where that matches at least as well) and the frame folded into the map ``bg`` (H + 2m,
     W + 2m) float32 / ``stamp`` int64 (relaxed by ``rise`` DN once per block ``blk``); then
     per frame each LED's Gaussian-weighted mean light above the map (``sigma`` px over the box of
     half-size ``half`` px) into out_lum (F, N); the shifts into out_shift (F, 2), the last
@@ -382,6 +418,34 @@ def measure_block(frames: np.ndarray, centres: np.ndarray, sigma: float, half: i
                 vc = max(qc / k - mc * mc, 0.0)
                 if vc < SWITCH * v0 and vc < best_var:
                     best_x, best_y, best_var = sx, sy, vc
+        if judged and best_x == bx and best_y == by and f < hint.shape[0]:
+            hx, hy = hint[f, 0], hint[f, 1]
+            if (hx != bx or hy != by) and abs(hx) <= m and abs(hy) <= m:
+                k = 0
+                m0 = 0.0
+                mc = 0.0
+                q0 = 0.0
+                qc = 0.0
+                for j in range(n_all):
+                    y, x = ring_y[j], ring_x[j]
+                    b0 = bg[y - by + m, x - bx + m]
+                    bc = bg[y - hy + m, x - hx + m]
+                    if b0 < np.inf and bc < np.inf:
+                        v = float(frames[f, y, x])
+                        e0 = v - float(b0)
+                        ec = v - float(bc)
+                        m0 += e0
+                        mc += ec
+                        q0 += e0 * e0
+                        qc += ec * ec
+                        k += 1
+                if k >= MIN_SEEN * n_all and k >= 2:
+                    m0 /= k
+                    mc /= k
+                    v0 = max(q0 / k - m0 * m0, 0.0)
+                    vc = max(qc / k - mc * mc, 0.0)
+                    if vc <= HINT_SWITCH * v0:
+                        best_x, best_y, best_var = hx, hy, vc
         shift[0], shift[1] = best_x, best_y
         taken = best_var if (best_x != bx or best_y != by) else v_now
         if judged:
