@@ -79,6 +79,11 @@ backend = "mock"
 pace = true
 """
 
+OTHERS_BUSY = 0.5
+"""Cores that processes outside the daemon's tree held near a drop for it to count as the
+host's, not the daemon's (beside the host's busy share of 0.9): on 2 cores the daemon
+needs about one, and another job's half core takes it from under it."""
+
 KINDS = ("stall", "drop", "duplicate", "desync", "vanish_left", "vanish_right")
 PACKET_FRAMES = 306
 CLK_TCK = os.sysconf("SC_CLK_TCK")
@@ -383,13 +388,16 @@ def analyze(directory: Path, *, warmup_s: float = 20.0, window_before: int = 100
                     # the host's busiest share within 3 s of the interval (sampler clock:
                     # the daemon's uptime plus the start-up before its first stats record)
                     ts = s["uptime_s"] + t_start_off
-                    near = [b for t, b, _ in host if ts - 3 <= t <= ts + 3]
-                    outside.append((prev["frame"], s["frame"], d, round(max(near), 2) if near else None))
+                    near = [(b, b * (os.cpu_count() or 1) - c) for t, b, c in host if ts - 3 <= t <= ts + 3]
+                    outside.append((prev["frame"], s["frame"], d, round(max(b for b, _ in near), 2) if near else None,
+                                    round(max(o for _, o in near), 2) if near else None))
         prev = s
     last_drop = final["frames_dropped"] - (prev["frames_dropped"] if prev else 0) - (final.get("stop_dropped") or 0)
     summary.update(frames_dropped_warmup=warm_drop, frames_dropped_in_faults=in_f,
                    frames_dropped_outside_faults=out_f, frames_dropped_last_interval=last_drop)
-    sat = sum(d for *_, d, b in outside if b is not None and b >= 0.9)
+    # forgiven: the host saturated, or other work on it holding at least OTHERS_BUSY cores
+    # (the daemon then shares its cores; a real-time claim says nothing there)
+    sat = sum(d for *_, d, b, o in outside if (b is not None and b >= 0.9) or (o is not None and o >= OTHERS_BUSY))
     summary.update(frames_dropped_outside_faults_host_saturated=sat,
                    frames_dropped_outside_faults_host_not_saturated=out_f - sat,
                    host_busy_share_median=round(_median([b for _, b, _ in host]), 3) if host else None,
