@@ -211,8 +211,12 @@ def _run_hinted(frames: np.ndarray, centres: np.ndarray, hint: np.ndarray | None
 
 
 def _agree(found: np.ndarray, shifts: np.ndarray, settle: int = 32) -> float:
-    got = found - found[0] + shifts[0]
-    return float((got[settle:] == shifts[settle:]).all(axis=1).mean())
+    """Share of the frames from ``settle`` on whose shift is the truth up to the camera's most
+    common offset from it (a map's origin is where the image was when it started, or where a
+    missed move left it: the luminance needs the shift only consistent with the map)."""
+    d = (found - shifts)[settle:]
+    vals, counts = np.unique(d, axis=0, return_counts=True)
+    return float((d == vals[np.argmax(counts)]).all(axis=1).mean())
 
 
 @pytest.mark.parametrize("seed", [1, 2, 3])
@@ -237,11 +241,14 @@ def test_a_defocused_camera_takes_the_sharp_cameras_moves(seed: int) -> None:
 
 @pytest.mark.parametrize("seed", [1, 2, 3])
 def test_a_wrong_hint_is_not_taken_where_the_ring_contradicts_it(seed: int) -> None:
-    """A hint a pixel off the truth in every frame, given to a camera that sees the texture
-    sharply: its own ring matches the truth better, and the hint is not taken."""
+    """Hinted moves that are not the truth's (a pixel right and back every 5th frame),
+    given to a camera that sees the texture sharply: its own ring matches the truth better,
+    and the hints are not taken."""
     n = 480
     sharp, _, centres, shifts = _blurred_pair(seed, n)
-    _, found = _run_hinted(sharp, centres, shifts + np.array([1, 0]))
+    wrong = shifts.copy()
+    wrong[::5] += np.array([1, 0])
+    _, found = _run_hinted(sharp, centres, wrong)
     assert _agree(found, shifts) >= 0.98
 
 
@@ -249,10 +256,91 @@ def test_the_kernel_matches_the_reference_with_a_hint() -> None:
     n = 96
     sharp, blurred, centres, shifts = _blurred_pair(5, n)
     hint = shifts.copy()
-    hint[::7] += np.array([0, 1])  # now and then a wrong one
-    la, sa = _run_hinted(blurred, centres, hint, compiled=True)
-    lb, sb = _run_hinted(blurred, centres, hint, compiled=False)
+    hint[::7] += np.array([0, 1])  # now and then a wrong move (and back)
+    a, b = RegisteredBackground((H, W)), RegisteredBackground((H, W))
+    la, sa = _run_hinted(blurred, centres, hint, compiled=True, bg=a)
+    lb, sb = _run_hinted(blurred, centres, hint, compiled=False, bg=b)
     np.testing.assert_array_equal(sa, sb)
     np.testing.assert_allclose(la, lb, rtol=1e-9, atol=1e-9)
+    np.testing.assert_allclose(a.contrast, b.contrast, rtol=1e-9)  # the last block's, NaN alike
     with pytest.raises(ValueError, match="hint"):
         RegisteredBackground((H, W)).measure(blurred[:4], centres[:4], SIGMA, hint=np.zeros((3, 2), np.int64))
+
+
+def test_the_camera_that_tells_the_shifts_apart_leads() -> None:
+    """ShiftLeader: the left camera leads at first and while the two tell the shifts apart
+    alike; the lead goes to the right one once its ring's contrast is clearly higher, within
+    a few blocks, and back when the left's is."""
+    from iscd.decode.tracking.registered_background import ShiftLeader
+
+    rng = np.random.default_rng(1)
+    sharp = lambda: np.where(rng.random(16) < 0.5, rng.uniform(3, 10, 16), np.nan)  # noqa: E731
+    dull = lambda: np.where(rng.random(16) < 0.5, rng.uniform(1.0, 1.4, 16), np.nan)  # noqa: E731
+    alike = ShiftLeader()
+    for _ in range(20):
+        alike.update([sharp(), sharp()])
+    assert alike.lead == 0
+    lead = ShiftLeader()
+    lead.update([np.full(16, np.nan), np.full(16, np.nan)])
+    assert lead.lead == 0  # nothing tried yet
+    switched = None
+    for k in range(20):
+        lead.update([dull(), sharp()])
+        if lead.lead == 1 and switched is None:
+            switched = k
+    assert switched is not None and switched <= 3
+    for _ in range(40):
+        lead.update([sharp(), dull()])
+    assert lead.lead == 0
+
+
+@pytest.mark.parametrize("defocused", [0, 1])
+@pytest.mark.parametrize("seed", [1, 2, 3])
+def test_the_defocused_camera_is_led_by_the_sharp_one(seed: int, defocused: int) -> None:
+    """As the decoder runs them (iscd.decode.stream: the leader first, the follower with its
+    hint): whichever camera is defocused, the sharp one leads, and the defocused camera's
+    shifts agree with the truth (up to its map's offset) in >= 95 % of the frames after the
+    first 160 (alone: a minority)."""
+    from iscd.decode.tracking.registered_background import ShiftLeader
+
+    n = 480
+    sharp, blurred, centres, shifts = _blurred_pair(seed, n)
+    frames = (blurred, sharp) if defocused == 0 else (sharp, blurred)
+    bgs = [RegisteredBackground((H, W)), RegisteredBackground((H, W))]
+    leader = ShiftLeader()
+    found: list[list[np.ndarray]] = [[], []]
+    for s in range(0, n, 16):
+        out: list[np.ndarray] = [np.empty(0), np.empty(0)]
+        hint = None
+        for c in (leader.lead, 1 - leader.lead):
+            _, out[c] = bgs[c].measure(frames[c][s:s + 16], centres[s:s + 16], SIGMA, hint=hint)
+            hint = out[c]
+        leader.update([b.contrast for b in bgs])
+        for c in (0, 1):
+            found[c].append(out[c])
+    assert leader.lead == 1 - defocused
+    assert _agree(np.concatenate(found[defocused]), shifts, settle=160) >= 0.95
+    _, alone = _run_hinted(blurred, centres, None)
+    assert _agree(alone, shifts, settle=160) < 0.6
+
+
+def test_contrast_tells_a_sharp_ring_from_a_blurred_one() -> None:
+    """RegisteredBackground.contrast: over the same texture, the sharp camera's ring tells the
+    shifts apart 3x more clearly than the defocused one's (medians), the kernel and the
+    reference alike."""
+    n = 320
+    sharp, blurred, centres, _ = _blurred_pair(1, n)
+    med = {}
+    for name, fr in (("sharp", sharp), ("blurred", blurred)):
+        for compiled in (True, False):
+            bg = RegisteredBackground((H, W))
+            cs = []
+            for s in range(0, n, 16):
+                bg.measure(fr[s:s + 16], centres[s:s + 16], SIGMA, compiled=compiled)
+                cs.append(bg.contrast.copy())
+            c = np.concatenate(cs)[96:]
+            med[name, compiled] = float(np.median(c[np.isfinite(c)]))
+            assert (c[np.isfinite(c)] >= 1.0).all()
+    for compiled in (True, False):
+        assert med["sharp", compiled] > 3 * med["blurred", compiled]
+    assert med["sharp", True] == pytest.approx(med["sharp", False], rel=1e-9)

@@ -43,7 +43,7 @@ from iscd.core.records import RangeFilteredRecord, RangeLedsRecord, RangeRecord
 from iscd.decode.pipe import PipeDemodWorker as DemodWorker
 from iscd.decode.tracking.follow_kernel import follow_and_measure_compiled
 from iscd.decode.tracking.luminance import PixelBackground, area_sigma, follow_and_measure, grid_sample, patch_half
-from iscd.decode.tracking.registered_background import RING_PX, RegisteredBackground, window_half
+from iscd.decode.tracking.registered_background import RING_PX, RegisteredBackground, ShiftLeader, window_half
 from iscd.decode.tracking.partner import find_partner, reference_series
 from iscd.decode.tracking.detect import (GridFit, square_grid, detect_array, detect_auto, light_map, match_stereo, track_box,
                                          track_on_light)
@@ -86,7 +86,7 @@ class PipelineSettings:
     shapes: str = field(default="auto", metadata={"doc": "with max_transmitters > 1, which transmitters to look for: \"auto\" (any shape, each inferred; v1 packets read with [transmitter]'s M, K, F), \"config\" (only [transmitter]'s rows x cols), or a list such as \"8x8, 1x1\""})
     search_every_frames: int = field(default=256, metadata={"lo": 8, "hi": 100000, "doc": "with max_transmitters > 1 and a transmitter tracked: look for another one every this many frames (each look reads acquire_frames whole frames)"})
     registered_background: bool = field(default=True, metadata={"doc": "with the per-pixel background and one LED: the luminance takes the background from a map held in the scene's frame, at the image's own whole-pixel shift measured each frame on a ring of background pixels (iscd.decode.tracking.registered_background): rig vibration moves the texture under the spot with it; false = the image-indexed least value as before"})
-    shift_hint: bool = field(default=True, metadata={"doc": "with registered_background: the right camera takes the left camera's image shift in a frame where its own ring matches that shift at least as well (a rigid rig's cameras move together; a defocused camera's blurred texture often cannot tell a 1 px move by itself)"})
+    shift_hint: bool = field(default=True, metadata={"doc": "with registered_background: one camera makes the other's image move (shift step) in a frame where its own ring matches the moved shift at least as well (a rigid rig's cameras move together; a defocused camera's blurred texture often cannot tell a 1 px move by itself); the camera whose ring tells the shifts apart more clearly leads (iscd.decode.tracking.registered_background.ShiftLeader)"})
     path_settle_px: float = field(default=0.5, metadata={"lo": 0.05, "hi": 5.0, "doc": "no further following pass once the path is within this of where the last pass started, px"})
 
     def __post_init__(self) -> None:
@@ -367,6 +367,7 @@ class StreamDecoder:
         """following passes run after the first, over the decoder's life (follow_passes)"""
         self._backgrounds: list[PixelBackground] | None = None
         self._registered: list[RegisteredBackground] | None = None
+        self._shift_leader = ShiftLeader()
         self._spot_area: np.ndarray | None = None
         """per camera, the box light of a lit LED (following ignores LEDs far below it)"""
         self._win: tuple[tuple[int, int, int, int], tuple[int, int, int, int]] = ((0, 0, 0, 0), (0, 0, 0, 0))
@@ -1010,10 +1011,20 @@ class StreamDecoder:
                 rise = self.settings.background_rise_dn
                 self._registered = [RegisteredBackground(left.shape[1:], rise),
                                     RegisteredBackground(right.shape[1:], rise)]
-            lum_l, self.image_shifts[0] = self._registered[0].measure(left, c_l, sigmas[0], compiled=self.compiled)
-            hint = self.image_shifts[0] if self.settings.shift_hint else None
-            lum_r, self.image_shifts[1] = self._registered[1].measure(right, c_r, sigmas[1], hint=hint,
-                                                                      compiled=self.compiled)
+                self._shift_leader = ShiftLeader()
+            frames_lr, centres_lr, lum_lr = (left, right), (c_l, c_r), [lum_l, lum_r]
+            if self.settings.shift_hint:  # the camera that tells the shifts apart better leads the other's moves
+                order = (self._shift_leader.lead, 1 - self._shift_leader.lead)
+            else:
+                order = (0, 1)
+            hint = None
+            for c in order:
+                lum_lr[c], self.image_shifts[c] = self._registered[c].measure(
+                    frames_lr[c], centres_lr[c], sigmas[c], hint=hint, compiled=self.compiled)
+                hint = self.image_shifts[c] if self.settings.shift_hint else None
+            if self.settings.shift_hint:
+                self._shift_leader.update([r.contrast for r in self._registered])
+            lum_l, lum_r = lum_lr
         if spot_r is not None:
             self._fold_spot_area(info["spot_area"])
         # the light of a lit LED, held over dark stretches (halves in ~5 s of darkness)

@@ -35,6 +35,8 @@ reference the tests compare it with.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import numpy as np
 
 from iscd.core.jit import njit
@@ -77,11 +79,11 @@ MIN_SEEN = 0.6
 """Share of the ring's pixels the map must already hold for a shift to be judged."""
 
 HINT_SWITCH = 1.0
-"""A hinted shift (the other camera's, :meth:`RegisteredBackground.measure` ``hint``) is
-taken when its ring matches at least as well as the last shift's (at most this share of its
-variance): the cameras of a rigid rig move together, so a move the sharper camera saw needs
-no more from the other than that its own ring does not speak against it (a defocused
-camera's texture blurs, and its own evidence for a 1 px move is then often below
+"""A hinted move (the other camera's, :meth:`RegisteredBackground.measure` ``hint``) is
+taken when the ring matches the moved shift at least as well as the last one (at most this
+share of its variance): the cameras of a rigid rig move together, so a move the sharper
+camera saw needs no more from the other than that its own ring does not speak against it (a
+defocused camera's texture blurs, and its own evidence for a 1 px move is then often below
 :data:`SWITCH`)."""
 
 
@@ -126,6 +128,12 @@ class RegisteredBackground:
         self.rise_dn = float(rise_dn)
         self.shift = np.zeros(2, np.int64)
         """The last frame's image shift (x, y), px."""
+        self.contrast = np.zeros(0)
+        """Per frame of the last block how clearly the ring told the shifts apart: the
+        second-least ring variance over the least among the shifts tried (>= 1; NaN where
+        only the last shift was judged). A sharp texture: 2-25; a blurred or flat one: ~1."""
+        self._hint_last: np.ndarray | None = None
+        """The last hint row of the previous block (the move into this block's first frame)."""
         self.level = np.array([np.inf, 0.0])
         """The running ring variance at the shift taken, DN^2 (:data:`SEARCH_RATIO`), and
         the frames judged so far."""
@@ -143,9 +151,12 @@ class RegisteredBackground:
         sigma_px : float
             Gaussian luminance window, px (> 0).
         hint : ndarray, optional
-            (F, 2) int the shifts another camera of the rig found in the same frames, px:
-            where its own search did not move, a frame takes the hinted shift if its ring
-            matches it at least as well (:data:`HINT_SWITCH`).
+            (F, 2) int the shifts another camera of the rig found in the same frames, px.
+            Where that camera's shift moved (from its previous frame, the last block's last
+            included) and this one's own search did not, this camera makes the same move if
+            its ring matches the moved shift at least as well (:data:`HINT_SWITCH`). Only
+            the moves count: the two cameras' shifts may differ by a constant (each map's
+            own origin).
         compiled : bool
             The compiled kernel (else the numpy reference: the same numbers).
 
@@ -169,15 +180,64 @@ class RegisteredBackground:
         shifts = np.zeros((F, 2), np.int64)
         if hint is None:
             h = np.zeros((0, 2), np.int64)
+            self._hint_last = None
         else:
-            h = np.ascontiguousarray(hint, dtype=np.int64)
+            h = np.asarray(hint, dtype=np.int64)
             if h.shape != (F, 2):
                 raise ValueError(f"hint: expected ({F}, 2) shifts, got {h.shape}")
+            first = h[:1] if self._hint_last is None else self._hint_last
+            self._hint_last = h[-1:].copy()
+            h = np.ascontiguousarray(np.concatenate([first, h]))  # (F + 1, 2): the moves are its steps
+        self.contrast = np.full(F, np.nan)
         fn = measure_block if compiled else measure_block_reference
         fn(np.ascontiguousarray(frames), np.ascontiguousarray(c), float(sigma_px), window_half(sigma_px),
            RING_PX, self.bg, self.stamp, self.block, self.rise_dn, MAX_SHIFT_PX, self.shift, self.level, lum, shifts,
-           h)
+           h, self.contrast)
         return lum, shifts
+
+
+class ShiftLeader:
+    """Which camera of a rigid stereo rig leads the other's image shift (the ``hint`` of
+    :meth:`RegisteredBackground.measure`): the one whose ring tells the shifts apart more
+    clearly (:attr:`RegisteredBackground.contrast`: the second-least ring variance over the
+    least among the shifts tried). A camera that sees the texture sharply has a contrast of
+    2-25; a defocused one, or one whose ring a spot's glare fills, ~1-2, and it misses moves
+    or makes spurious ones. The leader is measured first without a hint, the follower with
+    the leader's shifts as its hint. Each camera's running mean of log(contrast) over the
+    frames that tried other shifts decays by :attr:`DECAY` a block; the lead changes when the
+    other camera's is higher by :attr:`MARGIN`.
+
+    Cameras are 0 (left) and 1 (right)."""
+
+    DECAY = 0.9
+    """Share of the running evidence kept from block to block (~10 blocks' memory)."""
+    MARGIN = float(np.log(1.25))
+    """The lead changes when the other camera's running log-contrast is higher by this."""
+
+    def __init__(self) -> None:
+        self.lead = 0
+        self.sums = np.zeros(2)
+        self.weights = np.zeros(2)
+
+    @property
+    def log_contrast(self) -> np.ndarray:
+        """(2,) running mean log-contrast per camera (NaN before any frame tried a shift)."""
+        with np.errstate(invalid="ignore", divide="ignore"):
+            return np.where(self.weights > 0, self.sums / np.maximum(self.weights, 1e-300), np.nan)
+
+    def update(self, contrasts: Sequence[np.ndarray]) -> None:
+        """Fold one block in: ``contrasts[c]`` (F,) of camera c (NaN: no other shift tried)."""
+        self.sums *= self.DECAY
+        self.weights *= self.DECAY
+        for c in (0, 1):
+            x = np.asarray(contrasts[c], dtype=np.float64)
+            x = x[np.isfinite(x) & (x > 0)]
+            self.sums[c] += float(np.log(x).sum())
+            self.weights[c] += x.size
+        lc = self.log_contrast
+        other = 1 - self.lead
+        if np.isfinite(lc[other]) and (not np.isfinite(lc[self.lead]) or lc[other] > lc[self.lead] + self.MARGIN):
+            self.lead = other
 
 
 def _box(cx: float, cy: float, half: int, H: int, W: int) -> tuple[int, int, int, int]:
@@ -189,7 +249,8 @@ def _box(cx: float, cy: float, half: int, H: int, W: int) -> tuple[int, int, int
 def measure_block_reference(frames: np.ndarray, centres: np.ndarray, sigma: float, half: int, ring: int,
                             bg: np.ndarray, stamp: np.ndarray, blk: int, rise: float, m: int,
                             shift: np.ndarray, level: np.ndarray, out_lum: np.ndarray,
-                            out_shift: np.ndarray, hint: np.ndarray | None = None) -> None:
+                            out_shift: np.ndarray, hint: np.ndarray | None = None,
+                            out_contrast: np.ndarray | None = None) -> None:
     """Pure-numpy reference of :func:`measure_block` (see
     :meth:`RegisteredBackground.measure`). Per frame: the shift (ring match), then the
     block's relaxation and the least value folded in over each LED's outer box; then, the
@@ -226,7 +287,11 @@ def measure_block_reference(frames: np.ndarray, centres: np.ndarray, sigma: floa
     out_shift : ndarray
         (F, 2) int64 output: the shift found in each frame, px.
     hint : ndarray, optional
-        (F, 2) int64 another camera's shifts in these frames, px ((0, 2): none).
+        (F + 1, 2) int64 another camera's shifts in the frame before these and in these, px
+        ((0, 2): none); its steps are the moves hinted.
+    out_contrast : ndarray, optional
+        (F,) float64 output: the second-least over the least ring variance of the shifts
+        tried (NaN: none tried), :attr:`RegisteredBackground.contrast`.
     """
     F, H, W = frames.shape
     hint = np.zeros((0, 2), np.int64) if hint is None else hint
@@ -255,6 +320,7 @@ def measure_block_reference(frames: np.ndarray, centres: np.ndarray, sigma: floa
         judged = n_all > 0 and k0 >= MIN_SEEN * n_all and k0 >= 2
         v_now = float(np.var(pix_r[seen0] - b0[seen0])) if judged else np.inf
         search = judged and (not v_now <= SEARCH_RATIO * float(level[0]) or int(level[1]) % SEARCH_EVERY == 0)
+        tried = [v_now]
         for dy in (-1, 0, 1) if search else ():
             for dx in (-1, 0, 1):
                 sx, sy = bx + dx, by + dy
@@ -267,10 +333,15 @@ def measure_block_reference(frames: np.ndarray, centres: np.ndarray, sigma: floa
                     continue
                 d0, dc = pix_r[ok] - b0[ok], pix_r[ok] - bc[ok]
                 v0, vc = float(np.var(d0)), float(np.var(dc))
+                tried.append(vc)
                 if vc < SWITCH * v0 and vc < best_var:
                     best, best_var = (sx, sy), vc
-        if judged and best == (bx, by) and f < hint.shape[0]:
-            hx, hy = int(hint[f, 0]), int(hint[f, 1])
+        if out_contrast is not None and len(tried) >= 2:
+            lo2 = sorted(tried)[:2]
+            out_contrast[f] = lo2[1] / max(lo2[0], 1e-12)
+        if judged and best == (bx, by) and f + 1 < hint.shape[0]:
+            hx = bx + int(hint[f + 1, 0]) - int(hint[f, 0])
+            hy = by + int(hint[f + 1, 1]) - int(hint[f, 1])
             if (hx, hy) != (bx, by) and abs(hx) <= m and abs(hy) <= m:
                 bc = bg[ys_r - hy + m, xs_r - hx + m].astype(np.float64)
                 ok = np.isfinite(b0) & np.isfinite(bc)
@@ -316,7 +387,7 @@ def _warm_args() -> tuple:
     bg = np.full((24 + 2 * MAX_SHIFT_PX, 24 + 2 * MAX_SHIFT_PX), np.inf, np.float32)
     return (fr, np.full((2, 1, 2), 12.0), 1.0, 4, RING_PX, bg, np.zeros(bg.shape, np.int64), 1, 0.25,
             MAX_SHIFT_PX, np.zeros(2, np.int64), np.array([np.inf, 0.0]), np.zeros((2, 1)), np.zeros((2, 2), np.int64),
-            np.zeros((0, 2), np.int64))
+            np.zeros((0, 2), np.int64), np.zeros(2))
 
 
 def _warm_args16() -> tuple:
@@ -329,10 +400,11 @@ def _warm_args16() -> tuple:
 def measure_block(frames: np.ndarray, centres: np.ndarray, sigma: float, half: int, ring: int,
                   bg: np.ndarray, stamp: np.ndarray, blk: int, rise: float, m: int,
                   shift: np.ndarray, level: np.ndarray, out_lum: np.ndarray, out_shift: np.ndarray,
-                  hint: np.ndarray) -> None:
+                  hint: np.ndarray, out_contrast: np.ndarray) -> None:
     """One camera's block (:meth:`RegisteredBackground.measure`): per frame the image shift
-    (ring match within 1 px of the last, or the ``hint`` (F, 2) of another camera -- (0, 2):
-    none -- where that matches at least as well) and the frame folded into the map ``bg`` (H + 2m,
+    (ring match within 1 px of the last, or the move of another camera's shifts ``hint``
+    (F + 1, 2) -- (0, 2): none -- where that matches at least as well; how clearly the ring
+    told the shifts apart into ``out_contrast`` (F,)) and the frame folded into the map ``bg`` (H + 2m,
     W + 2m) float32 / ``stamp`` int64 (relaxed by ``rise`` DN once per block ``blk``); then
     per frame each LED's Gaussian-weighted mean light above the map (``sigma`` px over the box of
     half-size ``half`` px) into out_lum (F, N); the shifts into out_shift (F, 2), the last
@@ -386,6 +458,9 @@ def measure_block(frames: np.ndarray, centres: np.ndarray, sigma: float, half: i
         search = judged and (not v_now <= SEARCH_RATIO * level[0] or int(level[1]) % SEARCH_EVERY == 0)
         best_x, best_y = bx, by
         best_var = np.inf
+        lo1 = v_now  # the least and second-least variance of the shifts tried
+        lo2 = np.inf
+        n_tried = 1 if judged else 0
         for dy in range(-1, 2):
             for dx in range(-1, 2):
                 sx, sy = bx + dx, by + dy
@@ -416,10 +491,19 @@ def measure_block(frames: np.ndarray, centres: np.ndarray, sigma: float, half: i
                 mc /= k
                 v0 = max(q0 / k - m0 * m0, 0.0)
                 vc = max(qc / k - mc * mc, 0.0)
+                n_tried += 1
+                if vc < lo1:
+                    lo2 = lo1
+                    lo1 = vc
+                elif vc < lo2:
+                    lo2 = vc
                 if vc < SWITCH * v0 and vc < best_var:
                     best_x, best_y, best_var = sx, sy, vc
-        if judged and best_x == bx and best_y == by and f < hint.shape[0]:
-            hx, hy = hint[f, 0], hint[f, 1]
+        if n_tried >= 2 and f < out_contrast.shape[0]:
+            out_contrast[f] = lo2 / max(lo1, 1e-12)
+        if judged and best_x == bx and best_y == by and f + 1 < hint.shape[0]:
+            hx = bx + hint[f + 1, 0] - hint[f, 0]
+            hy = by + hint[f + 1, 1] - hint[f, 1]
             if (hx != bx or hy != by) and abs(hx) <= m and abs(hy) <= m:
                 k = 0
                 m0 = 0.0
