@@ -25,6 +25,20 @@ from iscd.rig.ringbuffer import ReadSlot, StereoRing
 
 pytestmark = pytest.mark.skipif(not os.path.isdir("/dev/shm"), reason="needs Linux /dev/shm")
 SHAPE = PATTERN_SHAPE
+SMALL_RIG = """
+[transmitter]
+rows = {n}
+cols = {n}
+symbol_rate_hz = 100
+[camera]
+fps = 200
+exposure_s = 0.002
+width = 64
+height = 48
+[rig]
+pace = {pace}
+"""
+"""A small mock rig (an n x n array, 64 x 48 px at 200 fps) for ``str.format``."""
 
 
 @pytest.fixture
@@ -265,18 +279,7 @@ def test_mock_rig_with_faults_feeds_only_true_pairs() -> None:
     from iscd.drivers.registry import settings_from_config
     from iscd.core.config import loads
 
-    cfg = loads("""
-[transmitter]
-rows = 2
-cols = 2
-symbol_rate_hz = 100
-[camera]
-fps = 200
-exposure_s = 0.002
-width = 64
-height = 48
-[rig]
-pace = true
+    cfg = loads(SMALL_RIG.format(n=2, pace="true") + """
 [[rig.faults]]
 kind = "drop"
 camera = "left"
@@ -338,22 +341,9 @@ def test_unpaced_mock_rig_waits_for_a_slow_consumer() -> None:
     mock = pytest.importorskip("iscd.drivers.mock")
     from iscd.core.config import loads
 
-    text = """
-[transmitter]
-rows = 1
-cols = 1
-symbol_rate_hz = 100
-[camera]
-fps = 200
-exposure_s = 0.002
-width = 64
-height = 48
-[rig]
-pace = %s
-"""
-    paced = mock.MockRig.from_config(loads(text % "true"))[0].rig
+    paced = mock.MockRig.from_config(loads(SMALL_RIG.format(n=1, pace="true")))[0].rig
     assert paced.waits_for_consumer is False
-    left, right = mock.MockRig.from_config(loads(text % "false"))
+    left, right = mock.MockRig.from_config(loads(SMALL_RIG.format(n=1, pace="false")))
     assert left.rig.waits_for_consumer is True
     ring = StereoRing.create(height=48, width=64, capacity=4)
     try:

@@ -396,6 +396,37 @@ def _warm_args16() -> tuple:
     return tuple(a)
 
 
+@njit(inline="always")
+def _paired_vars(frame: np.ndarray, ring_y: np.ndarray, ring_x: np.ndarray, n_all: int, bg: np.ndarray,
+                 m: int, bx: int, by: int, sx: int, sy: int) -> tuple[bool, float, float]:
+    """The ring's residual variances (DN^2) against the map at shift (bx, by) and at (sx, sy),
+    over the ring pixels where the map holds both; ok is False where it holds too few
+    (:data:`MIN_SEEN`)."""
+    k = 0
+    m0 = 0.0
+    mc = 0.0
+    q0 = 0.0
+    qc = 0.0
+    for j in range(n_all):
+        y, x = ring_y[j], ring_x[j]
+        b0 = bg[y - by + m, x - bx + m]
+        bc = bg[y - sy + m, x - sx + m]
+        if b0 < np.inf and bc < np.inf:
+            v = float(frame[y, x])
+            e0 = v - float(b0)
+            ec = v - float(bc)
+            m0 += e0
+            mc += ec
+            q0 += e0 * e0
+            qc += ec * ec
+            k += 1
+    if n_all == 0 or k < MIN_SEEN * n_all or k < 2:
+        return False, 0.0, 0.0
+    m0 /= k
+    mc /= k
+    return True, max(q0 / k - m0 * m0, 0.0), max(qc / k - mc * mc, 0.0)
+
+
 @njit(warm=_warm_args)
 def measure_block(frames: np.ndarray, centres: np.ndarray, sigma: float, half: int, ring: int,
                   bg: np.ndarray, stamp: np.ndarray, blk: int, rise: float, m: int,
@@ -466,31 +497,9 @@ def measure_block(frames: np.ndarray, centres: np.ndarray, sigma: float, half: i
                 sx, sy = bx + dx, by + dy
                 if not search or (dx == 0 and dy == 0) or abs(sx) > m or abs(sy) > m:
                     continue
-                # both residuals' variances where the map holds both
-                k = 0
-                m0 = 0.0
-                mc = 0.0
-                q0 = 0.0
-                qc = 0.0
-                for j in range(n_all):
-                    y, x = ring_y[j], ring_x[j]
-                    b0 = bg[y - by + m, x - bx + m]
-                    bc = bg[y - sy + m, x - sx + m]
-                    if b0 < np.inf and bc < np.inf:
-                        v = float(frames[f, y, x])
-                        e0 = v - float(b0)
-                        ec = v - float(bc)
-                        m0 += e0
-                        mc += ec
-                        q0 += e0 * e0
-                        qc += ec * ec
-                        k += 1
-                if n_all == 0 or k < MIN_SEEN * n_all or k < 2:
+                ok, v0, vc = _paired_vars(frames[f], ring_y, ring_x, n_all, bg, m, bx, by, sx, sy)
+                if not ok:
                     continue
-                m0 /= k
-                mc /= k
-                v0 = max(q0 / k - m0 * m0, 0.0)
-                vc = max(qc / k - mc * mc, 0.0)
                 n_tried += 1
                 if vc < lo1:
                     lo2 = lo1
@@ -505,31 +514,9 @@ def measure_block(frames: np.ndarray, centres: np.ndarray, sigma: float, half: i
             hx = bx + hint[f + 1, 0] - hint[f, 0]
             hy = by + hint[f + 1, 1] - hint[f, 1]
             if (hx != bx or hy != by) and abs(hx) <= m and abs(hy) <= m:
-                k = 0
-                m0 = 0.0
-                mc = 0.0
-                q0 = 0.0
-                qc = 0.0
-                for j in range(n_all):
-                    y, x = ring_y[j], ring_x[j]
-                    b0 = bg[y - by + m, x - bx + m]
-                    bc = bg[y - hy + m, x - hx + m]
-                    if b0 < np.inf and bc < np.inf:
-                        v = float(frames[f, y, x])
-                        e0 = v - float(b0)
-                        ec = v - float(bc)
-                        m0 += e0
-                        mc += ec
-                        q0 += e0 * e0
-                        qc += ec * ec
-                        k += 1
-                if k >= MIN_SEEN * n_all and k >= 2:
-                    m0 /= k
-                    mc /= k
-                    v0 = max(q0 / k - m0 * m0, 0.0)
-                    vc = max(qc / k - mc * mc, 0.0)
-                    if vc <= HINT_SWITCH * v0:
-                        best_x, best_y, best_var = hx, hy, vc
+                ok, v0, vc = _paired_vars(frames[f], ring_y, ring_x, n_all, bg, m, bx, by, hx, hy)
+                if ok and vc <= HINT_SWITCH * v0:
+                    best_x, best_y, best_var = hx, hy, vc
         shift[0], shift[1] = best_x, best_y
         taken = best_var if (best_x != bx or best_y != by) else v_now
         if judged:
