@@ -408,7 +408,7 @@ def analyze(directory: Path, *, warmup_s: float = 20.0, window_before: int = 100
     # drops after the warm-up but before the first fault: this machine cannot serve the rig
     # at all (a slow or shared host), so where later drops fall says nothing about faults
     first = min((a for a, _ in wins), default=None)
-    pre = sum(d for a, b, d, _ in outside if first is not None and b <= first)
+    pre = sum(d for a, b, d, *_ in outside if first is not None and b <= first)
     # and the daemon decoded the rig's pairs until then: where pairing failed from the start
     # (the mock's two per-camera reader threads skewed on a starved host), the stats' frame
     # ids stand still while the drops grow, and the drops above fall after the first fault's

@@ -375,7 +375,7 @@ class _Run:
 
         self.notifier.status("loading compiled kernels")
         log.info("loading the compiled kernels (the first start after an install compiles them: "
-                 "two to three minutes on 2 cores; later starts load them in under a second)")
+                 "about three minutes on 2 cores; later starts load them in under a second)")
         t_warm = warm_up()
         if not self.decoder.wait_ready(timeout_s=300.0):
             log.warning("the demodulation worker is not ready yet; starting anyway")

@@ -226,7 +226,14 @@ class ShiftLeader:
             return np.where(self.weights > 0, self.sums / np.maximum(self.weights, 1e-300), np.nan)
 
     def update(self, contrasts: Sequence[np.ndarray]) -> None:
-        """Fold one block in: ``contrasts[c]`` (F,) of camera c (NaN: no other shift tried)."""
+        """Fold one block in and hand the lead over where the other camera is clearly better.
+
+        Parameters
+        ----------
+        contrasts : sequence of ndarray
+            Per camera (0 left, 1 right) the block's :attr:`RegisteredBackground.contrast`,
+            (F,) (NaN: no other shift tried in that frame).
+        """
         self.sums *= self.DECAY
         self.weights *= self.DECAY
         for c in (0, 1):
