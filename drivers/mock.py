@@ -510,6 +510,15 @@ class MockCamera(Camera):
 
 
 # ----------------------------------------------------------------- mock:// URLs
+def waits_for_consumer(cfg: Config) -> bool:
+    """Whether the rig of ``cfg`` is the mock rig that waits for its consumer: unpaced
+    (``rig.pace = false``) and without injected faults (those go through the per-camera
+    readers, which do not wait), so its pairs come from :class:`MockRig` as a pair source
+    whose :attr:`MockRig.waits_for_consumer` holds. The daemon then waits for its
+    demodulation worker too and sheds nothing."""
+    return cfg.rig.scheme == "mock" and not cfg.rig.pace and not cfg.rig.faults
+
+
 SCENES = ("default",)
 """``mock://NAME``: ``default`` is the scene of the config the rig is opened with (the
 embedded default scene without one)."""

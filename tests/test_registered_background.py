@@ -85,12 +85,7 @@ def _levels(n: int, seed: int) -> np.ndarray:
 
 def _run(bg: RegisteredBackground, frames: np.ndarray, centres: np.ndarray, block: int = 16,
          compiled: bool = True) -> tuple[np.ndarray, np.ndarray]:
-    lum, sh = [], []
-    for s in range(0, frames.shape[0], block):
-        a, b = bg.measure(frames[s:s + block], centres[s:s + block], SIGMA, compiled=compiled)
-        lum.append(a)
-        sh.append(b)
-    return np.concatenate(lum), np.concatenate(sh)
+    return _run_hinted(frames, centres, None, compiled, bg, block)
 
 
 @pytest.mark.parametrize("seed", [1, 2, 3])
@@ -199,12 +194,14 @@ def _blurred_pair(seed: int, n: int, blur_px: float = 1.4, contrast_dn: float = 
 
 
 def _run_hinted(frames: np.ndarray, centres: np.ndarray, hint: np.ndarray | None, compiled: bool = True,
-                bg: RegisteredBackground | None = None) -> tuple[np.ndarray, np.ndarray]:
+                bg: RegisteredBackground | None = None, block: int = 16) -> tuple[np.ndarray, np.ndarray]:
+    """Blocks of ``block`` frames through ``bg`` (a new one by default), each with its slice
+    of ``hint``; the luminance and shifts of all of them."""
     bg = bg or RegisteredBackground((H, W))
     lum, sh = [], []
-    for s in range(0, frames.shape[0], 16):
-        a, b = bg.measure(frames[s:s + 16], centres[s:s + 16], SIGMA, compiled=compiled,
-                          hint=None if hint is None else hint[s:s + 16])
+    for s in range(0, frames.shape[0], block):
+        a, b = bg.measure(frames[s:s + block], centres[s:s + block], SIGMA, compiled=compiled,
+                          hint=None if hint is None else hint[s:s + block])
         lum.append(a)
         sh.append(b)
     return np.concatenate(lum), np.concatenate(sh)

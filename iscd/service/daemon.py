@@ -65,6 +65,12 @@ class DaemonSettings:
 
 
 
+def _mock_waits(cfg: Config) -> bool:
+    from iscd.drivers.mock import waits_for_consumer  # the mock rig's module only for a mock rig
+
+    return waits_for_consumer(cfg)
+
+
 LOSSLESS_STEPS = 32
 """Demodulation steps the frame loop may run ahead of the worker with a source that waits
 for the consumer (``_Run.lossless``)."""
@@ -295,7 +301,7 @@ class _Run:
         self.ahead = 0
         """pairs of the block being read whose range records are already out (range_part)"""
         self.last_t_s: float | None = None
-        self.lossless = cfg.rig.scheme == "mock" and not cfg.rig.pace and not cfg.rig.faults
+        self.lossless = cfg.rig.scheme == "mock" and _mock_waits(cfg)
         """the unpaced mock rig: it waits for the consumer (the acquisition waits for room in
         the ring, this loop for the demodulation worker), so no frame is dropped however busy
         the machine is (tests, a laptop); overload shedding does not apply"""

@@ -253,6 +253,19 @@ def _box(cx: float, cy: float, half: int, H: int, W: int) -> tuple[int, int, int
     return max(xr - half, 0), max(yr - half, 0), min(xr + half + 1, W), min(yr + half + 1, H)
 
 
+def _paired_vars_reference(pix_r: np.ndarray, ys_r: np.ndarray, xs_r: np.ndarray, b0: np.ndarray,
+                           bg: np.ndarray, m: int, sx: int, sy: int, n_all: int) -> tuple[bool, float, float]:
+    """The ring's residual variances (DN^2) against the map under it at the last shift (``b0``)
+    and at (sx, sy), over the ring pixels where the map holds both; ok is False where it
+    holds too few (:data:`MIN_SEEN`). The reference of the kernel's ``_paired_vars``."""
+    bc = bg[ys_r - sy + m, xs_r - sx + m].astype(np.float64)
+    ok = np.isfinite(b0) & np.isfinite(bc)
+    k = int(ok.sum())
+    if n_all == 0 or k < MIN_SEEN * n_all or k < 2:
+        return False, 0.0, 0.0
+    return True, float(np.var(pix_r[ok] - b0[ok])), float(np.var(pix_r[ok] - bc[ok]))
+
+
 def measure_block_reference(frames: np.ndarray, centres: np.ndarray, sigma: float, half: int, ring: int,
                             bg: np.ndarray, stamp: np.ndarray, blk: int, rise: float, m: int,
                             shift: np.ndarray, level: np.ndarray, out_lum: np.ndarray,
@@ -333,13 +346,9 @@ def measure_block_reference(frames: np.ndarray, centres: np.ndarray, sigma: floa
                 sx, sy = bx + dx, by + dy
                 if (dx == 0 and dy == 0) or abs(sx) > m or abs(sy) > m:
                     continue
-                bc = bg[ys_r - sy + m, xs_r - sx + m].astype(np.float64)
-                ok = np.isfinite(b0) & np.isfinite(bc)
-                k = int(ok.sum())
-                if n_all == 0 or k < MIN_SEEN * n_all or k < 2:
+                ok, v0, vc = _paired_vars_reference(pix_r, ys_r, xs_r, b0, bg, m, sx, sy, n_all)
+                if not ok:
                     continue
-                d0, dc = pix_r[ok] - b0[ok], pix_r[ok] - bc[ok]
-                v0, vc = float(np.var(d0)), float(np.var(dc))
                 tried.append(vc)
                 if vc < SWITCH * v0 and vc < best_var:
                     best, best_var = (sx, sy), vc
@@ -350,14 +359,9 @@ def measure_block_reference(frames: np.ndarray, centres: np.ndarray, sigma: floa
             hx = bx + int(hint[f + 1, 0]) - int(hint[f, 0])
             hy = by + int(hint[f + 1, 1]) - int(hint[f, 1])
             if (hx, hy) != (bx, by) and abs(hx) <= m and abs(hy) <= m:
-                bc = bg[ys_r - hy + m, xs_r - hx + m].astype(np.float64)
-                ok = np.isfinite(b0) & np.isfinite(bc)
-                k = int(ok.sum())
-                if k >= MIN_SEEN * n_all and k >= 2:
-                    v0 = float(np.var(pix_r[ok] - b0[ok]))
-                    vc = float(np.var(pix_r[ok] - bc[ok]))
-                    if vc <= HINT_SWITCH * v0:
-                        best, best_var = (hx, hy), vc
+                ok, v0, vc = _paired_vars_reference(pix_r, ys_r, xs_r, b0, bg, m, hx, hy, n_all)
+                if ok and vc <= HINT_SWITCH * v0:
+                    best, best_var = (hx, hy), vc
         shift[0], shift[1] = best
         taken = best_var if best != (bx, by) else v_now
         if judged:
