@@ -160,6 +160,12 @@ class Camera(abc.ABC):
             n += 1
         return n, None
 
+    waits_for_consumer: bool = False
+    """True for a camera without a clock of its own (the mock rig with ``rig.pace =
+    false``): it makes its next frame when read, so nothing is lost by waiting. The
+    acquisition then reads it in step with its partner (by timestamp) and waits for room in
+    the ring instead of dropping the oldest pair, injected faults included."""
+
     @property
     def settings(self) -> CameraSettings | None:
         return getattr(self, "_settings", None)

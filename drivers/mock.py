@@ -477,6 +477,11 @@ class MockCamera(Camera):
     def settings(self) -> CameraSettings | None:
         return self._c.settings
 
+    @property
+    def waits_for_consumer(self) -> bool:  # type: ignore[override]
+        """Unpaced (``rig.pace = false``): its frames are made when read."""
+        return not self.rig.pace
+
     def open(self) -> None:
         self.rig._open(self._c)
 
@@ -512,11 +517,11 @@ class MockCamera(Camera):
 # ----------------------------------------------------------------- mock:// URLs
 def waits_for_consumer(cfg: Config) -> bool:
     """Whether the rig of ``cfg`` is the mock rig that waits for its consumer: unpaced
-    (``rig.pace = false``) and without injected faults (those go through the per-camera
-    readers, which do not wait), so its pairs come from :class:`MockRig` as a pair source
-    whose :attr:`MockRig.waits_for_consumer` holds. The daemon then waits for its
-    demodulation worker too and sheds nothing."""
-    return cfg.rig.scheme == "mock" and not cfg.rig.pace and not cfg.rig.faults
+    (``rig.pace = false``). Its pairs come from :class:`MockRig` as a pair source, or with
+    injected faults frame by frame from its cameras, read in step
+    (:attr:`MockCamera.waits_for_consumer`); either way nothing is dropped for want of
+    time. The daemon then waits for its demodulation worker too and sheds nothing."""
+    return cfg.rig.scheme == "mock" and not cfg.rig.pace
 
 
 SCENES = ("default",)

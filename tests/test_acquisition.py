@@ -362,3 +362,47 @@ def test_unpaced_mock_rig_waits_for_a_slow_consumer() -> None:
         ring.close()
     assert ids == list(range(60))
     assert rs.dropped_overflow == 0
+
+
+def test_unpaced_mock_rig_with_faults_is_read_in_step_and_loses_only_the_faults() -> None:
+    """With injected faults the unpaced rig's frames go camera by camera through the pairer;
+    its cameras wait for their consumer (``Camera.waits_for_consumer``), so the readers go in
+    step (neither more than ``STEP_LEAD_FRAMES`` ahead) and wait for room in a 4-pair ring.
+    A consumer taking 3 ms a pair then loses exactly what the faults lose: the 10 frames of
+    the left camera's stall (50 ms at 200 fps) and the right camera's dropped frame."""
+    mock = pytest.importorskip("iscd.drivers.mock")
+    from iscd.core.config import loads
+
+    cfg = loads(SMALL_RIG.format(n=1, pace="false") + """
+[[rig.faults]]
+kind = "stall"
+camera = "left"
+frame = 20
+duration_ms = 50
+[[rig.faults]]
+kind = "drop"
+camera = "right"
+frame = 45
+""")
+    left, right = mock.MockRig.from_config(cfg)
+    assert left.waits_for_consumer and right.waits_for_consumer and left.pair_source() is None
+    ring = StereoRing.create(height=48, width=64, capacity=4)
+    try:
+        acq = Acquisition(left, right, ring)
+        acq.start()
+        ids = []
+        while len(ids) < 69:
+            p = ring.read(timeout_s=5.0)
+            assert p is not None, "the unpaced rig stopped delivering"
+            with p:
+                ids.append(p.frame_id)
+                time.sleep(0.003)  # a slow decode step
+        st = acq.stop()
+        rs = ring.stats()
+    finally:
+        ring.close()
+    lost = set(range(20, 30)) | {45}
+    assert ids == [n for n in range(80) if n not in lost]
+    assert rs.dropped_overflow == 0
+    assert left.stats.dropped_buffer == right.stats.dropped_buffer == 0
+    assert st.unpaired_right >= 10 and st.catch_ups == 0

@@ -362,7 +362,7 @@ class RigConfig:
     right: str = _f("", doc="right camera (trigger slave), as left")
     producer: str = _f("", doc="GenTL producer .cti path of genicam cameras whose URL has no ?cti= "
                        "(default: GENICAM_GENTL64_PATH)")
-    pace: bool = _f(True, doc="mock: deliver frames at fps in real time (False: as fast as the decoder takes them; without faults the daemon then drops nothing, however busy the machine)")
+    pace: bool = _f(True, doc="mock: deliver frames at fps in real time (False: as fast as the decoder takes them; the daemon then drops nothing for want of time, however busy the machine; injected faults still lose their frames)")
     buffer_frames: int = _f(256, lo=1, hi=4096, doc="mock: frames a camera queues for a late reader "
                             "(genicam, v4l2: the ?buffers=N of their URL)")
     faults: list[FaultConfig] = _f([], doc="mock: injected faults")

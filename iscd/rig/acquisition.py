@@ -21,7 +21,10 @@ are copied into the ring. A rig that delivers both frames of a trigger at once
 fills each ring slot itself from one thread: no pairing and no copies; on any camera
 error it falls back to the per-camera readers. A pair source without a clock of its own (the
 unpaced mock rig: ``waits_for_consumer``) is waited for: the worker waits for room in the ring
-instead of letting it drop its oldest pair. A frame that must wait for its partner is copied first (drivers
+instead of letting it drop its oldest pair. Cameras without a clock of their own
+(``Camera.waits_for_consumer``; the unpaced mock rig with injected faults) are read in step:
+a reader more than ``STEP_LEAD_FRAMES`` frame periods ahead of its running partner (by
+timestamp) waits for it, and both wait for room in the ring. A frame that must wait for its partner is copied first (drivers
 may reuse the buffer on the next read). Camera faults never end the worker:
 
 * :class:`CameraTimeout`: counted (``timeouts_<side>``), reading goes on;
@@ -73,6 +76,9 @@ CameraFactory = Callable[[], tuple[Camera, Camera]]
 (a module-level function or ``functools.partial`` of one)."""
 
 _SIDES = ("left", "right")
+STEP_LEAD_FRAMES = 4
+"""How far (frame periods, by timestamp) a camera that waits for its consumer may read
+ahead of its partner before it waits for it (well inside the pairing window)."""
 
 
 def _opt(default: Any, doc: str, lo: float | None = None, lo_open: bool = False,
@@ -305,6 +311,11 @@ class Acquisition:
         self._last_publish = 0.0
         self._shape = (ring.height, ring.width)
         self._warned_bad = {side: False for side in _SIDES}
+        self._step_lead_ns = round(STEP_LEAD_FRAMES * 1e9 / fps) if fps else STEP_LEAD_FRAMES * 1_000_000
+        self._last_ts: dict[str, int | None] = {side: None for side in _SIDES}
+        """timestamp of each camera's last frame read (ns), for reading in step"""
+        self._up = {side: False for side in _SIDES}
+        """whether each camera's reader has its camera running"""
         self._publish(force=True)
 
     # ------------------------------------------------------------------ control
@@ -408,12 +419,14 @@ class Acquisition:
             log.warning("%s camera: cannot %s: %s", side, "open" if first else "reopen", e)
             self._shut(side)
             return False
+        self._up[side] = True
         if not first:
             self._bump(f"reopens_{side}")
             log.info("%s camera reopened", side)
         return True
 
     def _shut(self, side: str) -> None:
+        self._up[side] = False
         cam = self.cams[side]
         for what in (cam.stop, cam.close):
             try:
@@ -492,13 +505,35 @@ class Acquisition:
                 self._publish()
         return True
 
+    def _in_step(self, side: str) -> bool:
+        """For a camera that waits for its consumer: sleep while the ring is full or this
+        camera is more than ``STEP_LEAD_FRAMES`` ahead of its running partner (nothing is
+        dropped, and the pairer sees the two cameras' frames close together); False if the
+        acquisition was stopped meanwhile. Counters and heartbeat are published meanwhile."""
+        other = "right" if side == "left" else "left"
+        ring, delay = self.ring, 50e-6
+        while True:
+            mine, theirs = self._last_ts[side], self._last_ts[other]
+            ahead = (self._up[other] and mine is not None and theirs is not None
+                     and mine - theirs > self._step_lead_ns)
+            if not ahead and ring.queued < ring.capacity:
+                return True
+            if self._stop.wait(delay):
+                return False
+            delay = min(2 * delay, 1e-3)
+            with self._lock:
+                self._publish()
+
     def _reader(self, side: str, running: bool) -> None:
         opt = self.options
         cam = self.cams[side]
+        in_step = bool(getattr(cam, "waits_for_consumer", False))
         backoff = opt.reopen_backoff_s
         errors_in_row = 0
         first = not running
         while not self._stop.is_set():
+            if in_step and running and not self._in_step(side):
+                break
             if not running:
                 if self._stop.wait(backoff):
                     break
@@ -534,6 +569,7 @@ class Acquisition:
                 running = False
                 continue
             errors_in_row = 0
+            self._last_ts[side] = frame.timestamp_ns
             self._handle(side, frame, time.monotonic_ns())
 
     def _next_frame(self, side: str, cam: Camera) -> Frame | None:
