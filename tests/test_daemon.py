@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from fakes import LIGHT, run_daemon_until, stats_records
+from fakes import LIGHT, LIGHT_PACED, run_daemon_until, stats_records
 from fakes import read_records as _records
 from iscd.core import config as C
 from iscd.service.daemon import Daemon
@@ -101,11 +101,11 @@ def test_live_decoding_on_the_mock_rig(tmp_path: Path) -> None:
 
 @pytest.mark.slow
 def test_live_decoding_real_time(tmp_path: Path) -> None:
-    _, recs = _run(LIGHT, tmp_path, 10.0)
+    _, recs = _run(LIGHT_PACED, tmp_path, 10.0)
     _check_live(recs, strict=True)
 
 
-FAULTS = LIGHT + """
+FAULTS = LIGHT_PACED + """
 [[rig.faults]]
 kind = "stall"
 camera = "left"

@@ -75,7 +75,7 @@ def test_decoder_ranges_every_kth_frame_when_told(rendered_default) -> None:
     assert shed.counters["frames_decoded"] == full.counters["frames_decoded"]
 
 
-from fakes import LIGHT  # noqa: E402  (the daemon tests' light transmitter)
+from fakes import LIGHT_PACED  # noqa: E402  (the daemon tests' light transmitter, paced)
 
 
 def test_daemon_sheds_in_order_and_keeps_the_packets(tmp_path: Path, monkeypatch) -> None:
@@ -95,7 +95,7 @@ def test_daemon_sheds_in_order_and_keeps_the_packets(tmp_path: Path, monkeypatch
 
     monkeypatch.setattr(StereoRanger, "measure", slow)
     out = tmp_path / "out.jsonl"
-    d = Daemon(C.loads(LIGHT), out=str(out), duration_s=8.0, install_signals=False)
+    d = Daemon(C.loads(LIGHT_PACED), out=str(out), duration_s=8.0, install_signals=False)
     d.run()
     recs = [json.loads(x) for x in out.read_text().splitlines()]
     stats = [r for r in recs if r["type"] == "stats"]

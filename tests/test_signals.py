@@ -83,7 +83,8 @@ def test_kill_9_leaves_no_process_and_no_ring(tmp_path: Path) -> None:
     proc, _, _ = _start(tmp_path)
     kids = _children(proc.pid)
     assert kids, "the daemon runs its acquisition and demodulation in child processes"
-    mine = _rings() - before
+    # its own ring (named after its pid): other daemons may start beside it (pytest -n 2)
+    mine = {r for r in _rings() - before if r.split("_")[2] == str(proc.pid)}
     assert mine, "the daemon's shared-memory ring is not in /dev/shm"
     proc.send_signal(signal.SIGKILL)  # the daemon alone, as `kill -9 PID` does
     proc.wait(timeout=10)
