@@ -333,6 +333,27 @@ duration_ms = 40
     assert checked > 20
 
 
+def _slow_consumer(left, right, n: int, decode_s: float):
+    """``n`` pairs of an acquisition of (left, right) read from a 4-pair ring by a consumer
+    taking ``decode_s`` s a pair: (frame ids, acquisition stats, ring stats)."""
+    ring = StereoRing.create(height=48, width=64, capacity=4)
+    try:
+        acq = Acquisition(left, right, ring)
+        acq.start()
+        ids = []
+        while len(ids) < n:
+            p = ring.read(timeout_s=5.0)
+            assert p is not None, "the unpaced rig stopped delivering"
+            with p:
+                ids.append(p.frame_id)
+                time.sleep(decode_s)  # a slow decode step
+        st = acq.stop()
+        rs = ring.stats()
+    finally:
+        ring.close()
+    return ids, st, rs
+
+
 def test_unpaced_mock_rig_waits_for_a_slow_consumer() -> None:
     """The mock rig with ``rig.pace = false`` has no clock of its own: the acquisition waits
     for room in a 4-pair ring instead of dropping (``waits_for_consumer``). A consumer that
@@ -345,21 +366,7 @@ def test_unpaced_mock_rig_waits_for_a_slow_consumer() -> None:
     assert paced.waits_for_consumer is False
     left, right = mock.MockRig.from_config(loads(SMALL_RIG.format(n=1, pace="false")))
     assert left.rig.waits_for_consumer is True
-    ring = StereoRing.create(height=48, width=64, capacity=4)
-    try:
-        acq = Acquisition(left, right, ring)
-        acq.start()
-        ids = []
-        while len(ids) < 60:
-            p = ring.read(timeout_s=5.0)
-            assert p is not None, "the unpaced rig stopped delivering"
-            with p:
-                ids.append(p.frame_id)
-                time.sleep(0.005)  # a slow decode step
-        acq.stop()
-        rs = ring.stats()
-    finally:
-        ring.close()
+    ids, _, rs = _slow_consumer(left, right, 60, 0.005)
     assert ids == list(range(60))
     assert rs.dropped_overflow == 0
 
@@ -386,21 +393,7 @@ frame = 45
 """)
     left, right = mock.MockRig.from_config(cfg)
     assert left.waits_for_consumer and right.waits_for_consumer and left.pair_source() is None
-    ring = StereoRing.create(height=48, width=64, capacity=4)
-    try:
-        acq = Acquisition(left, right, ring)
-        acq.start()
-        ids = []
-        while len(ids) < 69:
-            p = ring.read(timeout_s=5.0)
-            assert p is not None, "the unpaced rig stopped delivering"
-            with p:
-                ids.append(p.frame_id)
-                time.sleep(0.003)  # a slow decode step
-        st = acq.stop()
-        rs = ring.stats()
-    finally:
-        ring.close()
+    ids, st, rs = _slow_consumer(left, right, 69, 0.003)
     lost = set(range(20, 30)) | {45}
     assert ids == [n for n in range(80) if n not in lost]
     assert rs.dropped_overflow == 0

@@ -494,35 +494,37 @@ class Acquisition:
     def _wait_for_room(self) -> bool:
         """Sleep until the ring has room for one more pair (for a source that waits for the
         consumer, :attr:`~iscd.drivers.base.StereoPairSource.waits_for_consumer`: nothing is
-        dropped); False if the acquisition was stopped meanwhile. The counters (and the
-        heartbeat) are still published while it waits."""
-        ring, delay = self.ring, 50e-6
-        while ring.queued >= ring.capacity:
+        dropped); False if the acquisition was stopped meanwhile."""
+        ring = self.ring
+        return self._wait_while(lambda: ring.queued >= ring.capacity)
+
+    def _in_step(self, side: str) -> bool:
+        """For a camera that waits for its consumer: sleep while the ring is full or this
+        camera is more than ``STEP_LEAD_FRAMES`` ahead of its running partner (nothing is
+        dropped, and the pairer sees the two cameras' frames close together); False if the
+        acquisition was stopped meanwhile."""
+        other = "right" if side == "left" else "left"
+        ring, last = self.ring, self._last_ts
+
+        def blocked() -> bool:
+            mine, theirs = last[side], last[other]
+            ahead = (self._up[other] and mine is not None and theirs is not None
+                     and mine - theirs > self._step_lead_ns)
+            return ahead or ring.queued >= ring.capacity
+
+        return self._wait_while(blocked)
+
+    def _wait_while(self, blocked: Callable[[], bool]) -> bool:
+        """Sleep (50 us doubling to 1 ms) while ``blocked()``; False if the acquisition was
+        stopped meanwhile. The counters (and the heartbeat) are published while it waits."""
+        delay = 50e-6
+        while blocked():
             if self._stop.wait(delay):
                 return False
             delay = min(2 * delay, 1e-3)
             with self._lock:
                 self._publish()
         return True
-
-    def _in_step(self, side: str) -> bool:
-        """For a camera that waits for its consumer: sleep while the ring is full or this
-        camera is more than ``STEP_LEAD_FRAMES`` ahead of its running partner (nothing is
-        dropped, and the pairer sees the two cameras' frames close together); False if the
-        acquisition was stopped meanwhile. Counters and heartbeat are published meanwhile."""
-        other = "right" if side == "left" else "left"
-        ring, delay = self.ring, 50e-6
-        while True:
-            mine, theirs = self._last_ts[side], self._last_ts[other]
-            ahead = (self._up[other] and mine is not None and theirs is not None
-                     and mine - theirs > self._step_lead_ns)
-            if not ahead and ring.queued < ring.capacity:
-                return True
-            if self._stop.wait(delay):
-                return False
-            delay = min(2 * delay, 1e-3)
-            with self._lock:
-                self._publish()
 
     def _reader(self, side: str, running: bool) -> None:
         opt = self.options
