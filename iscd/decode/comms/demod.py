@@ -38,6 +38,7 @@ from iscd.decode.comms.channel import (ChannelModel, ChannelTrack, IscdChannelSe
 from iscd.decode.comms.crosstalk import MIN_CROSSTALK, cancel_crosstalk, estimate_crosstalk, grid_neighbours
 from iscd.decode.comms.decide import CleanCosts, SpanDecision, clean_costs, clean_levels, decide_span
 from iscd.decode.comms.phy import INCOMPLETE, erasure_masks, read_phy_header
+from iscd.decode.comms.sequential import KAPPA, P0, RHO, sequential_levels
 from iscd.decode.comms.settings import ReceiverConfig
 from iscd.decode.comms.timing import (SymbolClock, _clip, _map_one, clean_frame, fine_header, period_sigma,
                                       refine_clock)
@@ -943,6 +944,12 @@ SHORT_STEP_RETRY = True
 once more with an array's tracking step (:func:`_short_step`); False skips that attempt (the
 receiver before it: tests compare the two)."""
 
+SEQUENTIAL_RETRY = True
+"""One LED's packet that the attempts before it failed is tried once more with the tracking
+pass deciding symbol by symbol, its centroids Kalman-filtered (:mod:`iscd.decode.comms.sequential`),
+and the final pass's windows halved (the channel of a fast-changing approach); only a CRC
+pass counts. False skips it (tests compare the two)."""
+
 UNLOCKED_RETRY = True
 """A packet whose period was locked on a delivered packet's, and which every other attempt
 failed, is demodulated once more with the period free (:func:`demodulate_packet`,
@@ -1058,6 +1065,17 @@ def demodulate_packet(L: np.ndarray, u_guess: float, air: AirInterface, e: float
                               tracking_step=_short_step(W))
             if isinstance(alt, PacketResult) and alt.crc_ok:
                 return alt
+        if SEQUENTIAL_RETRY and res.air.n_leds == 1:
+            # one LED: the channel followed symbol by symbol, the final pass's stretches and
+            # windows halved (a CRC pass only)
+            alt = _demodulate(L, u_guess, air, e, p_nominal, p_prior, p_sigma,
+                              replace(cfg, channel_window_symbols=max(1, W // 2)), clock, channel,
+                              sequential=True)
+            if isinstance(alt, PacketResult):
+                if alt.crc_ok:
+                    return alt
+                if _mean_margin(alt) > _mean_margin(best):  # (what list decoding starts from)
+                    best = alt
         wide = cfg.drift_max_ppm * 1e-6 * p_nominal
         if UNLOCKED_RETRY and retry_unlocked and clock is None and _locked(p_sigma, p_nominal) \
                 and not _locked(wide, p_nominal):
@@ -1182,9 +1200,12 @@ def _mean_margin(res: PacketResult) -> float:
 def _demodulate(L: np.ndarray, u_guess: float, air: AirInterface, e: float,
                 p_nominal: float, p_prior: float, p_sigma: float, cfg: ReceiverConfig,
                 fixed_clock: SymbolClock | None = None, channel: ChannelOf | None = None,
-                tracking_step: int | None = None, after: np.ndarray | None = None) -> PacketResult | Rejection:
+                tracking_step: int | None = None, after: np.ndarray | None = None,
+                sequential: bool = False) -> PacketResult | Rejection:
     """One demodulation attempt (:func:`demodulate_packet`), channel as ``cfg`` says
     (``tracking_step``: the tracking pass's step, symbols, instead of :func:`_tracking_step`'s;
+    ``sequential``: the tracking pass decides symbol by symbol, the centroids following each
+    decision (:func:`~iscd.decode.comms.sequential.sequential_levels`; a tracked channel);
     ``after``: the 0-based levels (A, N) of the A symbols right after the packet, known --
     :func:`demodulate_anchored`: ``L`` must cover them, the tracked channel's tracking pass
     runs backwards from them and the final pass fits them too)."""
@@ -1257,7 +1278,15 @@ def _demodulate(L: np.ndarray, u_guess: float, air: AirInterface, e: float,
     tops = _camera_tops(L).tolist() if tracked else None  # (NaN: an absent camera, never used)
     starts, models = [0], [model]
     next_clock = n_known + chunk
-    if A and tracked and channel is None:
+    if sequential and tracked and channel is None and not A:
+        frames, kr = _clean_index(n, float(clock.u0), float(clock.p), float(e), n_known, P - n_known)
+        seq = sequential_levels(_gather_y(L, frames), kr, P - n_known, model.mu, model.var, KAPPA, RHO, P0)
+        for k in range(seq.shape[0]):  # a symbol without a clean frame: its predecessor's level
+            gap = seq[k] < 0
+            if gap.any():
+                seq[k, gap] = seq[k - 1, gap] if k else 0
+        lev[n_known:P] = seq
+    elif A and tracked and channel is None:
         # the known symbols after the packet anchor the channel: decided backwards from them,
         # each step with the model of the decided symbols after it (the clock as given:
         # the final pass re-fits it on the whole packet and the anchor)
