@@ -85,6 +85,9 @@ class PacketResult:
     runner_up: np.ndarray | None = field(default=None, repr=False)
     """(F, N) levels 1..M second to ``levels`` in each decision (the level ``margins`` above
     it; :func:`~iscd.decode.comms.listdecode.list_decode` tries them)"""
+    sequential: "PacketResult | None" = field(default=None, repr=False)
+    """the failed attempt with the channel tracked symbol by symbol (:data:`SEQUENTIAL_RETRY`):
+    not reported, but list-decoded after the others (:class:`~iscd.decode.comms.packets.PacketAssembler`)"""
     list_flips: int = 0
     """symbols that CRC-aided list decoding (:mod:`~iscd.decode.comms.listdecode`) changed from
     this attempt's decisions for the CRC to pass (0: as decided)"""
@@ -948,7 +951,8 @@ SEQUENTIAL_RETRY = True
 """One LED's packet that the attempts before it failed is tried once more with the tracking
 pass deciding symbol by symbol, its centroids Kalman-filtered (:mod:`iscd.decode.comms.sequential`),
 and the final pass's windows halved (the channel of a fast-changing approach); only a CRC
-pass counts. False skips it (tests compare the two)."""
+pass counts: a failure leaves the report as it was and rides along (``PacketResult.sequential``)
+to be list-decoded last. False skips it (tests compare the two)."""
 
 UNLOCKED_RETRY = True
 """A packet whose period was locked on a delivered packet's, and which every other attempt
@@ -1074,8 +1078,7 @@ def demodulate_packet(L: np.ndarray, u_guess: float, air: AirInterface, e: float
             if isinstance(alt, PacketResult):
                 if alt.crc_ok:
                     return alt
-                if _mean_margin(alt) > _mean_margin(best):  # (what list decoding starts from)
-                    best = alt
+                best = replace(best, sequential=alt)  # (list-decoded last; the report stays)
         wide = cfg.drift_max_ppm * 1e-6 * p_nominal
         if UNLOCKED_RETRY and retry_unlocked and clock is None and _locked(p_sigma, p_nominal) \
                 and not _locked(wide, p_nominal):

@@ -407,13 +407,20 @@ class PacketAssembler:
         """The last resort for a held packet that every attempt failed: CRC-aided list
         decoding (:func:`~iscd.decode.comms.listdecode.list_decode`) of the anchored and the
         first attempt's decisions combined (:func:`~iscd.decode.comms.listdecode.combine`,
-        where they disagree), then of each alone (v1 packets only)."""
-        usable = [r for r in tries if r.runner_up is not None and r.margins.shape == r.levels.shape
-                  and isinstance(r.air, AirInterface) and not isinstance(r.air, AirInterfaceV2)]
+        where they disagree), then of each alone, then of the first attempt's symbol-by-symbol
+        tracked one (``PacketResult.sequential``, when it ran; v1 packets only)."""
+        def ok(r: PacketResult) -> bool:
+            return (r.runner_up is not None and r.margins.shape == r.levels.shape
+                    and isinstance(r.air, AirInterface) and not isinstance(r.air, AirInterfaceV2))
+
+        usable = [r for r in tries if ok(r)]
         lists = [(r, (r.levels, r.margins, r.runner_up)) for r in usable]
         if len(usable) == 2 and usable[0].levels.shape == usable[1].levels.shape \
                 and (usable[0].levels != usable[1].levels).any():
             lists.insert(0, (usable[0], listdecode.combine(lists[0][1], lists[1][1])))
+        seq = tries[-1].sequential
+        if seq is not None and ok(seq):
+            lists.append((seq, (seq.levels, seq.margins, seq.runner_up)))
         for r, (levels, margins, runner) in lists:
             self.stats["list_tries"] += 1
             got = listdecode.list_decode(r.air, levels, margins, runner)
