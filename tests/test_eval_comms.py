@@ -419,6 +419,44 @@ def test_a_packet_whose_levels_squeeze_is_tracked_symbol_by_symbol(seed: int,
     assert without.found == 2 and without.exact == 1 and without.symbol_errors > 0
 
 
+def test_a_squeezed_packet_a_few_symbols_off_is_list_decoded_from_its_sequential_attempt(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """Seed 2145744630 (set 57001, one LED at 100 km/h, 0.3 px smooth vibration): the second
+    packet's symbol-by-symbol attempt misses by two symbols at its very end (levels 2-3 DN
+    apart at 27 m), every other attempt by ~100. Its decisions ride along with the failed
+    packet (PacketResult.sequential) and are list-decoded last: both packets bit-exact;
+    without that attempt the second is lost."""
+    from iscd.decode.comms import demod
+    from iscd.eval.suites import MOTION_CASES, motion_cfg
+
+    case = next(c for c in MOTION_CASES if c.key == "1led-100kmh-0.3px")
+    cfg, _ = motion_cfg(default_config(), case, 2145744630, scene={"vibration_model": "smooth"}, randomize=True)
+    (res,) = run_comms(cfg, [DIVERSITY], 2, block=16)
+    _check_delivery(res)
+    monkeypatch.setattr(demod, "SEQUENTIAL_RETRY", False)
+    (without,) = run_comms(cfg, [DIVERSITY], 2, block=16)
+    print(f"with: exact {res.exact}, errors {res.symbol_errors}; without: exact {without.exact}, "
+          f"errors {without.symbol_errors}")
+    assert res.exact == 2 and res.symbol_errors == 0
+    assert without.found == 2 and without.exact == 1 and without.symbol_errors > 10
+
+
+@pytest.mark.slow
+def test_the_sequential_attempt_leaves_the_reported_attempt_as_it_was() -> None:
+    """Seed 745685058 (set 58001, one LED at 40 km/h, 0.3 px road bumps): both packets fail
+    their first attempts by a few symbols and are delivered by the later ones (anchored,
+    list decoding). When the symbol-by-symbol attempt's failure replaced the reported
+    attempt by mean margin, the anchored attempt started from its clock and both packets
+    were lost; it now leaves the report as it was: both bit-exact."""
+    from iscd.eval.suites import MOTION_CASES, motion_cfg
+
+    case = next(c for c in MOTION_CASES if c.key == "1led-40kmh-0.3px")
+    cfg, _ = motion_cfg(default_config(), case, 745685058, scene={"vibration_model": "bumps"}, randomize=True)
+    (res,) = run_comms(cfg, [DIVERSITY], 2, block=16)
+    _check_delivery(res)
+    assert res.exact == 2 and res.symbol_errors == 0
+
+
 def test_a_failed_packet_is_tried_anchored_on_the_next_header(monkeypatch: pytest.MonkeyPatch) -> None:
     """Seed 1174170399 (set 50001, one LED HDR f/4+f/8 at 100 km/h, 0.3 px bumps; issue 12):
     the first packet (100 -> 64 m) slips mid-packet -- 63 wrong symbols in its second half,
