@@ -156,8 +156,29 @@ def sequential_levels(y: np.ndarray, kr: np.ndarray, S: int, mu: np.ndarray, var
 
 def sequential_levels_reference(y: np.ndarray, kr: np.ndarray, S: int, mu: np.ndarray, var: np.ndarray,
                                 kappa: float = KAPPA, rho: float = RHO, p0: float = P0) -> np.ndarray:
-    """Pure-numpy reference of :func:`sequential_levels` (same arguments and result; the
-    specification the compiled kernel is tested against)."""
+    """Pure-numpy reference of :func:`sequential_levels` (the specification the compiled
+    kernel is tested against: ``tests/test_rx_sequential.py``).
+
+    Parameters
+    ----------
+    y : ndarray
+        (C, n, N) clean-frame luminance, DN (NaN = missing), frame order.
+    kr : ndarray of int64
+        (n,) the symbol (0 .. S-1) of each frame, non-decreasing.
+    S : int
+        Symbols to decide.
+    mu : ndarray
+        (C, N, M) starting centroids, DN. Not modified.
+    var : ndarray
+        (C, N, M) noise variance of one clean frame, DN^2.
+    kappa, rho, p0 : float
+        :data:`KAPPA`, :data:`RHO`, :data:`P0`.
+
+    Returns
+    -------
+    ndarray of int64
+        (S, N) 0-based levels; -1 where a symbol has no finite clean frame.
+    """
     C, n, N = y.shape
     M = mu.shape[2]
     m = np.array(mu, dtype=np.float64)
