@@ -413,10 +413,14 @@ def test_a_packet_whose_levels_squeeze_is_tracked_symbol_by_symbol(seed: int,
     and list-decoded ones too). Tracked symbol by symbol with Kalman-filtered centroids
     (demod.SEQUENTIAL_RETRY) both packets are bit-exact; without that attempt the second is
     lost."""
+    from iscd.decode.comms.sequential import sequential_levels
+
     res, without = _with_and_without("SEQUENTIAL_RETRY", "1led-100kmh-0.3px", seed, "smooth", DIVERSITY,
                                      monkeypatch)
     assert res.exact == 2 and res.symbol_errors == 0
     assert without.found == 2 and without.exact == 1 and without.symbol_errors > 0
+    # the receiver calls the kernel with the argument types warm_up compiles (no compile mid-stream)
+    assert len(sequential_levels.signatures) == 1
 
 
 def test_a_squeezed_packet_a_few_symbols_off_is_list_decoded_from_its_sequential_attempt(

@@ -952,7 +952,8 @@ SEQUENTIAL_RETRY = True
 pass deciding symbol by symbol, its centroids Kalman-filtered (:mod:`iscd.decode.comms.sequential`),
 and the final pass's windows halved (the channel of a fast-changing approach); only a CRC
 pass counts: a failure leaves the report as it was and rides along (``PacketResult.sequential``)
-to be list-decoded last. False skips it (tests compare the two)."""
+to be list-decoded last. Not run with an oracle's given channel (``channel=``: nothing to
+follow). False skips it (tests compare the two)."""
 
 SEQUENTIAL_MAX_LEDS = 1
 """Transmitters of at most this many LEDs get the :data:`SEQUENTIAL_RETRY` attempt: one LED.
@@ -1075,9 +1076,9 @@ def demodulate_packet(L: np.ndarray, u_guess: float, air: AirInterface, e: float
                               tracking_step=_short_step(W))
             if isinstance(alt, PacketResult) and alt.crc_ok:
                 return alt
-        if SEQUENTIAL_RETRY and res.air.n_leds <= SEQUENTIAL_MAX_LEDS:
+        if SEQUENTIAL_RETRY and res.air.n_leds <= SEQUENTIAL_MAX_LEDS and channel is None:
             # one LED: the channel followed symbol by symbol, the final pass's stretches and
-            # windows halved (a CRC pass only)
+            # windows halved (a CRC pass only; an oracle's given channel has nothing to follow)
             alt = _demodulate(L, u_guess, air, e, p_nominal, p_prior, p_sigma,
                               replace(cfg, channel_window_symbols=max(1, W // 2)), clock, channel,
                               sequential=True)
@@ -1289,7 +1290,9 @@ def _demodulate(L: np.ndarray, u_guess: float, air: AirInterface, e: float,
     next_clock = n_known + chunk
     if sequential and tracked and channel is None and not A:
         frames, kr = _clean_index(n, float(clock.u0), float(clock.p), float(e), n_known, P - n_known)
-        seq = sequential_levels(_gather_y(L, frames), kr, P - n_known, model.mu, model.var, KAPPA, RHO, P0)
+        f64 = np.ascontiguousarray  # (the warmed-up signature: C-contiguous float64)
+        seq = sequential_levels(f64(L[:, frames, :], dtype=np.float64), kr, P - n_known,
+                                f64(model.mu, dtype=np.float64), f64(model.var, dtype=np.float64), KAPPA, RHO, P0)
         for k in range(seq.shape[0]):  # a symbol without a clean frame: its predecessor's level
             gap = seq[k] < 0
             if gap.any():
