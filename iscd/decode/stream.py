@@ -44,6 +44,7 @@ from iscd.decode.pipe import PipeDemodWorker as DemodWorker
 from iscd.decode.tracking.follow_kernel import follow_and_measure_compiled
 from iscd.decode.tracking.luminance import PixelBackground, area_sigma, follow_and_measure, grid_sample, patch_half
 from iscd.decode.tracking.registered_background import RING_PX, RegisteredBackground, ShiftLeader, window_half
+from iscd.decode.tracking.stabilize import stabilize_into
 from iscd.decode.tracking.partner import find_partner, reference_series
 from iscd.decode.tracking.detect import (GridFit, square_grid, detect_array, detect_auto, light_map, match_stereo, track_box,
                                          track_on_light)
@@ -87,6 +88,7 @@ class PipelineSettings:
     search_every_frames: int = field(default=256, metadata={"lo": 8, "hi": 100000, "doc": "with max_transmitters > 1 and a transmitter tracked: look for another one every this many frames (each look reads acquire_frames whole frames)"})
     registered_background: bool = field(default=True, metadata={"doc": "with the per-pixel background and one LED: the luminance takes the background from a map held in the scene's frame, at the image's own whole-pixel shift measured each frame on a ring of background pixels (iscd.decode.tracking.registered_background): rig vibration moves the texture under the spot with it; false = the image-indexed least value as before"})
     shift_hint: bool = field(default=True, metadata={"doc": "with registered_background: one camera makes the other's image move (shift step) in a frame where its own ring matches the moved shift at least as well (a rigid rig's cameras move together; a defocused camera's blurred texture often cannot tell a 1 px move by itself); the camera whose ring tells the shifts apart more clearly leads (iscd.decode.tracking.registered_background.ShiftLeader)"})
+    stabilized_following: bool = field(default=True, metadata={"doc": "with registered_background: the LED is followed in the background's own frame (the frames moved back by the image shifts predicted against the registered map, iscd.decode.tracking.stabilize), so the per-pixel background under the centroids holds the texture that vibration moves under the spot; false = followed in the image as before"})
     path_settle_px: float = field(default=0.5, metadata={"lo": 0.05, "hi": 5.0, "doc": "no further following pass once the path is within this of where the last pass started, px"})
 
     def __post_init__(self) -> None:
@@ -366,6 +368,11 @@ class StreamDecoder:
         self.follow_passes_run = 0
         """following passes run after the first, over the decoder's life (follow_passes)"""
         self._backgrounds: list[PixelBackground] | None = None
+        self._stab_last: list[np.ndarray] | None = None
+        """Per camera the image shift of the last block's last frame (stabilized_following;
+        None: the registered maps are new, shift 0)."""
+        self._stab_bufs: list[np.ndarray | None] = [None, None]
+        """Per camera the stabilized frames' buffer (stabilized_following)."""
         self._registered: list[RegisteredBackground] | None = None
         self._shift_leader = ShiftLeader()
         self._spot_area: np.ndarray | None = None
@@ -870,6 +877,7 @@ class StreamDecoder:
         self._path_end = [None, None]
         self._backgrounds = None
         self._registered = None
+        self._stab_last = None
         self._spot_area = None
         self._since_fit = 0
         self._acq_l.clear()
@@ -986,11 +994,22 @@ class StreamDecoder:
                           window_half(max(sigmas)) + RING_PX if registered else 0) + self.REACH_MARGIN_PX \
             + int(np.ceil(PATH_REACH_PX * self.settings.follow_passes))
         backgrounds = self._backgrounds
+        if registered and self._registered is None:
+            rise = self.settings.background_rise_dn
+            self._registered = [RegisteredBackground(left.shape[1:], rise),
+                                RegisteredBackground(right.shape[1:], rise)]
+            self._shift_leader = ShiftLeader()
+            self._stab_last = None
+        # one LED over a registered background: followed in the background's own frame
+        # (iscd.decode.tracking.stabilize), where vibration does not move the texture
+        stab = self._stabilize([left, right], starts, sigmas) if registered and self.settings.stabilized_following \
+            else None
+        frames_f, starts_f, anchors_f = ([left, right], starts, self._path_end) if stab is None else stab[:3]
         if self.settings.follow_passes > 0:
             # followed along the LEDs' path through the block (docs/receiver.md, "Following
             # along the path"): a road bump carries the spots pixels within a block
-            res = follow_path(follow, [left, right], starts, box, sigmas, self._lum_floor,
-                              self._path_end, use=self._use, lit_light=self._lit_light,
+            res = follow_path(follow, frames_f, starts_f, box, sigmas, self._lum_floor,
+                              anchors_f, use=self._use, lit_light=self._lit_light,
                               backgrounds=backgrounds, spot_radius_px=spot_r,
                               subtract=subtract, passes=self.settings.follow_passes,
                               settle_px=self.settings.path_settle_px, compiled=self.compiled)
@@ -1001,17 +1020,19 @@ class StreamDecoder:
             self.follow_passes_run += res.passes
         else:
             (c_l, c_r), (lum_l, lum_r) = follow(
-                [left, right], starts, box, sigmas,
+                frames_f, starts_f, box, sigmas,
                 use=self._use, lit_light=self._lit_light, info=info,
                 backgrounds=backgrounds, spot_radius_px=spot_r, subtract=subtract)
+        if stab is not None:  # back to image positions
+            shifts = stab[3]
+            c_l, c_r = c_l + shifts[0][:, None, :], c_r + shifts[1][:, None, :]
+            if self.settings.follow_passes > 0:
+                self._path_end = [res.path_end[k] + shifts[k][-1] for k in (0, 1)]
+            self._stab_last = [shifts[0][-1].copy(), shifts[1][-1].copy()]
         if registered:
             # the light above the background under the window in this frame: held in the
             # scene's frame at the image's own shift (rig vibration moves the texture too)
-            if self._registered is None:
-                rise = self.settings.background_rise_dn
-                self._registered = [RegisteredBackground(left.shape[1:], rise),
-                                    RegisteredBackground(right.shape[1:], rise)]
-                self._shift_leader = ShiftLeader()
+            assert self._registered is not None
             frames_lr, centres_lr, lum_lr = (left, right), (c_l, c_r), [lum_l, lum_r]
             if self.settings.shift_hint:  # the camera that tells the shifts apart better leads the other's moves
                 order = (self._shift_leader.lead, 1 - self._shift_leader.lead)
@@ -1033,6 +1054,53 @@ class StreamDecoder:
         self._followed = [c_l[-1].copy(), c_r[-1].copy()]
         self.last_centres = (c_l, c_r)
         return lum_l, lum_r
+
+    def _stabilize(self, frames: list[np.ndarray], starts: list[np.ndarray], sigmas: list[float]
+                   ) -> tuple[list[np.ndarray], list[np.ndarray], list[np.ndarray | None], list[np.ndarray]]:
+        """One LED's block in the background's own frame (:mod:`iscd.decode.tracking.stabilize`):
+        each camera's image shifts predicted against its registered map
+        (:meth:`RegisteredBackground.predict_shifts`, around where the LED was; the camera
+        that leads the shifts first, its shifts the other's hint, as in the measurement),
+        the pixels the following reads copied into a buffer held still, and the starts and
+        the last block's path end moved with them.
+
+        Returns
+        -------
+        frames : list of ndarray
+            Per camera (F, H, W) stabilized frames (only the following's reach is filled), DN.
+        starts : list of ndarray
+            Per camera (F, N, 2) starting centres in them, px.
+        anchors : list of ndarray or None
+            Per camera the last block's path end in them, px.
+        shifts : list of ndarray
+            Per camera (F, 2) int64 image shifts: image position = stabilized + shift, px.
+        """
+        assert self._registered is not None
+        F = frames[0].shape[0]
+        st = [np.broadcast_to(np.asarray(s, np.float64), (F,) + np.shape(s)[-2:]) for s in starts]
+        shifts: list[np.ndarray] = [np.zeros((F, 2), np.int64), np.zeros((F, 2), np.int64)]
+        hint_on = self.settings.shift_hint
+        hint = None
+        for c in (self._shift_leader.lead, 1 - self._shift_leader.lead) if hint_on else (0, 1):
+            shifts[c] = self._registered[c].predict_shifts(frames[c], st[c], sigmas[c], hint=hint,
+                                                           compiled=self.compiled)
+            hint = shifts[c] if hint_on else None
+        last = self._stab_last or [np.zeros(2, np.int64), np.zeros(2, np.int64)]
+        out_frames, out_starts, anchors = [], [], []
+        for c in (0, 1):
+            fr = frames[c]
+            buf = self._stab_bufs[c]
+            if buf is None or buf.shape[1:] != fr.shape[1:] or buf.dtype != fr.dtype or buf.shape[0] < F:
+                buf = self._stab_bufs[c] = np.zeros((F,) + fr.shape[1:], fr.dtype)
+            s_c = st[c] - shifts[c][:, None, :]
+            reach = self._reach + 1
+            box = (int(np.floor(s_c[..., 0].min())) - reach, int(np.floor(s_c[..., 1].min())) - reach,
+                   int(np.ceil(s_c[..., 0].max())) + reach + 1, int(np.ceil(s_c[..., 1].max())) + reach + 1)
+            out_frames.append(stabilize_into(fr, shifts[c], box, buf, compiled=self.compiled))
+            out_starts.append(s_c)
+            a = self._path_end[c]
+            anchors.append(None if a is None else a - last[c])
+        return out_frames, out_starts, anchors, shifts
 
     @property
     def background_on(self) -> bool:
@@ -1246,6 +1314,7 @@ class StreamDecoder:
         self._lit_light = None
         self._backgrounds = None
         self._registered = None
+        self._stab_last = None
         self._spot_area = None
         self.track = _Track(left=fl, right=fr, first_score=min(fl.score, fr.score),
                             roi_radius=(self._roi_radius(fl), self._roi_radius(fr)),

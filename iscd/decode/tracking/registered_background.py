@@ -178,22 +178,69 @@ class RegisteredBackground:
         F, N = c.shape[0], c.shape[1]
         lum = np.zeros((F, N))
         shifts = np.zeros((F, 2), np.int64)
-        if hint is None:
-            h = np.zeros((0, 2), np.int64)
-            self._hint_last = None
-        else:
-            h = np.asarray(hint, dtype=np.int64)
-            if h.shape != (F, 2):
-                raise ValueError(f"hint: expected ({F}, 2) shifts, got {h.shape}")
-            first = h[:1] if self._hint_last is None else self._hint_last
-            self._hint_last = h[-1:].copy()
-            h = np.ascontiguousarray(np.concatenate([first, h]))  # (F + 1, 2): the moves are its steps
+        h = self._hint_rows(hint, F)
+        self._hint_last = None if hint is None else h[-1:].copy()
         self.contrast = np.full(F, np.nan)
         fn = measure_block if compiled else measure_block_reference
         fn(np.ascontiguousarray(frames), np.ascontiguousarray(c), float(sigma_px), window_half(sigma_px),
            RING_PX, self.bg, self.stamp, self.block, self.rise_dn, MAX_SHIFT_PX, self.shift, self.level, lum, shifts,
-           h, self.contrast)
+           h, self.contrast, True)
         return lum, shifts
+
+    def predict_shifts(self, frames: np.ndarray, centres: np.ndarray, sigma_px: float, *,
+                       hint: np.ndarray | None = None, compiled: bool = True) -> np.ndarray:
+        """The image shifts of a block found against the map as it is, before the block is
+        measured: what :meth:`measure` finds with these ``centres``, except that the block's
+        own earlier frames are not yet folded in. Nothing of the state changes (map, last
+        shift, running level, hint), so :meth:`measure` of the same block follows as usual.
+
+        One LED's following uses them to work in the background's own frame
+        (:mod:`iscd.decode.tracking.stabilize`): where the LED will be is not known yet, so
+        ``centres`` are where it was (the ring only has to lie on background the map holds).
+
+        Parameters
+        ----------
+        frames : ndarray
+            (F, H, W) one camera's frames, DN.
+        centres : ndarray
+            (F, N, 2) where the LEDs are expected (x, y), px.
+        sigma_px : float
+            Gaussian luminance window, px (> 0): the ring starts beyond its box.
+        hint : ndarray, optional
+            (F, 2) another camera's shifts in the same frames, px (as :meth:`measure`).
+        compiled : bool
+            The compiled kernel (else the numpy reference).
+
+        Returns
+        -------
+        ndarray
+            (F, 2) int64 image shift (x, y) in each frame, px.
+        """
+        if frames.ndim != 3 or tuple(frames.shape[1:]) != self.shape:
+            raise ValueError(f"frames: expected (F, {self.shape[0]}, {self.shape[1]}), got {frames.shape}")
+        c = np.asarray(centres, dtype=np.float64)
+        if c.ndim != 3 or c.shape[0] != frames.shape[0] or c.shape[2] != 2:
+            raise ValueError(f"centres: expected ({frames.shape[0]}, N, 2), got {c.shape}")
+        if not sigma_px > 0:
+            raise ValueError(f"sigma_px: expected > 0, got {sigma_px}")
+        F = c.shape[0]
+        shifts = np.zeros((F, 2), np.int64)
+        fn = measure_block if compiled else measure_block_reference
+        fn(np.ascontiguousarray(frames), np.ascontiguousarray(c), float(sigma_px), window_half(sigma_px),
+           RING_PX, self.bg, self.stamp, self.block + 1, self.rise_dn, MAX_SHIFT_PX, self.shift.copy(),
+           self.level.copy(), np.zeros((F, c.shape[1])), shifts, self._hint_rows(hint, F), np.full(F, np.nan), False)
+        return shifts
+
+    def _hint_rows(self, hint: np.ndarray | None, F: int) -> np.ndarray:
+        """The kernel's hint: (F + 1, 2) int64, the other camera's shift in the frame before
+        the block (its last hint, else its first) and in each of its frames ((0, 2): none)."""
+        if hint is None:
+            return np.zeros((0, 2), np.int64)
+        h = np.asarray(hint, dtype=np.int64)
+        if h.shape != (F, 2):
+            raise ValueError(f"hint: expected ({F}, 2) shifts, got {h.shape}")
+        first = h[:1] if self._hint_last is None else self._hint_last
+        return np.ascontiguousarray(np.concatenate([first, h]))  # (F + 1, 2): the moves are its steps
 
 
 class ShiftLeader:
@@ -270,7 +317,7 @@ def measure_block_reference(frames: np.ndarray, centres: np.ndarray, sigma: floa
                             bg: np.ndarray, stamp: np.ndarray, blk: int, rise: float, m: int,
                             shift: np.ndarray, level: np.ndarray, out_lum: np.ndarray,
                             out_shift: np.ndarray, hint: np.ndarray | None = None,
-                            out_contrast: np.ndarray | None = None) -> None:
+                            out_contrast: np.ndarray | None = None, fold: bool = True) -> None:
     """Pure-numpy reference of :func:`measure_block` (see
     :meth:`RegisteredBackground.measure`). Per frame: the shift (ring match), then the
     block's relaxation and the least value folded in over each LED's outer box; then, the
@@ -312,6 +359,8 @@ def measure_block_reference(frames: np.ndarray, centres: np.ndarray, sigma: floa
     out_contrast : ndarray, optional
         (F,) float64 output: the second-least over the least ring variance of the shifts
         tried (NaN: none tried), :attr:`RegisteredBackground.contrast`.
+    fold : bool
+        False: the shifts only (the map is not touched, ``out_lum`` not written).
     """
     F, H, W = frames.shape
     hint = np.zeros((0, 2), np.int64) if hint is None else hint
@@ -369,6 +418,8 @@ def measure_block_reference(frames: np.ndarray, centres: np.ndarray, sigma: floa
             level[1] += 1
         sx, sy = int(shift[0]), int(shift[1])
         out_shift[f, 0], out_shift[f, 1] = sx, sy
+        if not fold:
+            continue
         # ---- fold the frame in: relax once per block, then the least value
         for x0, y0, x1, y1 in boxes:
             ys, xs = np.mgrid[y0:y1, x0:x1]
@@ -380,7 +431,7 @@ def measure_block_reference(frames: np.ndarray, centres: np.ndarray, sigma: floa
     # ---- the light above it (every frame of the block folded in first, as
     # PixelBackground): Gaussian weights around the exact centre, normalized
     a = -0.5 / sigma ** 2
-    for f in range(F):
+    for f in range(F if fold else 0):
         img = frames[f].astype(np.float64)
         sx, sy = int(out_shift[f, 0]), int(out_shift[f, 1])
         inner = [_box(centres[f, i, 0], centres[f, i, 1], half, H, W) for i in range(N)]
@@ -398,7 +449,7 @@ def _warm_args() -> tuple:
     bg = np.full((24 + 2 * MAX_SHIFT_PX, 24 + 2 * MAX_SHIFT_PX), np.inf, np.float32)
     return (fr, np.full((2, 1, 2), 12.0), 1.0, 4, RING_PX, bg, np.zeros(bg.shape, np.int64), 1, 0.25,
             MAX_SHIFT_PX, np.zeros(2, np.int64), np.array([np.inf, 0.0]), np.zeros((2, 1)), np.zeros((2, 2), np.int64),
-            np.zeros((0, 2), np.int64), np.zeros(2))
+            np.zeros((0, 2), np.int64), np.zeros(2), True)
 
 
 def _warm_args16() -> tuple:
@@ -442,7 +493,7 @@ def _paired_vars(frame: np.ndarray, ring_y: np.ndarray, ring_x: np.ndarray, n_al
 def measure_block(frames: np.ndarray, centres: np.ndarray, sigma: float, half: int, ring: int,
                   bg: np.ndarray, stamp: np.ndarray, blk: int, rise: float, m: int,
                   shift: np.ndarray, level: np.ndarray, out_lum: np.ndarray, out_shift: np.ndarray,
-                  hint: np.ndarray, out_contrast: np.ndarray) -> None:
+                  hint: np.ndarray, out_contrast: np.ndarray, fold: bool) -> None:
     """One camera's block (:meth:`RegisteredBackground.measure`): per frame the image shift
     (ring match within 1 px of the last, or the move of another camera's shifts ``hint``
     (F + 1, 2) -- (0, 2): none -- where that matches at least as well; how clearly the ring
@@ -450,8 +501,10 @@ def measure_block(frames: np.ndarray, centres: np.ndarray, sigma: float, half: i
     W + 2m) float32 / ``stamp`` int64 (relaxed by ``rise`` DN once per block ``blk``); then
     per frame each LED's Gaussian-weighted mean light above the map (``sigma`` px over the box of
     half-size ``half`` px) into out_lum (F, N); the shifts into out_shift (F, 2), the last
-    one into ``shift`` (2,) and the running ring variance and the frames judged into ``level`` (2,). The same numbers as :func:`measure_block_reference` (float64
-    sums in a different order: ~1e-12 relative)."""
+    one into ``shift`` (2,) and the running ring variance and the frames judged into ``level`` (2,).
+    With ``fold`` False only the shifts: nothing is folded into the map (``bg``, ``stamp``
+    untouched) and ``out_lum`` is not written. The same numbers as
+    :func:`measure_block_reference` (float64 sums in a different order: ~1e-12 relative)."""
     F, H, W = frames.shape
     N = centres.shape[1]
     outer = half + ring
@@ -535,6 +588,8 @@ def measure_block(frames: np.ndarray, centres: np.ndarray, sigma: float, half: i
             level[1] += 1
         sx, sy = shift[0], shift[1]
         out_shift[f, 0], out_shift[f, 1] = sx, sy
+        if not fold:
+            continue
         # ---- fold the frame in
         for i in range(N):
             for y in range(box[i, 1], box[i, 3]):
@@ -548,7 +603,7 @@ def measure_block(frames: np.ndarray, centres: np.ndarray, sigma: float, half: i
                     if v < bg[qy, qx]:
                         bg[qy, qx] = v
     # ---- the light above it (the whole block folded in first)
-    for f in range(F):
+    for f in range(F if fold else 0):
         sx, sy = out_shift[f, 0], out_shift[f, 1]
         for i in range(N):
             xr = int(np.rint(centres[f, i, 0]))
