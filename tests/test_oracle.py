@@ -309,3 +309,16 @@ def test_motion_suite_quick_form_has_every_case(tmp_path: Path) -> None:
         if sp["receiver"] is not None and all(sp[k] is not None for k in sp):
             assert math.isclose(sp["following"] + sp["timing"] + sp["channel"] + sp[FLOOR], sp["receiver"],
                                 abs_tol=1e-12)
+
+
+def test_one_leds_true_positions_are_measured_as_the_receiver_measures_under_vibration() -> None:
+    """One LED closing at 40 km/h with 0.5 px vibration (its background held in the scene's
+    frame, its following in the background's frame: issue 12, sessions 17 and 26): the
+    "+true positions" window sees the frames as the receiver's luminance does -- the light
+    above the registered map at each frame's image shift -- so at the receiver's own centres
+    it gives the receiver's luminance (no note), and the stage is the following's cost alone."""
+    cfg = _short(chapter3_cfg(default_config(), 50.0, 8, 7, speed_mps=40 / 3.6, vibration_px=0.5,
+                              min_distance_m=25.0))
+    res = run_oracle(cfg, 2, genie=False)
+    assert [n for n in res.notes if n.startswith("+true positions")] == []
+    assert res.receiver.found == 2

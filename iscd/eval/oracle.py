@@ -63,6 +63,7 @@ from iscd.decode.stream import StreamDecoder
 from iscd.decode.comms.channel import ChannelModel, IscdChannelSettings, estimate_iscd
 from iscd.decode.comms.demod import PacketResult, clean_samples, demodulate_packet, known_levels
 from iscd.decode.tracking.luminance import gather_patches, gauss_mean
+from iscd.decode.tracking.registered_background import MAX_SHIFT_PX
 from iscd.decode.comms.packets import PacketAssembler
 from iscd.decode.comms.settings import ReceiverConfig, receiver_config
 from iscd.decode.comms.timing import SymbolClock
@@ -451,6 +452,36 @@ def above_background(frames: np.ndarray, bg: np.ndarray) -> np.ndarray:
     return frames.astype(np.float32) - b[None]
 
 
+def above_registered(frames: np.ndarray, bg: np.ndarray, shifts: np.ndarray, margin: int) -> np.ndarray:
+    """The light above a background map held in the scene's frame
+    (:class:`~iscd.decode.tracking.registered_background.RegisteredBackground`), read at each
+    frame's image shift: ``frames[f, y, x] - bg[y - sy + margin, x - sx + margin]``.
+
+    Parameters
+    ----------
+    frames : numpy.ndarray
+        (F, H, W) frames, DN.
+    bg : numpy.ndarray
+        (H + 2 margin, W + 2 margin) the map, DN (+inf where nothing was seen: left as is).
+    shifts : numpy.ndarray
+        (F, 2) int image shift (x, y) of each frame, px.
+    margin : int
+        The map's margin, px.
+
+    Returns
+    -------
+    numpy.ndarray
+        (F, H, W) float32, DN.
+    """
+    F, H, W = frames.shape
+    b = np.where(np.isfinite(bg), bg, 0.0).astype(np.float32)
+    out = frames.astype(np.float32)
+    for f in range(F):
+        sx, sy = int(shifts[f][0]), int(shifts[f][1])
+        out[f] -= b[margin - sy:margin - sy + H, margin - sx:margin - sx + W]
+    return out
+
+
 class _RecordingDecoder(StreamDecoder):
     """The pipeline's decoder, unchanged, that also hands each decoded block's frames (the
     light above its per-pixel background where it subtracts one),
@@ -481,7 +512,11 @@ class _RecordingDecoder(StreamDecoder):
         # the receiver's images: the light above its per-pixel background where it has one
         # (one LED by default, [tracking] background_one_led), as its window saw them
         imgs = (left, right)
-        if self.background_on and self._backgrounds is not None:
+        if self._registered is not None and self.image_shifts[0] is not None and self.image_shifts[1] is not None:
+            # one LED: the light above the map held in the scene's frame, at each frame's shift
+            imgs = tuple(above_registered(img, r.bg, sh, MAX_SHIFT_PX)
+                         for img, r, sh in zip(imgs, self._registered, self.image_shifts))
+        elif self.background_on and self._backgrounds is not None:
             imgs = tuple(above_background(img, b.bg) for img, b in zip(imgs, self._backgrounds))
         if self.last_centres is not None:  # check: that window at the followed centres is the receiver's
             for img, c, lum, sg in zip(imgs, self.last_centres, (lum_l, lum_r), sig):
