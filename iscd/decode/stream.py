@@ -174,6 +174,9 @@ class _Track:
     """decoded frames since the grid last fitted well (dark stretches hold the fit)"""
     fit_frame: float = math.nan
     """mean frame id of the frames the current fits came from"""
+    fit_shift: tuple[np.ndarray, np.ndarray] | None = None
+    """per camera the mean image shift (x, y) px over the current fits' frames, as the
+    registered background of one LED measured it (None where it was not measured)"""
     prev: tuple[GridFit, GridFit] | None = None
     """the fits before the current ones (for the grid's motion), fitted at ``prev_frame``"""
     prev_frame: float = math.nan
@@ -360,6 +363,8 @@ class StreamDecoder:
         self._acc: tuple[LightAccumulator, LightAccumulator] | None = None
         """the tracking interval's light maps, per camera (the compiled path)"""
         self._ids_sum = 0.0
+        self._shift_sum = np.zeros((2, 2))
+        self._shift_n = 0
         self._followed: list[np.ndarray | None] = [None, None]
         """per camera, the LED centres (N, 2) px refined in the last decoded frame"""
         self._lit_light: np.ndarray | None = None
@@ -371,6 +376,8 @@ class StreamDecoder:
         self._stab_last: list[np.ndarray] | None = None
         """Per camera the image shift of the last block's last frame (stabilized_following;
         None: the registered maps are new, shift 0)."""
+        self._block_shifts: tuple[np.ndarray, np.ndarray] | None = None
+        """the image shifts of the block just measured, for the fits' interval (_retrack)"""
         self._stab_bufs: list[np.ndarray | None] = [None, None]
         """Per camera the stabilized frames' buffer (stabilized_following)."""
         self._registered: list[RegisteredBackground] | None = None
@@ -871,6 +878,8 @@ class StreamDecoder:
         self._blk_r.clear()
         self._acc = None
         self._ids_sum = 0.0
+        self._shift_sum = np.zeros((2, 2))
+        self._shift_n = 0
         self._followed = [None, None]
         self._lit_light = None
         self._lum_floor = [None, None]
@@ -898,6 +907,22 @@ class StreamDecoder:
 
     MOTION_HORIZON = 4.0
     """The grid's motion is extrapolated at most this many tracking intervals ahead."""
+
+    def _still_distance(self, side: int, prev: np.ndarray, fit: GridFit) -> float:
+        """How far the last frame's followed centres lie from the grid fit once the image's own
+        shifts are taken out of both, px (largest of x, y; +inf where the shifts are not
+        known): the followed centres less the image shift of that frame against the fit less
+        the mean image shift over its interval (the registered background of one LED,
+        ``stabilized_following``). A road bump moves the image 4-5 px between two fits
+        (100 km/h, 0.5 px RMS: the spots from +3.1 to -1.4 px within 32 frames); the LED has
+        not moved in the background's frame, and following it is not lost (before, the
+        check restarted it at the stale fit, 5 px off, for two blocks)."""
+        tr = self.track
+        if tr is None or tr.fit_shift is None or self._stab_last is None or not self.settings.stabilized_following:
+            return math.inf
+        a = prev.mean(0) - self._stab_last[side]
+        b = np.asarray(fit.centers).mean(0) - tr.fit_shift[side]
+        return float(np.abs(a - b).max())
 
     def _fit_swing(self, side: int) -> float:
         """How far the last two grid fits of camera ``side`` lie apart, px (largest of x, y;
@@ -962,7 +987,8 @@ class StreamDecoder:
             # them; restarted there, following lost the LED for a block)
             if prev is not None and prev.shape == first.shape[1:] and \
                     min(float(np.abs(prev.mean(0) - first[0].mean(0)).max()),
-                        float(np.abs(prev.mean(0) - np.asarray(fit.centers).mean(0)).max())) <= limit:
+                        float(np.abs(prev.mean(0) - np.asarray(fit.centers).mean(0)).max()),
+                        self._still_distance(side, prev, fit)) <= limit:
                 start = prev  # where the LEDs were in the last frame
                 if self.rows * self.cols > 1:
                     # put back on the array's square grid: carried from block to block, each
@@ -1046,6 +1072,7 @@ class StreamDecoder:
             if self.settings.shift_hint:
                 self._shift_leader.update([r.contrast for r in self._registered])
             lum_l, lum_r = lum_lr
+            self._block_shifts = (self.image_shifts[0], self.image_shifts[1])
         if spot_r is not None:
             self._fold_spot_area(info["spot_area"])
         # the light of a lit LED, held over dark stretches (halves in ~5 s of darkness)
@@ -1516,11 +1543,18 @@ class StreamDecoder:
             self._blk_l.append(np.array(left[:, ay0:ay1, ax0:ax1]))
             self._blk_r.append(np.array(right[:, by0:by1, bx0:bx1]))
         self._ids_sum += float(np.sum(frame_ids, dtype=np.float64))
+        bs, self._block_shifts = self._block_shifts, None
+        if bs is not None and bs[0].shape[0] == len(frame_ids) == bs[1].shape[0]:
+            self._shift_sum += np.stack([bs[0].sum(0), bs[1].sum(0)])
+            self._shift_n += len(frame_ids)
         self._since_fit += len(frame_ids)
         if self._since_fit < self.settings.track_every_frames:
             return
         fit_frame = self._ids_sum / self._since_fit
         n_fit = self._since_fit
+        # the image's mean shift over the interval (where most of its frames measured one)
+        fit_shift = (self._shift_sum[0] / self._shift_n, self._shift_sum[1] / self._shift_n) \
+            if self._shift_n >= 0.5 * n_fit else None
         acc = self._acc
         if self.compiled:
             lights = (acc[0].light_map(), acc[1].light_map())
@@ -1530,6 +1564,8 @@ class StreamDecoder:
         self._blk_r.clear()
         self._acc = None
         self._ids_sum = 0.0
+        self._shift_sum = np.zeros((2, 2))
+        self._shift_n = 0
         self._since_fit = 0
         try:
             nl = _track_in(lights[0], acc[0].window, tr.left, self.compiled)
@@ -1550,6 +1586,7 @@ class StreamDecoder:
             tr.low_frames = 0
             tr.left, tr.right = nl, nr  # type: ignore[assignment]
             tr.fit_frame = fit_frame
+            tr.fit_shift = fit_shift
         now = int(frame_ids[-1])
         if tr.low_frames > self.settings.lost_packets * self.packet_frames:
             # every packet lights every LED in its header: a whole packet's time dark is gone
