@@ -157,3 +157,39 @@ def test_a_background_folded_again_for_the_same_block_is_not_relaxed_twice() -> 
         b.update(Patches(p.pix, p.x0, p.y0), new_block=False)
     np.testing.assert_array_equal(a.bg, b.bg)
     assert a.block == b.block == 2
+
+
+def test_the_path_of_stabilized_frames_is_smoothed_in_image_positions() -> None:
+    """Frames held still by whole-pixel image shifts (iscd.decode.tracking.stabilize; one LED,
+    issue 12 session 26): a bump that carries the spot 3 px moves it smoothly in the image,
+    but in the stabilized frames its sub-pixel rest jumps by 1 px wherever the rounded shift
+    steps. With ``offsets`` the path is smoothed in image positions: the dark frames'
+    bridged centres are as close to the truth as when the image itself is followed; smoothed
+    in the stabilized frames' positions they are further off."""
+    from iscd.decode.tracking.stabilize import stabilize_into
+
+    frames, truth, on = _bump_block(seed=3, texture_dn=0.0)
+    F = frames.shape[0]
+    shifts = np.zeros((F, 2), np.int64)
+    shifts[:, 1] = np.rint(truth[:, 0, 1] - truth[0, 0, 1]).astype(np.int64)
+    assert len(set(shifts[:, 1].tolist())) >= 3  # the rounded shift steps within the block
+    stab = stabilize_into(frames, shifts, (0, 0, 48, 48), np.zeros_like(frames)).copy()
+    start = truth[0]
+    dark = on == 0
+
+    def image_err(offsets):
+        res = follow_path(follow_and_measure_compiled, [stab, stab], [start, start], SIZE, [SIGMA, SIGMA],
+                          [None, None], [start, start], offsets=offsets)
+        c = res.centres[0] + shifts[:, None, :]
+        return np.linalg.norm(c[:, 0] - truth[:, 0], axis=-1), res
+
+    with_off, res = image_err([shifts, shifts])
+    without, _ = image_err(None)
+    direct = np.linalg.norm(_follow(frames, start, 3)[0][:, 0] - truth[:, 0], axis=-1)
+    print(f"dark frames' worst error: offsets {with_off[dark].max():.2f} px, stabilized positions "
+          f"{without[dark].max():.2f} px, the image followed {direct[dark].max():.2f} px")
+    assert with_off[on >= 0.6].max() < 0.25
+    assert with_off[dark].max() <= direct[dark].max() + 0.1
+    assert without[dark].max() > with_off[dark].max() + 0.2
+    # the path's end is an image position (the next block's anchor)
+    assert np.abs(res.path_end[0] - truth[-1]).max() < 0.5

@@ -1030,15 +1030,17 @@ class StreamDecoder:
         # (iscd.decode.tracking.stabilize), where vibration does not move the texture
         stab = self._stabilize([left, right], starts, sigmas) if registered and self.settings.stabilized_following \
             else None
-        frames_f, starts_f, anchors_f = ([left, right], starts, self._path_end) if stab is None else stab[:3]
+        frames_f, starts_f = ([left, right], starts) if stab is None else stab[:2]
         if self.settings.follow_passes > 0:
             # followed along the LEDs' path through the block (docs/receiver.md, "Following
-            # along the path"): a road bump carries the spots pixels within a block
+            # along the path"): a road bump carries the spots pixels within a block; the path
+            # itself is smoothed in image positions (offsets: the stabilized frames' shifts)
             res = follow_path(follow, frames_f, starts_f, box, sigmas, self._lum_floor,
-                              anchors_f, use=self._use, lit_light=self._lit_light,
+                              self._path_end, use=self._use, lit_light=self._lit_light,
                               backgrounds=backgrounds, spot_radius_px=spot_r,
                               subtract=subtract, passes=self.settings.follow_passes,
-                              settle_px=self.settings.path_settle_px, compiled=self.compiled)
+                              settle_px=self.settings.path_settle_px, compiled=self.compiled,
+                              offsets=None if stab is None else stab[2])
             (c_l, c_r), (lum_l, lum_r) = res.centres, res.luminance
             info = res.info
             self._lum_floor = res.floors
@@ -1050,10 +1052,8 @@ class StreamDecoder:
                 use=self._use, lit_light=self._lit_light, info=info,
                 backgrounds=backgrounds, spot_radius_px=spot_r, subtract=subtract)
         if stab is not None:  # back to image positions
-            shifts = stab[3]
+            shifts = stab[2]
             c_l, c_r = c_l + shifts[0][:, None, :], c_r + shifts[1][:, None, :]
-            if self.settings.follow_passes > 0:
-                self._path_end = [res.path_end[k] + shifts[k][-1] for k in (0, 1)]
             self._stab_last = [shifts[0][-1].copy(), shifts[1][-1].copy()]
         if registered:
             # the light above the background under the window in this frame: held in the
@@ -1083,13 +1083,13 @@ class StreamDecoder:
         return lum_l, lum_r
 
     def _stabilize(self, frames: list[np.ndarray], starts: list[np.ndarray], sigmas: list[float]
-                   ) -> tuple[list[np.ndarray], list[np.ndarray], list[np.ndarray | None], list[np.ndarray]]:
+                   ) -> tuple[list[np.ndarray], list[np.ndarray], list[np.ndarray]]:
         """One LED's block in the background's own frame (:mod:`iscd.decode.tracking.stabilize`):
         each camera's image shifts predicted against its registered map
         (:meth:`RegisteredBackground.predict_shifts`, around where the LED was; the camera
         that leads the shifts first, its shifts the other's hint, as in the measurement),
-        the pixels the following reads copied into a buffer held still, and the starts and
-        the last block's path end moved with them.
+        the pixels the following reads copied into a buffer held still, and the starts moved
+        with them.
 
         Returns
         -------
@@ -1097,8 +1097,6 @@ class StreamDecoder:
             Per camera (F, H, W) stabilized frames (only the following's reach is filled), DN.
         starts : list of ndarray
             Per camera (F, N, 2) starting centres in them, px.
-        anchors : list of ndarray or None
-            Per camera the last block's path end in them, px.
         shifts : list of ndarray
             Per camera (F, 2) int64 image shifts: image position = stabilized + shift, px.
         """
@@ -1112,8 +1110,7 @@ class StreamDecoder:
             shifts[c] = self._registered[c].predict_shifts(frames[c], st[c], sigmas[c], hint=hint,
                                                            compiled=self.compiled)
             hint = shifts[c] if hint_on else None
-        last = self._stab_last or [np.zeros(2, np.int64), np.zeros(2, np.int64)]
-        out_frames, out_starts, anchors = [], [], []
+        out_frames, out_starts = [], []
         for c in (0, 1):
             fr = frames[c]
             buf = self._stab_bufs[c]
@@ -1125,9 +1122,7 @@ class StreamDecoder:
                    int(np.ceil(s_c[..., 0].max())) + reach + 1, int(np.ceil(s_c[..., 1].max())) + reach + 1)
             out_frames.append(stabilize_into(fr, shifts[c], box, buf, compiled=self.compiled))
             out_starts.append(s_c)
-            a = self._path_end[c]
-            anchors.append(None if a is None else a - last[c])
-        return out_frames, out_starts, anchors, shifts
+        return out_frames, out_starts, shifts
 
     @property
     def background_on(self) -> bool:

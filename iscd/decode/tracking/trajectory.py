@@ -293,7 +293,8 @@ def follow_path(follow: Callable[..., tuple[list[np.ndarray], list[np.ndarray]]]
                 lit_light: np.ndarray | None = None, backgrounds: list | None = None,
                 spot_radius_px: float | None = None, subtract: bool = True,
                 passes: int = PASSES, settle_px: float = SETTLE_PX,
-                sigma_frames: float = SIGMA_FRAMES, compiled: bool = True) -> PathResult:
+                sigma_frames: float = SIGMA_FRAMES, compiled: bool = True,
+                offsets: list[np.ndarray] | None = None) -> PathResult:
     """Follow the LEDs through a block along their path, and measure their luminance on it.
 
     The first pass is ``follow`` from ``starts`` (the last block's end), as without a path.
@@ -334,6 +335,13 @@ def follow_path(follow: Callable[..., tuple[list[np.ndarray], list[np.ndarray]]]
     compiled : bool
         The path steps of :mod:`iscd.decode.tracking.path_kernel` (else this module's
         numpy references; the same values).
+    offsets : list of ndarray, optional
+        Per camera (F, 2) px: the frames are stabilized (:mod:`iscd.decode.tracking.stabilize`)
+        and a position in frame f is the image position less ``offsets[f]`` (its whole-pixel
+        image shift). The path is then smoothed in image positions, where vibration moves
+        the LED smoothly (in the stabilized frames its sub-pixel rest jumps by 1 px where
+        the rounded shift steps), and ``anchors`` and the result's ``path_end`` are image
+        positions; the centres stay positions in the frames given.
 
     Returns
     -------
@@ -351,11 +359,21 @@ def follow_path(follow: Callable[..., tuple[list[np.ndarray], list[np.ndarray]]]
         from iscd.decode.tracking.path_kernel import path_block_compiled as block
     else:
         block = path_block
+    off = None if offsets is None else [np.asarray(o, np.float64).reshape(F, 1, 2) for o in offsets]
     ran = 0
     while True:
-        paths, moved, final, change = block(cs, lums, cur, floors, anchors, use, lit_share=LIT_SHARE,
-                                            final_share=FINAL_LIT_SHARE, sigma_frames=sigma_frames,
-                                            reach_sigmas=REACH_SIGMAS)
+        if off is None:
+            paths, moved, final, change = block(cs, lums, cur, floors, anchors, use, lit_share=LIT_SHARE,
+                                                final_share=FINAL_LIT_SHARE, sigma_frames=sigma_frames,
+                                                reach_sigmas=REACH_SIGMAS)
+        else:  # the path in image positions, the passes in the frames' (distances are the same)
+            paths, moved, final, change = block([c + o for c, o in zip(cs, off)], lums,
+                                                [c + o for c, o in zip(cur, off)], floors, anchors, use,
+                                                lit_share=LIT_SHARE, final_share=FINAL_LIT_SHARE,
+                                                sigma_frames=sigma_frames, reach_sigmas=REACH_SIGMAS)
+            path_end = [p[-1].copy() for p in paths]
+            paths = [p - o for p, o in zip(paths, off)]
+            final = [f - o for f, o in zip(final, off)]
         if ran >= passes or moved < settle_px:
             break
         again: dict = {}
@@ -371,7 +389,8 @@ def follow_path(follow: Callable[..., tuple[list[np.ndarray], list[np.ndarray]]]
                           info={}, backgrounds=backgrounds, spot_radius_px=None,
                           subtract=subtract, new_block=False)
         cs = final
-    return PathResult(centres=list(cs), luminance=list(lums), path_end=[p[-1].copy() for p in paths],
+    return PathResult(centres=list(cs), luminance=list(lums),
+                      path_end=[p[-1].copy() for p in paths] if off is None else path_end,
                       passes=ran, floors=floors, info=info)
 
 
