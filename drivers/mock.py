@@ -334,6 +334,15 @@ class MockRig(StereoPairSource):
             if wait > 0:
                 time.sleep(wait / 1e9)
 
+    @staticmethod
+    def _next_read(c: _CamState) -> int:
+        """The trigger index camera ``c`` reads next: the head of its queue, else its cursor
+        (read from another camera's thread: a snapshot, exact enough for the render cache)."""
+        try:
+            return int(c.queue[0]) if c.queue else int(c.cursor)
+        except IndexError:  # emptied meanwhile by its reader
+            return int(c.cursor)
+
     def _image(self, c: _CamState, n: int) -> np.ndarray:
         """Camera ``c``'s image of trigger ``n`` (renders the pair once, caches the other)."""
         with self._lock:
@@ -347,7 +356,13 @@ class MockRig(StereoPairSource):
             scene = self._scene if self._scene is not None else self.scene
             H, W = scene.height, scene.width
             other = self._cams[1 - c.idx]
-            want_other = other.started and n >= other.cursor - self.buffer_frames - 2
+            # the other camera's image is rendered with this one's (and cached) only where the
+            # other will read frame n while its image is still cached: not when it has read n
+            # already, nor when it lags so far behind (by _CACHE_MAX or more) that n's entry is
+            # evicted before it gets there -- then each camera rendered every pair itself
+            # (twice the cost) and a reader that fell behind on a loaded host stayed behind
+            lag = n - self._next_read(other)
+            want_other = other.started and 0 <= lag < _CACHE_MAX - 2
             if want_other and entry is None:
                 l = np.empty((H, W), np.uint8)
                 r = np.empty((H, W), np.uint8)

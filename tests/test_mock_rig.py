@@ -285,3 +285,41 @@ def test_faults_can_be_replaced_and_are_indexed_per_camera():
     assert rig._faults(rig._cams[0], "drop") and not rig._faults(rig._cams[1], "drop")
     rig.faults = []
     assert _ids(left, 4) == [0, 1, 2, 3]
+
+
+@pytest.mark.parametrize("lag", [10, 200])
+def test_a_reader_far_behind_does_not_make_the_rig_render_every_pair_twice(monkeypatch, lag):
+    """One camera read ``lag`` frames ahead of the other (a reader behind on a loaded host,
+    or back from a vanish): every camera image is rendered once at most -- the pair
+    rendered together and the other image cached where the other camera will read it while
+    it is still cached (lag < the cache), each image alone where it would be evicted first.
+    Before, a lag beyond the cache had each camera render every pair itself (twice the
+    rig's cost), and a reader that fell behind in the soak stayed behind."""
+    left, right = _rig()
+    scene = left.truth
+    images = [0]
+    pair, one = scene.render_pair_into, scene.render
+
+    def count_pair(n, l, r):
+        images[0] += 2
+        return pair(n, l, r)
+
+    def count_one(n, idx, out):
+        images[0] += 1
+        return one(n, idx, out)
+
+    monkeypatch.setattr(scene, "render_pair_into", count_pair)
+    monkeypatch.setattr(scene, "render", count_one)
+    _ids(left, lag)
+    n = 300
+    for _ in range(n):  # both read at the same pace, left ``lag`` ahead
+        fl, fr = left.read(), right.read()
+        assert fl.frame_id == fr.frame_id + lag
+        if fr.frame_id % 97 == 0:  # (rendered with the uncounted kernel)
+            el, er = np.empty_like(fl.image), np.empty_like(fr.image)
+            pair(fr.frame_id, el, er)
+            assert np.array_equal(fr.image, er)
+    read = 2 * n + lag
+    print(f"lag {lag}: {images[0]} images rendered for {read} read")
+    # the only extra images: the other camera's, cached for frames it has not read yet
+    assert images[0] <= read + min(lag, mock._CACHE_MAX) + 2
