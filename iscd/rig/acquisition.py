@@ -80,6 +80,14 @@ STEP_LEAD_FRAMES = 4
 """How far (frame periods, by timestamp) a camera that waits for its consumer may read
 ahead of its partner before it waits for it (well inside the pairing window)."""
 
+FIRST_FRAME_WAIT_S = 2.0
+"""A camera that waits for its consumer reads at most ``STEP_LEAD_FRAMES`` past its own first
+frame while its running partner has delivered none yet, for at most this long after the
+partner came up (a partner that never delivers does not stop it for good). Before, only a
+partner's delivered frames held it back: on a loaded host whose scheduler started one
+reader thread late, the other ran 30-200 frames ahead, and the first frames of both
+cameras then fell out of the pairing window unpaired."""
+
 
 def _opt(default: Any, doc: str, lo: float | None = None, lo_open: bool = False,
          hi: float | None = None) -> Any:
@@ -313,6 +321,10 @@ class Acquisition:
         self._warned_bad = {side: False for side in _SIDES}
         self._step_lead_ns = round(STEP_LEAD_FRAMES * 1e9 / fps) if fps else STEP_LEAD_FRAMES * 1_000_000
         self._last_ts: dict[str, int | None] = {side: None for side in _SIDES}
+        self._first_ts: dict[str, int | None] = {side: None for side in _SIDES}
+        """each camera's first frame's timestamp, ns (FIRST_FRAME_WAIT_S)"""
+        self._up_since: dict[str, float] = {side: 0.0 for side in _SIDES}
+        """time.monotonic() when each camera was last brought up"""
         """timestamp of each camera's last frame read (ns), for reading in step"""
         self._up = {side: False for side in _SIDES}
         """whether each camera's reader has its camera running"""
@@ -420,6 +432,7 @@ class Acquisition:
             self._shut(side)
             return False
         self._up[side] = True
+        self._up_since[side] = time.monotonic()
         if not first:
             self._bump(f"reopens_{side}")
             log.info("%s camera reopened", side)
@@ -508,8 +521,13 @@ class Acquisition:
 
         def blocked() -> bool:
             mine, theirs = last[side], last[other]
-            ahead = (self._up[other] and mine is not None and theirs is not None
-                     and mine - theirs > self._step_lead_ns)
+            if theirs is not None:
+                ahead = self._up[other] and mine is not None and mine - theirs > self._step_lead_ns
+            else:  # the partner has delivered nothing yet: stay near this camera's first frame
+                first = self._first_ts[side]
+                ahead = (self._up[other] and mine is not None and first is not None
+                         and mine - first > self._step_lead_ns
+                         and time.monotonic() - self._up_since[other] < FIRST_FRAME_WAIT_S)
             return ahead or ring.queued >= ring.capacity
 
         return self._wait_while(blocked)
@@ -572,6 +590,8 @@ class Acquisition:
                 continue
             errors_in_row = 0
             self._last_ts[side] = frame.timestamp_ns
+            if self._first_ts[side] is None:
+                self._first_ts[side] = frame.timestamp_ns
             self._handle(side, frame, time.monotonic_ns())
 
     def _next_frame(self, side: str, cam: Camera) -> Frame | None:
