@@ -167,13 +167,7 @@ class RegisteredBackground:
         shifts : ndarray
             (F, 2) int64 the image shift (x, y) found in each frame, px.
         """
-        if frames.ndim != 3 or tuple(frames.shape[1:]) != self.shape:
-            raise ValueError(f"frames: expected (F, {self.shape[0]}, {self.shape[1]}), got {frames.shape}")
-        c = np.asarray(centres, dtype=np.float64)
-        if c.ndim != 3 or c.shape[0] != frames.shape[0] or c.shape[2] != 2:
-            raise ValueError(f"centres: expected ({frames.shape[0]}, N, 2), got {c.shape}")
-        if not sigma_px > 0:
-            raise ValueError(f"sigma_px: expected > 0, got {sigma_px}")
+        c = self._checked(frames, centres, sigma_px)
         self.block += 1
         F, N = c.shape[0], c.shape[1]
         lum = np.zeros((F, N))
@@ -216,13 +210,7 @@ class RegisteredBackground:
         ndarray
             (F, 2) int64 image shift (x, y) in each frame, px.
         """
-        if frames.ndim != 3 or tuple(frames.shape[1:]) != self.shape:
-            raise ValueError(f"frames: expected (F, {self.shape[0]}, {self.shape[1]}), got {frames.shape}")
-        c = np.asarray(centres, dtype=np.float64)
-        if c.ndim != 3 or c.shape[0] != frames.shape[0] or c.shape[2] != 2:
-            raise ValueError(f"centres: expected ({frames.shape[0]}, N, 2), got {c.shape}")
-        if not sigma_px > 0:
-            raise ValueError(f"sigma_px: expected > 0, got {sigma_px}")
+        c = self._checked(frames, centres, sigma_px)
         F = c.shape[0]
         shifts = np.zeros((F, 2), np.int64)
         fn = measure_block if compiled else measure_block_reference
@@ -230,6 +218,18 @@ class RegisteredBackground:
            RING_PX, self.bg, self.stamp, self.block + 1, self.rise_dn, MAX_SHIFT_PX, self.shift.copy(),
            self.level.copy(), np.zeros((F, c.shape[1])), shifts, self._hint_rows(hint, F), np.full(F, np.nan), False)
         return shifts
+
+    def _checked(self, frames: np.ndarray, centres: np.ndarray, sigma_px: float) -> np.ndarray:
+        """``centres`` as (F, N, 2) float64 after checking the block's arguments (ValueError
+        naming the bad one)."""
+        if frames.ndim != 3 or tuple(frames.shape[1:]) != self.shape:
+            raise ValueError(f"frames: expected (F, {self.shape[0]}, {self.shape[1]}), got {frames.shape}")
+        c = np.asarray(centres, dtype=np.float64)
+        if c.ndim != 3 or c.shape[0] != frames.shape[0] or c.shape[2] != 2:
+            raise ValueError(f"centres: expected ({frames.shape[0]}, N, 2), got {c.shape}")
+        if not sigma_px > 0:
+            raise ValueError(f"sigma_px: expected > 0, got {sigma_px}")
+        return c
 
     def _hint_rows(self, hint: np.ndarray | None, F: int) -> np.ndarray:
         """The kernel's hint: (F + 1, 2) int64, the other camera's shift in the frame before
