@@ -887,6 +887,7 @@ class StreamDecoder:
         self._backgrounds = None
         self._registered = None
         self._stab_last = None
+        self._block_shifts = None
         self._spot_area = None
         self._since_fit = 0
         self._acq_l.clear()
@@ -1060,12 +1061,8 @@ class StreamDecoder:
             # scene's frame at the image's own shift (rig vibration moves the texture too)
             assert self._registered is not None
             frames_lr, centres_lr, lum_lr = (left, right), (c_l, c_r), [lum_l, lum_r]
-            if self.settings.shift_hint:  # the camera that tells the shifts apart better leads the other's moves
-                order = (self._shift_leader.lead, 1 - self._shift_leader.lead)
-            else:
-                order = (0, 1)
             hint = None
-            for c in order:
+            for c in self._shift_order():
                 lum_lr[c], self.image_shifts[c] = self._registered[c].measure(
                     frames_lr[c], centres_lr[c], sigmas[c], hint=hint, compiled=self.compiled)
                 hint = self.image_shifts[c] if self.settings.shift_hint else None
@@ -1081,6 +1078,12 @@ class StreamDecoder:
         self._followed = [c_l[-1].copy(), c_r[-1].copy()]
         self.last_centres = (c_l, c_r)
         return lum_l, lum_r
+
+    def _shift_order(self) -> tuple[int, int]:
+        """The cameras in the order their image shifts are found: with ``shift_hint`` the one
+        that tells the shifts apart better first (its moves are the other's hint), else 0, 1."""
+        lead = self._shift_leader.lead if self.settings.shift_hint else 0
+        return lead, 1 - lead
 
     def _stabilize(self, frames: list[np.ndarray], starts: list[np.ndarray], sigmas: list[float]
                    ) -> tuple[list[np.ndarray], list[np.ndarray], list[np.ndarray]]:
@@ -1104,12 +1107,11 @@ class StreamDecoder:
         F = frames[0].shape[0]
         st = [np.broadcast_to(np.asarray(s, np.float64), (F,) + np.shape(s)[-2:]) for s in starts]
         shifts: list[np.ndarray] = [np.zeros((F, 2), np.int64), np.zeros((F, 2), np.int64)]
-        hint_on = self.settings.shift_hint
         hint = None
-        for c in (self._shift_leader.lead, 1 - self._shift_leader.lead) if hint_on else (0, 1):
+        for c in self._shift_order():
             shifts[c] = self._registered[c].predict_shifts(frames[c], st[c], sigmas[c], hint=hint,
                                                            compiled=self.compiled)
-            hint = shifts[c] if hint_on else None
+            hint = shifts[c] if self.settings.shift_hint else None
         out_frames, out_starts = [], []
         for c in (0, 1):
             fr = frames[c]
@@ -1337,6 +1339,7 @@ class StreamDecoder:
         self._backgrounds = None
         self._registered = None
         self._stab_last = None
+        self._block_shifts = None
         self._spot_area = None
         self.track = _Track(left=fl, right=fr, first_score=min(fl.score, fr.score),
                             roi_radius=(self._roi_radius(fl), self._roi_radius(fr)),
