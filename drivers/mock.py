@@ -497,6 +497,9 @@ class MockCamera(Camera):
         """Unpaced (``rig.pace = false``): its frames are made when read."""
         return not self.rig.pace
 
+    reuses_buffers = False  # every read renders into (or takes from the cache) a new array
+    makes_images_on_read = True  # the renderer runs in the reader's thread
+
     def open(self) -> None:
         self.rig._open(self._c)
 

@@ -431,3 +431,51 @@ frame = 45
     ids, st, rs = _slow_consumer(left, right, 60, 0.001)
     assert ids == [n for n in range(61) if n != 45]
     assert rs.dropped_overflow == 0 and st.catch_ups == 0
+
+
+def _reader_affinities(left: Camera, right: Camera, **opts: object) -> tuple[list[set[int]], bool]:
+    """The CPU sets of an acquisition's two reader threads while it runs, and whether a
+    frame waiting for its partner is copied (the pairer's retain)."""
+    import threading
+
+    ring = StereoRing.create(height=48, width=64, capacity=64)
+    try:
+        acq = Acquisition(left, right, ring, options=AcquisitionOptions(**opts))
+        acq.start()
+        try:
+            def both() -> list[threading.Thread] | None:
+                ts = [t for t in threading.enumerate()
+                      if t.name in ("iscd-read-left", "iscd-read-right") and t.native_id]
+                return ts if len(ts) == 2 else None
+
+            readers = wait_until(both, 30.0, what="both reader threads")
+            time.sleep(0.05)  # each thread pins itself as it starts
+            sets = [os.sched_getaffinity(t.native_id) for t in readers]
+        finally:
+            acq.stop()
+        return sets, acq.pairer._retain is not None
+    finally:
+        ring.close()
+
+
+@pytest.mark.skipif(not hasattr(os, "sched_getaffinity") or len(os.sched_getaffinity(0)) < 2,
+                    reason="needs a process that may run on two CPUs")
+def test_readers_of_cameras_that_render_share_one_cpu() -> None:
+    """The mock rig with a fault is read camera by camera; its reads render on the CPU
+    (``Camera.makes_images_on_read``), so both reader threads are pinned to one CPU -- and
+    only they: the calling process keeps its CPUs. With ``one_cpu_readers = false``, or with
+    cameras that wait for a device (the fakes), the readers may run anywhere. The mock rig
+    never reuses an image (``Camera.reuses_buffers``), so waiting frames are not copied;
+    the fakes' are."""
+    mock = pytest.importorskip("iscd.drivers.mock")
+    from iscd.core.config import loads
+
+    everywhere = os.sched_getaffinity(0)
+    text = SMALL_RIG.format(n=1, pace="true") + '[[rig.faults]]\nkind = "drop"\ncamera = "right"\nframe = 5\n'
+    sets, copies = _reader_affinities(*mock.MockRig.from_config(loads(text)))
+    assert len(sets[0]) == 1 and sets[0] == sets[1] and sets[0] <= everywhere
+    assert os.sched_getaffinity(0) == everywhere and not copies
+    sets, _ = _reader_affinities(*mock.MockRig.from_config(loads(text)), one_cpu_readers=False)
+    assert sets == [everywhere, everywhere]
+    sets, copies = _reader_affinities(*fake_rig(10_000, 5_000_000))
+    assert sets == [everywhere, everywhere] and copies

@@ -126,7 +126,12 @@ class AcquisitionOptions:
     reopen_backoff_max_s: float = _opt(2.0, "longest wait between reopen attempts, s", lo=0)
     max_errors: int = _opt(10, "camera errors in a row that count as a lost camera", lo=1)
     copy_frames: bool = _opt(True, "copy frames that wait for their partner (false only "
-                             "for drivers that never reuse buffers)")
+                             "for drivers that never reuse buffers; drivers that say so "
+                             "themselves, the mock rig, are never copied)")
+    one_cpu_readers: bool = _opt(True, "run the two reader threads on one CPU when both cameras "
+                                 "make their images on the CPU as they are read (the mock rig "
+                                 "with injected faults): CPU-bound threads that share the GIL "
+                                 "cost less on one core than handing it across two")
     stats_interval_s: float = _opt(0.005, "how often the counters are published, s", lo=0)
     finish_ring: bool = _opt(True, "mark the ring finished when the worker stops")
     pairs_at_once: bool = _opt(True, "let a rig that delivers both frames of a trigger at once "
@@ -277,6 +282,29 @@ class PairingReport:
         return True
 
 
+def _this_cpu() -> int | None:
+    """The CPU the calling thread runs on now, if it may run on more than one (else None:
+    nothing to choose)."""
+    try:
+        allowed = os.sched_getaffinity(0)
+        if len(allowed) < 2:
+            return None
+        with open("/proc/thread-self/stat", "rb") as f:
+            stat = f.read()
+        cpu = int(stat[stat.rindex(b")") + 2:].split()[36])  # field 39, "processor"
+        return cpu if cpu in allowed else min(allowed)
+    except (AttributeError, OSError, ValueError, IndexError):  # not Linux: leave it free
+        return None
+
+
+def _pin_thread(cpu: int) -> None:
+    """Let the calling thread (only it: Linux affinity is per thread) run on ``cpu`` only."""
+    try:
+        os.sched_setaffinity(0, {cpu})
+    except (AttributeError, OSError, ValueError) as e:  # a cpuset changed meanwhile
+        log.debug("cannot pin reader thread to CPU %d: %s", cpu, e)
+
+
 def _retain(frame: Frame) -> Frame:
     return dataclasses.replace(frame, image=np.array(frame.image, copy=True))
 
@@ -309,7 +337,8 @@ class Acquisition:
             ts_offset_ns=None if opt.learn_ts_offset else round(opt.ts_offset_s * 1e9),
             window=opt.pair_window, max_pending=opt.max_pending, resync_after=opt.resync_after,
             catch_up_after=opt.catch_up_after,
-            retain=_retain if opt.copy_frames else None)
+            retain=_retain if opt.copy_frames and any(
+                getattr(cam, "reuses_buffers", True) for cam in (left, right)) else None)
         self.pairing_report = PairingReport(self.pairer)
         self._stats = AcquisitionStats(pid=os.getpid())
         self._lock = threading.Lock()
@@ -321,11 +350,13 @@ class Acquisition:
         self._warned_bad = {side: False for side in _SIDES}
         self._step_lead_ns = round(STEP_LEAD_FRAMES * 1e9 / fps) if fps else STEP_LEAD_FRAMES * 1_000_000
         self._last_ts: dict[str, int | None] = {side: None for side in _SIDES}
+        """timestamp of each camera's last frame read (ns), for reading in step"""
         self._first_ts: dict[str, int | None] = {side: None for side in _SIDES}
         """each camera's first frame's timestamp, ns (FIRST_FRAME_WAIT_S)"""
         self._up_since: dict[str, float] = {side: 0.0 for side in _SIDES}
         """time.monotonic() when each camera was last brought up"""
-        """timestamp of each camera's last frame read (ns), for reading in step"""
+        self._reader_cpu: int | None = None
+        """the CPU both reader threads run on (``one_cpu_readers``), None: any"""
         self._up = {side: False for side in _SIDES}
         """whether each camera's reader has its camera running"""
         self._publish(force=True)
@@ -448,7 +479,14 @@ class Acquisition:
                 log.debug("%s camera: %s failed: %s", side, what.__name__, e)
 
     def _start_readers(self, up: dict[str, bool]) -> None:
-        """One reader thread per camera (frames one by one, paired by the pairer)."""
+        """One reader thread per camera (frames one by one, paired by the pairer); both on
+        one CPU where both cameras make their images as they are read (``one_cpu_readers``)."""
+        if (self.options.one_cpu_readers and self._reader_cpu is None
+                and all(getattr(cam, "makes_images_on_read", False) for cam in self.cams.values())):
+            self._reader_cpu = _this_cpu()
+            if self._reader_cpu is not None:
+                log.info("both cameras make their images on the CPU: their readers share CPU %d",
+                         self._reader_cpu)
         ts = [threading.Thread(target=self._reader, args=(side, up[side]),
                                name=f"iscd-read-{side}", daemon=True) for side in _SIDES]
         self._readers += ts
@@ -551,6 +589,8 @@ class Acquisition:
         backoff = opt.reopen_backoff_s
         errors_in_row = 0
         first = not running
+        if self._reader_cpu is not None:
+            _pin_thread(self._reader_cpu)
         while not self._stop.is_set():
             if in_step and running and not self._in_step(side):
                 break
