@@ -38,7 +38,7 @@ from iscd.decode.comms.channel import (ChannelModel, ChannelTrack, IscdChannelSe
 from iscd.decode.comms.crosstalk import MIN_CROSSTALK, cancel_crosstalk, estimate_crosstalk, grid_neighbours
 from iscd.decode.comms.decide import CleanCosts, SpanDecision, clean_costs, clean_levels, decide_span
 from iscd.decode.comms.phy import INCOMPLETE, erasure_masks, read_phy_header
-from iscd.decode.comms.sequential import KAPPA, P0, RHO, sequential_levels
+from iscd.decode.comms.sequential import BEAM, KAPPA, P0, RHO, sequential_levels
 from iscd.decode.comms.settings import ReceiverConfig
 from iscd.decode.comms.timing import (SymbolClock, _clip, _map_one, clean_frame, fine_header, period_sigma,
                                       refine_clock)
@@ -1292,7 +1292,8 @@ def _demodulate(L: np.ndarray, u_guess: float, air: AirInterface, e: float,
         frames, kr = _clean_index(n, float(clock.u0), float(clock.p), float(e), n_known, P - n_known)
         f64 = np.ascontiguousarray  # (the warmed-up signature: C-contiguous float64)
         seq = sequential_levels(f64(L[:, frames, :], dtype=np.float64), kr, P - n_known,
-                                f64(model.mu, dtype=np.float64), f64(model.var, dtype=np.float64), KAPPA, RHO, P0)
+                                f64(model.mu, dtype=np.float64), f64(model.var, dtype=np.float64), KAPPA, RHO, P0,
+                                BEAM)
         for k in range(seq.shape[0]):  # a symbol without a clean frame: its predecessor's level
             gap = seq[k] < 0
             if gap.any():
