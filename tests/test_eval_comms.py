@@ -442,8 +442,10 @@ def test_a_squeezed_packet_a_few_symbols_off_is_list_decoded_from_its_sequential
     Decoded with the LED followed in the image (``stabilized_following = false``), as when
     the scene was found: followed in the background's frame (session 26; the lit frames'
     centres as close to the truth, 0.02-0.05 px RMS, the dark frames' within 0.6 px either
-    way) the second packet is reported with 108 wrong symbols and lost -- a packet at the
-    edge of what this channel allows, on which small changes of the luminance decide."""
+    way) the second packet was reported with 108 wrong symbols and lost -- a packet at the
+    edge of what this channel allows, on which small changes of the luminance decide --
+    until the symbol-by-symbol attempt kept several decision sequences (session 27,
+    ``test_a_squeezed_packet_is_decoded_by_the_sequential_attempts_survivors``)."""
     from iscd.decode.comms import demod
     from iscd.eval.suites import MOTION_CASES, motion_cfg
 
@@ -458,6 +460,29 @@ def test_a_squeezed_packet_a_few_symbols_off_is_list_decoded_from_its_sequential
           f"errors {without.symbol_errors}")
     assert res.exact == 2 and res.symbol_errors == 0
     assert without.found == 2 and without.exact == 1 and without.symbol_errors > 10
+
+
+def test_a_squeezed_packet_is_decoded_by_the_sequential_attempts_survivors(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Seed 2145744630 (set 57001, one LED at 100 km/h, 0.3 px smooth vibration) with the
+    receiver as it is (the LED followed in the background's frame): the second packet's
+    upper levels squeeze to 2-3 DN apart near 27 m. With one decision sequence in the
+    symbol-by-symbol attempt (``sequential.BEAM = 1``, the filter of session 25) a noisy
+    decision slips the centroids and the packet is lost (108 wrong symbols reported); with
+    ``BEAM`` survivors (per-survivor processing, session 27) that attempt passes its CRC:
+    both packets bit-exact."""
+    from iscd.decode.comms import demod
+    from iscd.eval.suites import MOTION_CASES, motion_cfg
+
+    case = next(c for c in MOTION_CASES if c.key == "1led-100kmh-0.3px")
+    cfg, _ = motion_cfg(default_config(), case, 2145744630, scene={"vibration_model": "smooth"}, randomize=True)
+    (res,) = run_comms(cfg, [DIVERSITY], 2, block=16)
+    _check_delivery(res)
+    monkeypatch.setattr(demod, "BEAM", 1)
+    (one,) = run_comms(cfg, [DIVERSITY], 2, block=16)
+    print(f"survivors: exact {res.exact}, errors {res.symbol_errors}; one: exact {one.exact}, "
+          f"errors {one.symbol_errors}")
+    assert res.exact == 2 and res.symbol_errors == 0
+    assert one.found == 2 and one.exact == 1 and one.symbol_errors > 10
 
 
 @pytest.mark.slow
