@@ -485,6 +485,30 @@ def test_a_squeezed_packet_is_decoded_by_the_sequential_attempts_survivors(monke
     assert one.found == 2 and one.exact == 1 and one.symbol_errors > 10
 
 
+def test_a_squeezed_packet_is_list_decoded_from_the_survivors_own_decisions(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Seed 282473233 (set 64001, never tuned on when it was found; one LED at 100 km/h,
+    0.3 px smooth vibration): the second packet (64 -> 27 m) squeezes levels 6 and 7 to
+    2-3 DN apart. The sequential attempt's survivors decide it with one wrong symbol; its
+    final pass (the channel fitted per 48 symbols on those decisions) changes two right ones
+    and keeps the wrong one: 3 wrong, beyond its list. Listed from the survivors' own
+    decisions instead (``demod._survivors_own``: the final pass's reliabilities, its level
+    as the alternative where the two differ), one flip passes the CRC: both packets
+    bit-exact; listed from the final pass's, the second is lost."""
+    from iscd.decode.comms import demod
+    from iscd.eval.suites import MOTION_CASES, motion_cfg
+
+    case = next(c for c in MOTION_CASES if c.key == "1led-100kmh-0.3px")
+    cfg, _ = motion_cfg(default_config(), case, 282473233, scene={"vibration_model": "smooth"}, randomize=True)
+    (res,) = run_comms(cfg, [DIVERSITY], 2, block=16)
+    _check_delivery(res)
+    monkeypatch.setattr(demod, "_survivors_own", lambda *a: None)
+    (final,) = run_comms(cfg, [DIVERSITY], 2, block=16)
+    print(f"own: exact {res.exact}, errors {res.symbol_errors}; final pass's: exact {final.exact}, "
+          f"errors {final.symbol_errors}")
+    assert res.exact == 2 and res.symbol_errors == 0
+    assert final.found == 2 and final.exact == 1 and final.symbol_errors > 10
+
+
 @pytest.mark.slow
 def test_the_sequential_attempt_leaves_the_reported_attempt_as_it_was() -> None:
     """Seed 745685058 (set 58001, one LED at 40 km/h, 0.3 px road bumps): both packets fail

@@ -1085,7 +1085,12 @@ def demodulate_packet(L: np.ndarray, u_guess: float, air: AirInterface, e: float
             if isinstance(alt, PacketResult):
                 if alt.crc_ok:
                     return alt
-                best = replace(best, sequential=alt)  # (list-decoded last; the report stays)
+                own = alt.sequential  # the survivors' own decisions, where the final pass changed some
+                if own is not None and own.crc_ok:
+                    return own
+                # (list-decoded last; the report stays): the survivors' own decisions, which
+                # the final pass's changes made worse on every failed packet looked at
+                best = replace(best, sequential=own if own is not None else alt)
         wide = cfg.drift_max_ppm * 1e-6 * p_nominal
         if UNLOCKED_RETRY and retry_unlocked and clock is None and _locked(p_sigma, p_nominal) \
                 and not _locked(wide, p_nominal):
@@ -1288,6 +1293,7 @@ def _demodulate(L: np.ndarray, u_guess: float, air: AirInterface, e: float,
     tops = _camera_tops(L).tolist() if tracked else None  # (NaN: an absent camera, never used)
     starts, models = [0], [model]
     next_clock = n_known + chunk
+    seq_own: np.ndarray | None = None
     if sequential and tracked and channel is None and not A:
         frames, kr = _clean_index(n, float(clock.u0), float(clock.p), float(e), n_known, P - n_known)
         f64 = np.ascontiguousarray  # (the warmed-up signature: C-contiguous float64)
@@ -1299,6 +1305,7 @@ def _demodulate(L: np.ndarray, u_guess: float, air: AirInterface, e: float,
             if gap.any():
                 seq[k, gap] = seq[k - 1, gap] if k else 0
         lev[n_known:P] = seq
+        seq_own = seq.copy()  # the survivors' own decisions (the final pass may change some)
     elif A and tracked and channel is None:
         # the known symbols after the packet anchor the channel: decided backwards from them,
         # each step with the model of the decided symbols after it (the clock as given:
@@ -1399,10 +1406,37 @@ def _demodulate(L: np.ndarray, u_guess: float, air: AirInterface, e: float,
     reason = "" if ok else failure_reason([dmodel] if cfg.dissertation else models, margins)
     if not ok and v2.get("failed_codewords"):
         reason = f"code failed: {v2['failed_codewords']} codewords; {reason}"
-    return PacketResult(u0=clock.u0, p=clock.p, first_frame=first, levels=levels, raw=raw,
-                        crc_ok=bool(ok), drift_ppm=clock.drift_ppm(p_nominal),
-                        header_r2=r2, training_rho=rho_t, contrast=contrast,
-                        margins=margins, erasures=erasures,
-                        channel="tracked" if tracked else "static", reason=reason, air=air,
-                        p_sigma=p_post, runner_up=(runner + 1).astype(np.uint8), **v2)
+    res = PacketResult(u0=clock.u0, p=clock.p, first_frame=first, levels=levels, raw=raw,
+                       crc_ok=bool(ok), drift_ppm=clock.drift_ppm(p_nominal),
+                       header_r2=r2, training_rho=rho_t, contrast=contrast,
+                       margins=margins, erasures=erasures,
+                       channel="tracked" if tracked else "static", reason=reason, air=air,
+                       p_sigma=p_post, runner_up=(runner + 1).astype(np.uint8), **v2)
+    if seq_own is not None and not ok and not v2 and not cfg.dissertation:
+        own = _survivors_own(res, seq_own, lev[n_known:P], [c for c in pre if c is not None])
+        if own is not None:
+            res = replace(res, sequential=own)
+    return res
+
+
+def _survivors_own(res: PacketResult, own: np.ndarray, final: np.ndarray, costs: list[CleanCosts]
+                   ) -> PacketResult | None:
+    """The sequential attempt's survivors' own decisions ``own`` (F, N) 0-based as a packet,
+    where its final pass (``res``, decisions ``final``) changed some of them; None where it
+    changed none. Reliabilities from the final pass: where the two agree, its margin and
+    runner-up; where they differ, the gap between the two levels' clean-frame costs under
+    the final pass's channel (``costs``, its stretches in order), and the final pass's level
+    as the runner-up (as :func:`~iscd.decode.comms.listdecode.combine` has it)."""
+    dis = own != final
+    if not dis.any() or sum(c.costs.shape[0] for c in costs) != own.shape[0]:
+        return None
+    cc = np.concatenate([c.costs for c in costs], axis=0).astype(np.float64)  # (F, N, M)
+    gap = np.abs(np.take_along_axis(cc, own[..., None], -1)[..., 0]
+                 - np.take_along_axis(cc, final[..., None], -1)[..., 0])
+    levels = (own + 1).astype(np.uint8)
+    raw, ok = decode_data(res.air, levels)  # type: ignore[arg-type]
+    runner = res.runner_up if res.runner_up is not None else levels
+    return replace(res, levels=levels, raw=raw, crc_ok=bool(ok), reason="" if ok else res.reason,
+                   margins=np.where(dis, gap, res.margins).astype(res.margins.dtype),
+                   runner_up=np.where(dis, final + 1, runner).astype(np.uint8))
 
