@@ -87,7 +87,9 @@ class PacketResult:
     it; :func:`~iscd.decode.comms.listdecode.list_decode` tries them)"""
     sequential: "PacketResult | None" = field(default=None, repr=False)
     """the failed attempt with the channel tracked symbol by symbol (:data:`SEQUENTIAL_RETRY`):
-    not reported, but list-decoded after the others (:class:`~iscd.decode.comms.packets.PacketAssembler`)"""
+    not reported, but list-decoded after the others (:class:`~iscd.decode.comms.packets.PacketAssembler`);
+    its survivors' own decisions where its final pass changed some (:func:`_survivors_own`).
+    On that attempt's own result: those decisions (the attempt is then their carrier)"""
     list_flips: int = 0
     """symbols that CRC-aided list decoding (:mod:`~iscd.decode.comms.listdecode`) changed from
     this attempt's decisions for the CRC to pass (0: as decided)"""
@@ -951,8 +953,9 @@ SEQUENTIAL_RETRY = True
 """One LED's packet that the attempts before it failed is tried once more with the tracking
 pass deciding symbol by symbol, its centroids Kalman-filtered (:mod:`iscd.decode.comms.sequential`),
 and the final pass's windows halved (the channel of a fast-changing approach); only a CRC
-pass counts: a failure leaves the report as it was and rides along (``PacketResult.sequential``)
-to be list-decoded last. Not run with an oracle's given channel (``channel=``: nothing to
+pass counts (its final pass's decisions, or the survivors' own where the final pass changed
+some: :func:`_survivors_own`): a failure leaves the report as it was and rides along
+(``PacketResult.sequential``) to be list-decoded last. Not run with an oracle's given channel (``channel=``: nothing to
 follow). False skips it (tests compare the two)."""
 
 SEQUENTIAL_MAX_LEDS = 1
