@@ -87,9 +87,9 @@ class PacketResult:
     it; :func:`~iscd.decode.comms.listdecode.list_decode` tries them)"""
     sequential: "PacketResult | None" = field(default=None, repr=False)
     """the failed attempt with the channel tracked symbol by symbol (:data:`SEQUENTIAL_RETRY`):
-    not reported, but list-decoded after the others (:class:`~iscd.decode.comms.packets.PacketAssembler`);
-    its survivors' own decisions where its final pass changed some (:func:`_survivors_own`).
-    On that attempt's own result: those decisions (the attempt is then their carrier)"""
+    not reported, but list-decoded after the others (:class:`~iscd.decode.comms.packets.PacketAssembler`).
+    On that attempt's own result: its survivors' own decisions, where its final pass changed
+    some (:func:`_survivors_own`; list-decoded after it)"""
     list_flips: int = 0
     """symbols that CRC-aided list decoding (:mod:`~iscd.decode.comms.listdecode`) changed from
     this attempt's decisions for the CRC to pass (0: as decided)"""
@@ -955,7 +955,7 @@ pass deciding symbol by symbol, its centroids Kalman-filtered (:mod:`iscd.decode
 and the final pass's windows halved (the channel of a fast-changing approach); only a CRC
 pass counts (its final pass's decisions, or the survivors' own where the final pass changed
 some: :func:`_survivors_own`): a failure leaves the report as it was and rides along
-(``PacketResult.sequential``) to be list-decoded last. Not run with an oracle's given channel (``channel=``: nothing to
+(``PacketResult.sequential``) to be list-decoded last, the survivors' own decisions after it. Not run with an oracle's given channel (``channel=``: nothing to
 follow). False skips it (tests compare the two)."""
 
 SEQUENTIAL_MAX_LEDS = 1
@@ -1091,9 +1091,7 @@ def demodulate_packet(L: np.ndarray, u_guess: float, air: AirInterface, e: float
                 own = alt.sequential  # the survivors' own decisions, where the final pass changed some
                 if own is not None and own.crc_ok:
                     return own
-                # (list-decoded last; the report stays): the survivors' own decisions, which
-                # the final pass's changes made worse on every failed packet looked at
-                best = replace(best, sequential=own if own is not None else alt)
+                best = replace(best, sequential=alt)  # (list-decoded last, and its own; the report stays)
         wide = cfg.drift_max_ppm * 1e-6 * p_nominal
         if UNLOCKED_RETRY and retry_unlocked and clock is None and _locked(p_sigma, p_nominal) \
                 and not _locked(wide, p_nominal):

@@ -408,7 +408,9 @@ class PacketAssembler:
         decoding (:func:`~iscd.decode.comms.listdecode.list_decode`) of the anchored and the
         first attempt's decisions combined (:func:`~iscd.decode.comms.listdecode.combine`,
         where they disagree), then of each alone, then of the first attempt's symbol-by-symbol
-        tracked one (``PacketResult.sequential``, when it ran; v1 packets only)."""
+        tracked one (``PacketResult.sequential``, when it ran; v1 packets only), then of that
+        attempt's survivors' own decisions where its final pass changed some (its
+        ``sequential``)."""
         def ok(r: PacketResult) -> bool:
             return (r.runner_up is not None and r.margins.shape == r.levels.shape
                     and isinstance(r.air, AirInterface) and not isinstance(r.air, AirInterfaceV2))
@@ -421,6 +423,9 @@ class PacketAssembler:
         seq = tries[-1].sequential
         if seq is not None and ok(seq):
             lists.append((seq, (seq.levels, seq.margins, seq.runner_up)))
+        own = seq.sequential if seq is not None else None  # its survivors' own decisions
+        if own is not None and ok(own):
+            lists.append((own, (own.levels, own.margins, own.runner_up)))
         for r, (levels, margins, runner) in lists:
             self.stats["list_tries"] += 1
             got = listdecode.list_decode(r.air, levels, margins, runner)
