@@ -22,7 +22,7 @@ alternative the other attempt's level; the list then starts from that.
 
 **Integrity.** Each candidate that is not the sent packet passes CRC-32 with probability
 about 2^-32, so trying C candidates accepts a wrong payload with probability at most
-C 2^-32 per failed packet (the assembler's at most four lists of 256: 2.4e-7; a delivered packet
+C 2^-32 per failed packet (the assembler's at most five lists of 256: 3.0e-7; a delivered packet
 says how many symbols were changed, ``list_flips``). Only air interface v1 packets are
 list-decoded: v2 carries its own Reed-Solomon code, whose erasures already use the margins.
 
