@@ -14,7 +14,7 @@ from functools import lru_cache
 import pytest
 
 from fakes import xfail_where
-from iscd.core.config import default_config
+from iscd.core.config import Config, default_config
 from iscd.eval.suites import (APPROACH_SPEED_MPS, APPROACH_VIBRATION_PX, CH3_MODES, COMMS_DISTANCES_M,
                               chapter3_cfg, chapter4_cfg, ch4_modes, point_seed)
 from iscd.eval.sweeps import CommsResult, ReceiverMode, run_comms
@@ -379,14 +379,21 @@ def _with_and_without(flag: str, key: str, seed: int, vibration: str, mode: Rece
     assert note.startswith("randomized")
     if tracking:
         cfg = cfg.with_keys("tracking", **tracking)
+    return _decode_twice(cfg, mode, demod, flag, False, monkeypatch)
+
+
+def _decode_twice(cfg: Config, mode: ReceiverMode, module: object, name: str, value: object,
+                  monkeypatch: pytest.MonkeyPatch) -> tuple[CommsResult, CommsResult]:
+    """Two packets of ``cfg`` decoded as they are (each delivery checked against the truth),
+    then with ``module.name`` set to ``value``."""
     (res,) = run_comms(cfg, [mode], 2, block=16)
-    print(f"with {flag}: found {res.found}/{res.packets_sent}, exact {res.exact}, errors {res.symbol_errors}")
+    print(f"as is: found {res.found}/{res.packets_sent}, exact {res.exact}, errors {res.symbol_errors}")
     _check_delivery(res)
-    monkeypatch.setattr(demod, flag, False)
-    (without,) = run_comms(cfg, [mode], 2, block=16)
-    print(f"without: found {without.found}/{without.packets_sent}, exact {without.exact}, "
-          f"errors {without.symbol_errors}")
-    return res, without
+    monkeypatch.setattr(module, name, value)
+    (patched,) = run_comms(cfg, [mode], 2, block=16)
+    print(f"{name} = {value!r}: found {patched.found}/{patched.packets_sent}, exact {patched.exact}, "
+          f"errors {patched.symbol_errors}")
+    return res, patched
 
 
 @pytest.mark.parametrize("key, seed, exact", [("1led-hdr-40kmh-0.5px", 1711133418, 2),
@@ -402,7 +409,13 @@ def test_one_leds_failed_packet_is_tried_with_an_arrays_tracking_step(key: str, 
     either way (the oracle's genie luminance with the true channel loses it too).
 
     Decoded with the LED followed in the image (``stabilized_following = false``): followed in
-    the background's frame (session 26) 1711133418's packets are bit-exact without the attempt."""
+    the background's frame (session 26) 1711133418's packets are bit-exact without the attempt.
+    And without the symbol-by-symbol attempt after it (``SEQUENTIAL_RETRY``): since that
+    attempt's changes of session 27 (survivors, their own decisions listed) it delivers
+    1711133418's packet too when the short step is off."""
+    from iscd.decode.comms import demod
+
+    monkeypatch.setattr(demod, "SEQUENTIAL_RETRY", False)
     res, without = _with_and_without("SHORT_STEP_RETRY", key, seed, "smooth", DIVERSITY, monkeypatch,
                                       stabilized_following=False)
     assert res.exact == exact
@@ -462,6 +475,17 @@ def test_a_squeezed_packet_a_few_symbols_off_is_list_decoded_from_its_sequential
     assert without.found == 2 and without.exact == 1 and without.symbol_errors > 10
 
 
+def _as_is_and_patched(seed: int, key: str, vibration: str, module: object, name: str, value: object,
+                       monkeypatch: pytest.MonkeyPatch) -> tuple[CommsResult, CommsResult]:
+    """A randomized motion scene (2 packets) decoded as it is, then with ``module.name`` set
+    to ``value`` (list decoding on in both)."""
+    from iscd.eval.suites import MOTION_CASES, motion_cfg
+
+    case = next(c for c in MOTION_CASES if c.key == key)
+    cfg, _ = motion_cfg(default_config(), case, seed, scene={"vibration_model": vibration}, randomize=True)
+    return _decode_twice(cfg, DIVERSITY, module, name, value, monkeypatch)
+
+
 def test_a_squeezed_packet_is_decoded_by_the_sequential_attempts_survivors(monkeypatch: pytest.MonkeyPatch) -> None:
     """Seed 2145744630 (set 57001, one LED at 100 km/h, 0.3 px smooth vibration) with the
     receiver as it is (the LED followed in the background's frame): the second packet's
@@ -471,16 +495,8 @@ def test_a_squeezed_packet_is_decoded_by_the_sequential_attempts_survivors(monke
     ``BEAM`` survivors (per-survivor processing, session 27) that attempt passes its CRC:
     both packets bit-exact."""
     from iscd.decode.comms import demod
-    from iscd.eval.suites import MOTION_CASES, motion_cfg
 
-    case = next(c for c in MOTION_CASES if c.key == "1led-100kmh-0.3px")
-    cfg, _ = motion_cfg(default_config(), case, 2145744630, scene={"vibration_model": "smooth"}, randomize=True)
-    (res,) = run_comms(cfg, [DIVERSITY], 2, block=16)
-    _check_delivery(res)
-    monkeypatch.setattr(demod, "BEAM", 1)
-    (one,) = run_comms(cfg, [DIVERSITY], 2, block=16)
-    print(f"survivors: exact {res.exact}, errors {res.symbol_errors}; one: exact {one.exact}, "
-          f"errors {one.symbol_errors}")
+    res, one = _as_is_and_patched(2145744630, "1led-100kmh-0.3px", "smooth", demod, "BEAM", 1, monkeypatch)
     assert res.exact == 2 and res.symbol_errors == 0
     assert one.found == 2 and one.exact == 1 and one.symbol_errors > 10
 
@@ -495,16 +511,9 @@ def test_a_squeezed_packet_is_list_decoded_from_the_survivors_own_decisions(monk
     as the alternative where the two differ), one flip passes the CRC: both packets
     bit-exact; listed from the final pass's, the second is lost."""
     from iscd.decode.comms import demod
-    from iscd.eval.suites import MOTION_CASES, motion_cfg
 
-    case = next(c for c in MOTION_CASES if c.key == "1led-100kmh-0.3px")
-    cfg, _ = motion_cfg(default_config(), case, 282473233, scene={"vibration_model": "smooth"}, randomize=True)
-    (res,) = run_comms(cfg, [DIVERSITY], 2, block=16)
-    _check_delivery(res)
-    monkeypatch.setattr(demod, "_survivors_own", lambda *a: None)
-    (final,) = run_comms(cfg, [DIVERSITY], 2, block=16)
-    print(f"own: exact {res.exact}, errors {res.symbol_errors}; final pass's: exact {final.exact}, "
-          f"errors {final.symbol_errors}")
+    res, final = _as_is_and_patched(282473233, "1led-100kmh-0.3px", "smooth", demod, "_survivors_own",
+                                    lambda *a: None, monkeypatch)
     assert res.exact == 2 and res.symbol_errors == 0
     assert final.found == 2 and final.exact == 1 and final.symbol_errors > 10
 
@@ -531,7 +540,12 @@ def test_a_failed_packet_is_tried_anchored_on_the_next_header(monkeypatch: pytes
     every attempt of demodulate_packet alike, while the true channel per 96 symbols decodes
     it. Demodulated once more with the channel tracked backwards from the second packet's
     header and training (demod.ANCHOR_RETRY, held by the assembler until those frames are
-    in), it is delivered bit-exact; without that attempt it is lost."""
+    in), it is delivered bit-exact; without that attempt it is lost. (Both without the
+    symbol-by-symbol attempt, which comes before it: since session 27's changes to that
+    attempt it delivers this packet too.)"""
+    from iscd.decode.comms import demod
+
+    monkeypatch.setattr(demod, "SEQUENTIAL_RETRY", False)
     res, without = _with_and_without("ANCHOR_RETRY", "1led-hdr-100kmh-0.3px", 1174170399, "bumps", DIVERSITY,
                                      monkeypatch)
     assert res.exact == 2 and res.symbol_errors == 0
@@ -543,7 +557,12 @@ def test_a_packet_a_symbol_off_is_list_decoded_under_its_crc(monkeypatch: pytest
     12): the first packet (100 -> 64 m) misses by one symbol, a weak decision one level off,
     in every attempt, the anchored one too (the true channel misses it as well). CRC-aided
     list decoding (listdecode.LIST_DECODE) finds it among the runner-ups of the least
-    reliable decisions: both packets bit-exact; without it the first is lost."""
+    reliable decisions: both packets bit-exact; without it the first is lost. (Both without
+    the symbol-by-symbol attempt: since session 27's changes to that attempt it delivers this
+    packet too.)"""
+    from iscd.decode.comms import demod
+
+    monkeypatch.setattr(demod, "SEQUENTIAL_RETRY", False)
     res, without = _with_and_without("listdecode.LIST_DECODE", "1led-hdr-100kmh-0.5px", 444861739, "bumps",
                                      DIVERSITY, monkeypatch)
     assert res.exact == 2 and res.symbol_errors == 0
