@@ -449,7 +449,10 @@ def _reader_affinities(left: Camera, right: Camera, **opts: object) -> tuple[lis
                 return ts if len(ts) == 2 else None
 
             readers = wait_until(both, 30.0, what="both reader threads")
-            time.sleep(0.05)  # each thread pins itself as it starts
+            # each reader pins itself before its first read: once both cameras have delivered
+            # a frame, their affinities are final (no wall-clock wait)
+            wait_until(lambda: (lambda st: st.frames_left > 0 and st.frames_right > 0)(acq.stats()),
+                       30.0, what="a frame from each camera")
             sets = [os.sched_getaffinity(t.native_id) for t in readers]
         finally:
             acq.stop()
