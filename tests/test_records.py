@@ -19,6 +19,9 @@ def test_to_json_order_and_extras() -> None:
     r = RangeRecord(tx=1, frame=7, t_s=0.007, z_m=30.5, disparity_px=10.2, sigma_m=0.03).to_json()
     assert list(r) == ["type", "tx", "frame", "t_s", "z_m", "disparity_px", "sigma_m"]
     assert check_record(r) == "range"
+    # the decoder's shortcut makes the same dict, keys in the same order
+    fast = RangeRecord.json_of(1, 7, 0.007, 30.5, 10.2, 0.03)
+    assert fast == r and list(fast) == list(r)
     p = PacketRecord(tx=0, frame=3, t_s=0.003, crc_ok=True, payload_hex="ab", levels=[1, 2],
                      extra={"ser_hint": 0.0}).to_json()
     assert list(p)[-1] == "ser_hint" and check_record(p) == "packet"

@@ -366,6 +366,7 @@ class StreamDecoder:
         self._shift_sum = np.zeros((2, 2))
         self._shift_n = 0
         self._followed: list[np.ndarray | None] = [None, None]
+        self._motion_memo: list[Any] = [None, None]  # _grid_motion's per camera
         """per camera, the LED centres (N, 2) px refined in the last decoded frame"""
         self._lit_light: np.ndarray | None = None
         self._lum_floor: list[np.ndarray | None] = [None, None]
@@ -666,10 +667,9 @@ class StreamDecoder:
         res = self.ranger.measure(rl, rr, tr.left, tr.right)
         z, dsp, sg = res.z_m.tolist(), res.disparity_px.tolist(), res.sigma_m.tolist()
         fid, ts = frame_ids.tolist(), t_s.tolist()
-        for k, i in enumerate(ranged.tolist()):
-            if math.isfinite(z[k]):
-                records.append(RangeRecord(tx=self.tx_index, frame=fid[i], t_s=ts[i], z_m=z[k],
-                                           disparity_px=dsp[k], sigma_m=sg[k]).to_json())
+        tx, json_of, isfinite = self.tx_index, RangeRecord.json_of, math.isfinite
+        records = [json_of(tx, fid[i], ts[i], z[k], dsp[k], sg[k])
+                   for k, i in enumerate(ranged.tolist()) if isfinite(z[k])]
         self.counters["ranges"] += int(np.isfinite(res.z_m).sum())
         if self.kalman is not None:
             records += self._filtered(frame_ids[ranged], t_s[ranged], res.z_m, res.sigma_m)
@@ -950,16 +950,34 @@ class StreamDecoder:
         ids = np.asarray(frame_ids, dtype=np.float64)
         if tr.prev is None or not tr.fit_frame > tr.prev_frame:
             return np.broadcast_to(base, (ids.size,) + base.shape)
-        prev = tr.prev[side]
-        dt = tr.fit_frame - tr.prev_frame
+        o, v_o, v_p, grid = self._grid_motion(side)
         horizon = self.MOTION_HORIZON * self.settings.track_every_frames
         ahead = np.clip(ids - tr.fit_frame, -horizon, horizon)[:, None]  # (F, 1)
-        v_o = (np.asarray(fit.origin) - np.asarray(prev.origin)) / dt  # px / frame
-        v_p = (fit.pitch_px - prev.pitch_px) / dt
-        grid = (base - np.asarray(fit.origin)) / fit.pitch_px if fit.pitch_px > 0 else np.zeros_like(base)
-        origin = np.asarray(fit.origin)[None, :] + ahead * v_o[None, :]  # (F, 2)
+        origin = o[None, :] + ahead * v_o[None, :]  # (F, 2)
         pitch = fit.pitch_px + ahead * v_p  # (F, 1)
         return origin[:, None, :] + grid[None] * pitch[:, :, None]
+
+    def _grid_motion(self, side: int) -> tuple[np.ndarray, np.ndarray, float, np.ndarray]:
+        """:meth:`led_centres`' terms of camera ``side`` that change only with the fits: the
+        origin (2,) px, its rate (2,) px / frame, the pitch's rate px / frame and the LEDs'
+        grid positions (N, 2) in pitches from the origin; kept until a fit or its frame
+        changes (the fits are frozen; the decoder asks four times a block)."""
+        tr = self.track
+        assert tr is not None and tr.prev is not None
+        fit, prev = (tr.left, tr.prev[0]) if side == 0 else (tr.right, tr.prev[1])
+        key = (fit, prev, tr.fit_frame, tr.prev_frame)
+        got = self._motion_memo[side]
+        if got is not None and all(a is b or a == b for a, b in zip(got[0], key)):
+            return got[1]
+        dt = tr.fit_frame - tr.prev_frame
+        o = np.asarray(fit.origin)
+        v_o = (o - np.asarray(prev.origin)) / dt  # px / frame
+        v_p = (fit.pitch_px - prev.pitch_px) / dt
+        base = fit.centers
+        grid = (base - o) / fit.pitch_px if fit.pitch_px > 0 else np.zeros_like(base)
+        terms = (o, v_o, v_p, grid)
+        self._motion_memo[side] = (key, terms)
+        return terms
 
     def _luminance(self, frame_ids: np.ndarray, left: np.ndarray, right: np.ndarray
                    ) -> tuple[np.ndarray, np.ndarray]:
@@ -986,9 +1004,10 @@ class StreamDecoder:
             # no motion that goes on (a bump at 40 km/h: fits 1.9 px apart, carried on
             # 5 px past spots that had swung back, and the last fit itself 3.1 px from
             # them; restarted there, following lost the LED for a block)
-            if prev is not None and prev.shape == first.shape[1:] and \
-                    min(float(np.abs(prev.mean(0) - first[0].mean(0)).max()),
-                        float(np.abs(prev.mean(0) - np.asarray(fit.centers).mean(0)).max()),
+            held = prev.mean(0) if prev is not None and prev.shape == first.shape[1:] else None
+            if held is not None and \
+                    min(float(np.abs(held - first[0].mean(0)).max()),
+                        float(np.abs(held - np.asarray(fit.centers).mean(0)).max()),
                         self._still_distance(side, prev, fit)) <= limit:
                 start = prev  # where the LEDs were in the last frame
                 if self.rows * self.cols > 1:
