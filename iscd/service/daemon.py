@@ -196,7 +196,8 @@ class Daemon:
             if os.environ.get("ISCD_PROFILE"):  # cProfile of the frame loop, written at the end
                 import cProfile
 
-                _prof = cProfile.Profile(time.process_time)  # CPU time: what the loop costs, not its waits
+                # this thread's CPU time: what the loop costs, not its waits nor the other threads'
+                _prof = cProfile.Profile(time.thread_time)
                 _prof.enable()
             self._loop(run)
             if _prof is not None:
