@@ -124,10 +124,24 @@ def _jsonable(rec: dict[str, Any]) -> dict[str, Any]:
     return out
 
 
+def _mean0(a: np.ndarray) -> np.ndarray:
+    """``a.mean(0)`` of a float64 array, the same value (numpy's mean is this sum and division)
+    without its Python wrapper (the decoder takes a dozen a block)."""
+    return np.add.reduce(a, 0) / a.shape[0]
+
+
 def _spread(centres: np.ndarray) -> float:
     """RMS distance of points (N, 2) from their mean, px (0 for one point)."""
     c = np.asarray(centres, dtype=np.float64)
-    return float(np.sqrt(((c - c.mean(0)) ** 2).sum(1).mean())) if c.shape[0] > 1 else 0.0
+    if c.shape[0] <= 1:
+        return 0.0
+    d = c - _mean0(c)
+    return float(np.sqrt(np.add.reduce(np.add.reduce(d * d, 1)) / c.shape[0]))  # (d ** 2).sum(1).mean()
+
+
+def _extent(xy: np.ndarray) -> tuple[list[float], list[float]]:
+    """The least and largest (x, y) of points (N, 2), px."""
+    return xy.min(0).tolist(), xy.max(0).tolist()
 
 
 def _clip(b: tuple[int, int, int, int], W: int, H: int) -> tuple[int, int, int, int]:
@@ -367,6 +381,7 @@ class StreamDecoder:
         self._shift_n = 0
         self._followed: list[np.ndarray | None] = [None, None]
         self._motion_memo: list[Any] = [None, None]  # _grid_motion's per camera
+        self._extent_memo: list[Any] = [None, None]  # _reach_window's: (fit, extent of its centres)
         """per camera, the LED centres (N, 2) px refined in the last decoded frame"""
         self._lit_light: np.ndarray | None = None
         self._lum_floor: list[np.ndarray | None] = [None, None]
@@ -750,8 +765,15 @@ class StreamDecoder:
         assert tr is not None
         n = len(frame_ids)
         records: list[dict] = []
-        prev = np.concatenate([[self._last_id if self._last_id is not None else frame_ids[0] - 1], frame_ids[:-1]])
-        cuts = np.flatnonzero(frame_ids - prev > self.settings.reset_gap_frames)
+        first, last = int(frame_ids[0]), int(frame_ids[-1])
+        if last - first == n - 1 and (n < 3 or bool((frame_ids[1:] > frame_ids[:-1]).all())) \
+                and (self._last_id is None or first - self._last_id <= self.settings.reset_gap_frames):
+            # consecutive ids (the usual block): no gap in it
+            cuts = np.zeros(0, np.int64)
+        else:
+            prev = np.concatenate([[self._last_id if self._last_id is not None else frame_ids[0] - 1],
+                                   frame_ids[:-1]])
+            cuts = np.flatnonzero(frame_ids - prev > self.settings.reset_gap_frames)
         bounds = [0, *cuts.tolist(), n]
         for a, b in zip(bounds[:-1], bounds[1:]):
             if a in cuts:
@@ -921,8 +943,8 @@ class StreamDecoder:
         tr = self.track
         if tr is None or tr.fit_shift is None or self._stab_last is None or not self.settings.stabilized_following:
             return math.inf
-        a = prev.mean(0) - self._stab_last[side]
-        b = np.asarray(fit.centers).mean(0) - tr.fit_shift[side]
+        a = _mean0(prev) - self._stab_last[side]
+        b = _mean0(np.asarray(fit.centers)) - tr.fit_shift[side]
         return float(np.abs(a - b).max())
 
     def _fit_swing(self, side: int) -> float:
@@ -934,8 +956,8 @@ class StreamDecoder:
         tr = self.track
         if tr is None or tr.prev is None:
             return 0.0
-        fit = tr.left if side == 0 else tr.right
-        return float(np.abs(np.asarray(fit.origin) - np.asarray(tr.prev[side].origin)).max())
+        fo, po = (tr.left if side == 0 else tr.right).origin, tr.prev[side].origin
+        return float(max(abs(fo[0] - po[0]), abs(fo[1] - po[1])))
 
     def led_centres(self, side: int, frame_ids: np.ndarray) -> np.ndarray:
         """(F, N, 2) LED centres px in each frame from the grid fits alone: the last fit
@@ -950,33 +972,45 @@ class StreamDecoder:
         ids = np.asarray(frame_ids, dtype=np.float64)
         if tr.prev is None or not tr.fit_frame > tr.prev_frame:
             return np.broadcast_to(base, (ids.size,) + base.shape)
-        o, v_o, v_p, grid = self._grid_motion(side)
+        o, v_o, v_p, grid = self._grid_motion(side)[:4]
         horizon = self.MOTION_HORIZON * self.settings.track_every_frames
+        if ids.size <= 2:  # the decoder's own asks (a block's first frame, the reach): per
+            # frame in scalars, the same operations on the same float64 values as below
+            out = np.empty((ids.size,) + grid.shape)
+            for f, i in enumerate(ids.tolist()):
+                a = min(max(i - tr.fit_frame, -horizon), horizon)
+                np.multiply(grid, fit.pitch_px + a * v_p, out=out[f])
+                out[f] += np.array([o[0] + a * v_o[0], o[1] + a * v_o[1]])
+            return out
         ahead = np.clip(ids - tr.fit_frame, -horizon, horizon)[:, None]  # (F, 1)
-        origin = o[None, :] + ahead * v_o[None, :]  # (F, 2)
+        origin = np.array(o)[None, :] + ahead * np.array(v_o)[None, :]  # (F, 2)
         pitch = fit.pitch_px + ahead * v_p  # (F, 1)
         return origin[:, None, :] + grid[None] * pitch[:, :, None]
 
-    def _grid_motion(self, side: int) -> tuple[np.ndarray, np.ndarray, float, np.ndarray]:
+    def _grid_motion(self, side: int) -> tuple[tuple[float, float], tuple[float, float], float, np.ndarray,
+                                               tuple[float, float], tuple[float, float]]:
         """:meth:`led_centres`' terms of camera ``side`` that change only with the fits: the
-        origin (2,) px, its rate (2,) px / frame, the pitch's rate px / frame and the LEDs'
-        grid positions (N, 2) in pitches from the origin; kept until a fit or its frame
-        changes (the fits are frozen; the decoder asks four times a block)."""
+        origin (2,) px, its rate (2,) px / frame, the pitch's rate px / frame, the LEDs'
+        grid positions (N, 2) in pitches from the origin and their least and largest (2,)
+        (:meth:`_reach_window`); kept until a fit or its frame changes (the fits are
+        frozen; the decoder asks four times a block)."""
         tr = self.track
         assert tr is not None and tr.prev is not None
         fit, prev = (tr.left, tr.prev[0]) if side == 0 else (tr.right, tr.prev[1])
-        key = (fit, prev, tr.fit_frame, tr.prev_frame)
         got = self._motion_memo[side]
-        if got is not None and all(a is b or a == b for a, b in zip(got[0], key)):
-            return got[1]
+        if got is not None and got[0] is fit and got[1] is prev and got[2] == tr.fit_frame \
+                and got[3] == tr.prev_frame:
+            return got[4]
         dt = tr.fit_frame - tr.prev_frame
         o = np.asarray(fit.origin)
         v_o = (o - np.asarray(prev.origin)) / dt  # px / frame
         v_p = (fit.pitch_px - prev.pitch_px) / dt
         base = fit.centers
         grid = (base - o) / fit.pitch_px if fit.pitch_px > 0 else np.zeros_like(base)
-        terms = (o, v_o, v_p, grid)
-        self._motion_memo[side] = (key, terms)
+        # (the scalars as Python floats: the same float64 arithmetic, without numpy's per-scalar cost)
+        terms = (tuple(o.tolist()), tuple(v_o.tolist()), float(v_p), grid, tuple(grid.min(0).tolist()),
+                 tuple(grid.max(0).tolist()))
+        self._motion_memo[side] = (fit, prev, tr.fit_frame, tr.prev_frame, terms)
         return terms
 
     def _luminance(self, frame_ids: np.ndarray, left: np.ndarray, right: np.ndarray
@@ -1004,10 +1038,10 @@ class StreamDecoder:
             # no motion that goes on (a bump at 40 km/h: fits 1.9 px apart, carried on
             # 5 px past spots that had swung back, and the last fit itself 3.1 px from
             # them; restarted there, following lost the LED for a block)
-            held = prev.mean(0) if prev is not None and prev.shape == first.shape[1:] else None
+            held = _mean0(prev) if prev is not None and prev.shape == first.shape[1:] else None
             if held is not None and \
-                    min(float(np.abs(held - first[0].mean(0)).max()),
-                        float(np.abs(held - np.asarray(fit.centers).mean(0)).max()),
+                    min(float(np.abs(held - _mean0(first[0])).max()),
+                        float(np.abs(held - _mean0(np.asarray(fit.centers))).max()),
                         self._still_distance(side, prev, fit)) <= limit:
                 start = prev  # where the LEDs were in the last frame
                 if self.rows * self.cols > 1:
@@ -1272,16 +1306,45 @@ class StreamDecoder:
         tr = self.track
         assert tr is not None
         fit = tr.left if side == 0 else tr.right
-        pts = [fit.centers]
+        memo = self._extent_memo[side]
+        if memo is None or memo[0] is not fit:
+            memo = self._extent_memo[side] = (fit, _extent(fit.centers))
+        lo, hi = memo[1]
         if self._followed[side] is not None:
-            pts.append(self._followed[side])
+            f_lo, f_hi = _extent(self._followed[side])
+            lo, hi = [min(a, b) for a, b in zip(lo, f_lo)], [max(a, b) for a, b in zip(hi, f_hi)]
         if self._last_id is not None:
-            ahead = np.array([self._last_id + 1, self._last_id + 2 * self.settings.track_every_frames])
-            pts.append(self.led_centres(side, ahead).reshape(-1, 2))
-        xy = np.concatenate(pts)
+            ahead = [self._last_id + 1, self._last_id + 2 * self.settings.track_every_frames]
+            for p_lo, p_hi in self._predicted_extents(side, ahead):
+                lo, hi = [min(a, b) for a, b in zip(lo, p_lo)], [max(a, b) for a, b in zip(hi, p_hi)]
         r = self._reach
-        return _clip((int(np.floor(xy[:, 0].min())) - r, int(np.floor(xy[:, 1].min())) - r,
-                      int(np.ceil(xy[:, 0].max())) + r + 1, int(np.ceil(xy[:, 1].max())) + r + 1), W, H)
+        return _clip((math.floor(lo[0]) - r, math.floor(lo[1]) - r,
+                      math.ceil(hi[0]) + r + 1, math.ceil(hi[1]) + r + 1), W, H)
+
+    def _predicted_extents(self, side: int, frame_ids: list[int]
+                           ) -> list[tuple[list[float], list[float]]]:
+        """Per frame the least and largest (x, y) of :meth:`led_centres` px, the same values
+        (the centres are ``origin + grid * pitch``, each rounding monotonic in the grid
+        position while the pitch is positive: the extremes are those of the grid's extremes;
+        otherwise from the centres themselves)."""
+        tr = self.track
+        assert tr is not None
+        fit = tr.left if side == 0 else tr.right
+        if tr.prev is None or not tr.fit_frame > tr.prev_frame:
+            return [_extent(fit.centers)] * len(frame_ids)
+        o, v_o, v_p, _, g_lo, g_hi = self._grid_motion(side)
+        horizon = self.MOTION_HORIZON * self.settings.track_every_frames
+        out = []
+        for i in frame_ids:
+            a = min(max(float(i) - tr.fit_frame, -horizon), horizon)
+            pitch = fit.pitch_px + a * v_p
+            if not pitch > 0:
+                out.append(_extent(self.led_centres(side, np.array([i]))[0]))
+                continue
+            org = (o[0] + a * v_o[0], o[1] + a * v_o[1])
+            out.append(([g_lo[0] * pitch + org[0], g_lo[1] * pitch + org[1]],
+                        [g_hi[0] * pitch + org[0], g_hi[1] * pitch + org[1]]))
+        return out
 
     # ------------------------------------------------------------------ acquisition/tracking
     def _acquire(self, frame_ids: np.ndarray, t_s: np.ndarray, left: np.ndarray | None, right: np.ndarray | None,

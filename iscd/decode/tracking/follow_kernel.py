@@ -23,6 +23,7 @@ import math
 import numpy as np
 
 from iscd.core.jit import njit
+from iscd.decode.tracking.luminance import LIT_SHARE, patch_half
 
 
 @njit(fastmath={"reassoc", "contract", "nsz", "arcp"})
@@ -841,14 +842,13 @@ def follow_and_measure_compiled(frames: list[np.ndarray], starts: list[np.ndarra
     ----------
     Dissertation, eq. (3.10) (with Gaussian weights).
     """
-    from iscd.decode.tracking.luminance import LIT_SHARE, patch_half
-
     lit_share = LIT_SHARE if lit_share is None else lit_share
 
     if len(frames) != 2:
         raise ValueError(f"follow_and_measure_compiled takes two cameras, got {len(frames)}")
     # writable C-contiguous arguments (a read-only array is another type to Numba)
-    L, R = (np.require(f, requirements=["C", "W"]) for f in frames)
+    L, R = (f if isinstance(f, np.ndarray) and f.flags.c_contiguous and f.flags.writeable
+            else np.require(f, requirements=["C", "W"]) for f in frames)
     if L.dtype != R.dtype:
         R = R.astype(L.dtype)
     F = L.shape[0]
@@ -863,13 +863,12 @@ def follow_and_measure_compiled(frames: list[np.ndarray], starts: list[np.ndarra
     st[:F] = np.asarray(starts[0], dtype=np.float64)
     st[F:] = np.asarray(starts[1], dtype=np.float64)
     N = st.shape[1]
-    sel = np.arange(N, dtype=np.int64) if use is None else np.asarray(use, dtype=np.int64)
-    ref = np.full(2, -1.0) if lit_light is None else np.asarray(lit_light, dtype=np.float64).reshape(2)
+    sel = np.arange(N, dtype=np.int64) if use is None else np.require(
+        np.asarray(use, dtype=np.int64), requirements=["C", "W"])
+    ref = np.array([-1.0, -1.0]) if lit_light is None else np.array(lit_light, dtype=np.float64).reshape(2)
     c = np.empty_like(st)
     lum = np.empty((2 * F, N))
     light = np.empty(2)
-    sel = np.require(sel, requirements=["C", "W"])
-    ref = np.require(ref, requirements=["C", "W"])
     if backgrounds is None:
         has_bg, bgs, sts, blk, rise = False, (_NO_BG, _NO_BG), (_NO_STAMP, _NO_STAMP), 0, 0.0
     else:

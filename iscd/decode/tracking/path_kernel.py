@@ -247,13 +247,13 @@ def path_block_compiled(centres: list[np.ndarray], lums: list[np.ndarray], start
     change : float
         Largest distance of those from ``centres``, px.
     """
-    c = np.ascontiguousarray(np.stack(centres), dtype=np.float64)
+    c = np.stack(centres).astype(np.float64, copy=False)  # (a new C-contiguous array)
     G, F, N = c.shape[:3]
-    lum = np.ascontiguousarray(np.stack(lums), dtype=np.float64)
+    lum = np.stack(lums).astype(np.float64, copy=False)
     cur = np.empty_like(c)
     for g in range(G):
         cur[g] = starts[g]
-    floor = np.ascontiguousarray(np.stack(floors), dtype=np.float64)
+    floor = np.stack(floors).astype(np.float64, copy=False)
     anc = np.zeros((G, N, 2))
     has = np.zeros(G, np.bool_)
     for g, a in enumerate(anchors):

@@ -348,17 +348,16 @@ def follow_path(follow: Callable[..., tuple[list[np.ndarray], list[np.ndarray]]]
     PathResult
     """
     F = frames[0].shape[0]
-    cur = [np.broadcast_to(np.asarray(s, np.float64), (F,) + np.shape(s)[-2:]) for s in starts]
+    # (the compiled path step broadcasts (N, 2) starts itself)
+    cur = list(starts) if compiled else [np.broadcast_to(np.asarray(s, np.float64), (F,) + np.shape(s)[-2:])
+                                         for s in starts]
     info: dict = {}
     cs, lums = follow(frames, starts, size, sigmas, use, lit_light=lit_light, info=info,
                       backgrounds=backgrounds, spot_radius_px=spot_radius_px, subtract=subtract)
     n = len(frames)
     floors = [held_floor(floors[k], lums[k]) for k in range(n)]
     anchors = [a if a is not None and np.shape(a) == cs[k].shape[1:] else None for k, a in enumerate(anchors)]
-    if compiled:
-        from iscd.decode.tracking.path_kernel import path_block_compiled as block
-    else:
-        block = path_block
+    block = _path_block_compiled() if compiled else path_block
     off = None if offsets is None else [np.asarray(o, np.float64).reshape(F, 1, 2) for o in offsets]
     ran = 0
     while True:
@@ -394,6 +393,18 @@ def follow_path(follow: Callable[..., tuple[list[np.ndarray], list[np.ndarray]]]
                       passes=ran, floors=floors, info=info)
 
 
+_COMPILED_BLOCK: list[Callable[..., tuple]] = []
+
+
+def _path_block_compiled() -> Callable[..., tuple]:
+    """:func:`iscd.decode.tracking.path_kernel.path_block_compiled`, imported once (on first use:
+    the kernels' module loads Numba)."""
+    if not _COMPILED_BLOCK:
+        from iscd.decode.tracking.path_kernel import path_block_compiled
+        _COMPILED_BLOCK.append(path_block_compiled)
+    return _COMPILED_BLOCK[0]
+
+
 def held_floor(old: np.ndarray | None, lum: np.ndarray, rise_dn: float = 1.0) -> np.ndarray:
     """The luminance of a dark LED, held across blocks: the least of this block's and the
     last floor raised by ``rise_dn`` (so a background that brightens is followed).
@@ -412,5 +423,6 @@ def held_floor(old: np.ndarray | None, lum: np.ndarray, rise_dn: float = 1.0) ->
     ndarray
         (N,) DN.
     """
-    low = np.nanmin(np.asarray(lum, np.float64), axis=0) if len(lum) else np.full(np.shape(lum)[1:], np.inf)
+    # (fmin: nanmin's values, NaN only where a column is all NaN, without its overhead and warning)
+    low = np.fmin.reduce(np.asarray(lum, np.float64), axis=0) if len(lum) else np.full(np.shape(lum)[1:], np.inf)
     return low if old is None else np.minimum(old + rise_dn, low)
