@@ -1622,7 +1622,7 @@ class StreamDecoder:
             (ax0, ay0, ax1, ay1), (bx0, by0, bx1, by1) = self._win
             self._blk_l.append(np.array(left[:, ay0:ay1, ax0:ax1]))
             self._blk_r.append(np.array(right[:, by0:by1, bx0:bx1]))
-        self._ids_sum += float(np.sum(frame_ids, dtype=np.float64))
+        self._ids_sum += float(np.add.reduce(frame_ids, dtype=np.float64))  # (np.sum's own reduction)
         bs, self._block_shifts = self._block_shifts, None
         if bs is not None and bs[0].shape[0] == len(frame_ids) == bs[1].shape[0]:
             self._shift_sum += np.stack([bs[0].sum(0), bs[1].sum(0)])
@@ -1701,7 +1701,8 @@ class StreamDecoder:
         fol = self._followed[side]
         if fol is None or fit.rows * fit.cols < 2 or fol.shape != (fit.rows * fit.cols, 2):
             return fit
-        off = float(np.sqrt(((fit.centers - fol) ** 2).sum(1).mean()))
+        d = fit.centers - fol
+        off = float(np.sqrt(np.add.reduce(np.add.reduce(d * d, 1)) / d.shape[0]))  # ((c - f) ** 2).sum(1).mean()
         if off <= self.FOLLOW_TRUST_PX:
             return fit
         if off > self.FOLLOW_LOST_PITCH * fit.pitch_px:

@@ -151,7 +151,9 @@ class LightAccumulator:
                 raise ValueError(f"window {self.window} outside frames of {fr.shape[2]}x{fr.shape[1]}")
             if self._min is None or self._min.dtype != fr.dtype:
                 self._min = np.full(self._sum.shape, np.iinfo(fr.dtype).max, fr.dtype)
-            _fold(np.require(fr, requirements=["C", "W"]), x0, y0, self._sum, self._min)
+            fl = fr.flags
+            _fold(fr if fl.c_contiguous and fl.writeable else np.require(fr, requirements=["C", "W"]),
+                  x0, y0, self._sum, self._min)
         self.frames += fr.shape[0]
 
     def light_map(self) -> np.ndarray:
