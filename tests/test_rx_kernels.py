@@ -225,3 +225,29 @@ def test_demodulate_packet_same_decisions() -> None:
     assert got.p == pytest.approx(ref.p, rel=1e-9)
     _margins_close(got.margins, ref.margins)
     assert (got.levels.astype(np.int64) - 1 == truth[air.data_offset:]).mean() > 0.99
+
+
+def test_camera_tops_is_nanmax_of_cameras_with_a_finite_value() -> None:
+    """Each camera's brightest value (the light match's cap): NaN skipped, infinities kept,
+    NaN for a camera without any finite value (all NaN, all -inf, inf and NaN only, none)."""
+    from iscd.decode.comms.demod import _camera_tops
+
+    def loop(L: np.ndarray) -> np.ndarray:  # the specification, value by value
+        out = np.full(L.shape[0], np.nan)
+        for c in range(L.shape[0]):
+            v = L[c].ravel()
+            fin = np.isfinite(v)
+            if fin.any():
+                out[c] = np.max(v[~np.isnan(v)])
+        return out
+
+    rng = np.random.default_rng(0)
+    a = rng.random((5, 20, 4)) * 200
+    a[0, 3, 1] = np.inf  # with finite values: +inf is the top
+    a[1] = np.nan
+    a[1, 2, 2] = np.inf  # inf and NaN only: no finite value
+    a[2] = -np.inf
+    a[3, :5] = np.nan
+    for L in (a, np.zeros((2, 0, 3)), a[:, ::2, 1:]):
+        np.testing.assert_array_equal(_camera_tops(L), loop(L))
+    assert _camera_tops(a)[0] == np.inf and np.isnan(_camera_tops(a)[1:3]).all()
