@@ -91,6 +91,27 @@ def test_nothing_is_delivered_when_the_truth_is_not_on_the_list() -> None:
     assert list_decode(air, levels, margins, runner, positions=24) is None
 
 
+def test_a_wrong_decision_past_the_24_least_reliable_is_in_reach() -> None:
+    """The list is the likelihood order over every decision (``LIST_POSITIONS`` None): one
+    wrong decision ranked 30th by margin -- confident, but 29 others are weaker still -- is
+    found within the 256 candidates; with the depth cut of 24 positions (before session 28)
+    it was not, whatever the budget."""
+    rng = np.random.default_rng(28)
+    air = _air(1)
+    levels, margins, runner, sent, payload = _noisy_decisions(air, 1, rng)
+    flat = margins.reshape(-1)
+    wrong = int(np.flatnonzero(levels.reshape(-1) != sent.reshape(-1))[0])
+    others = np.setdiff1d(np.arange(flat.size), [wrong])
+    flat[others] = rng.uniform(40.0, 80.0, others.size)
+    weak = rng.choice(others, 29, replace=False)
+    flat[weak] = rng.uniform(12.0, 19.0, 29)  # 29 decisions weaker than the wrong one (any two: stronger)
+    flat[wrong] = 20.0
+    assert int((flat < flat[wrong]).sum()) == 29  # the wrong decision ranks 30th
+    got = list_decode(air, levels, margins, runner)
+    assert got is not None and got[1] == payload and got[2] == 1 and got[3] == 30
+    assert list_decode(air, levels, margins, runner, positions=24, candidates=20_000) is None
+
+
 def test_decisions_without_an_alternative_are_never_changed() -> None:
     air = _air(1)
     rng = np.random.default_rng(9)

@@ -9,8 +9,8 @@ decision's *margin* (:mod:`iscd.decode.comms.decide`: the cost gap to the runner
 the log-likelihood ratio of the two levels for the Gaussian model) says how much less
 likely the runner-up is; for independent decisions the summed margins of a set of
 symbols say how much less likely the packet with all of them changed is. So the sets of
-the ``positions`` least reliable decisions are enumerated in order of their summed margin
-(a best-first search over the sorted margins: from a set whose largest member is i, the
+the ``positions`` least reliable decisions (all of them by default) are enumerated in order
+of their summed margin (a best-first search over the sorted margins: from a set whose largest member is i, the
 set with i + 1 added and the set with i replaced by i + 1, which reaches every set once,
 never before a set of smaller sum) and each is checked by the CRC, at most ``candidates``
 of them.
@@ -52,8 +52,15 @@ LIST_CANDIDATES = 256
 """Candidate packets tried beyond the one as decided (each one more 2^-32 chance that a
 wrong payload passes the CRC)."""
 
-LIST_POSITIONS = 24
-"""How many of the least reliable decisions may be set to their runner-up."""
+LIST_POSITIONS: int | None = None
+"""How many of the least reliable decisions may be set to their runner-up; None: any of them
+(the list is then the ``candidates`` sets of least summed margin over all decisions, the
+likelihood order itself). Past about ``candidates`` positions a bound changes little: a set
+holding the k-th least reliable decision sums at least its margin, as the k sets of one
+decision before it do each. Before session 28 the 24 least reliable: a depth cut, not an
+integrity one (the candidates bound that), which left out a wrong decision ranked 26th that
+was one flip from the sent packet after 43 candidates (1419451072, 100 km/h engine
+vibration)."""
 
 
 def flip_sets(costs: np.ndarray, most: int) -> Iterator[tuple[int, ...]]:
@@ -118,7 +125,7 @@ def combine(a: tuple[np.ndarray, np.ndarray, np.ndarray], b: tuple[np.ndarray, n
 
 
 def list_decode(air: AirInterface, levels: np.ndarray, margins: np.ndarray, runner_up: np.ndarray,
-                *, candidates: int = LIST_CANDIDATES, positions: int = LIST_POSITIONS
+                *, candidates: int = LIST_CANDIDATES, positions: int | None = LIST_POSITIONS
                 ) -> tuple[np.ndarray, bytes, int, int] | None:
     """The most likely candidate packet, among the decided ``levels`` with sets of the
     ``positions`` least reliable decisions set to their runner-up, that passes the CRC.
@@ -135,8 +142,8 @@ def list_decode(air: AirInterface, levels: np.ndarray, margins: np.ndarray, runn
         (F, N) the runner-up levels 1..M.
     candidates : int
         Most candidates tried (keyword-only).
-    positions : int
-        Decisions that may change: the least reliable ones (keyword-only).
+    positions : int or None
+        Decisions that may change: the least reliable ones (keyword-only; None: any).
 
     Returns
     -------
@@ -160,7 +167,7 @@ def list_decode(air: AirInterface, levels: np.ndarray, margins: np.ndarray, runn
     usable = np.flatnonzero(np.isfinite(m) & (alt != flat))
     if usable.size == 0:
         return None
-    order = usable[np.argsort(m[usable], kind="stable")[:positions]]
+    order = usable[np.argsort(m[usable], kind="stable")[:positions]]  # ([:None]: all)
     costs = m[order]
     tried = 0
     for sub in flip_sets(costs, candidates):
