@@ -972,20 +972,25 @@ class StreamDecoder:
         ids = np.asarray(frame_ids, dtype=np.float64)
         if tr.prev is None or not tr.fit_frame > tr.prev_frame:
             return np.broadcast_to(base, (ids.size,) + base.shape)
-        o, v_o, v_p, grid = self._grid_motion(side)[:4]
+        grid = self._grid_motion(side)[3]
+        out = np.empty((ids.size,) + grid.shape)
+        for f, i in enumerate(ids.tolist()):  # (one or two frames a call, but for a restart)
+            ox, oy, pitch = self._grid_at(side, i)
+            np.multiply(grid, pitch, out=out[f])
+            out[f] += np.array([ox, oy])
+        return out
+
+    def _grid_at(self, side: int, frame_id: float) -> tuple[float, float, float]:
+        """Camera ``side``'s grid carried to frame ``frame_id`` (the last fit moved on at the
+        rate between the last two fits, at most :attr:`MOTION_HORIZON` intervals ahead):
+        its origin x, y and pitch, px. Needs two fits (``track.prev``)."""
+        tr = self.track
+        assert tr is not None
+        o, v_o, v_p = self._grid_motion(side)[:3]
         horizon = self.MOTION_HORIZON * self.settings.track_every_frames
-        if ids.size <= 2:  # the decoder's own asks (a block's first frame, the reach): per
-            # frame in scalars, the same operations on the same float64 values as below
-            out = np.empty((ids.size,) + grid.shape)
-            for f, i in enumerate(ids.tolist()):
-                a = min(max(i - tr.fit_frame, -horizon), horizon)
-                np.multiply(grid, fit.pitch_px + a * v_p, out=out[f])
-                out[f] += np.array([o[0] + a * v_o[0], o[1] + a * v_o[1]])
-            return out
-        ahead = np.clip(ids - tr.fit_frame, -horizon, horizon)[:, None]  # (F, 1)
-        origin = np.array(o)[None, :] + ahead * np.array(v_o)[None, :]  # (F, 2)
-        pitch = fit.pitch_px + ahead * v_p  # (F, 1)
-        return origin[:, None, :] + grid[None] * pitch[:, :, None]
+        a = min(max(frame_id - tr.fit_frame, -horizon), horizon)
+        pitch = (tr.left if side == 0 else tr.right).pitch_px + a * v_p
+        return o[0] + a * v_o[0], o[1] + a * v_o[1], pitch
 
     def _grid_motion(self, side: int) -> tuple[tuple[float, float], tuple[float, float], float, np.ndarray,
                                                tuple[float, float], tuple[float, float]]:
@@ -1332,18 +1337,15 @@ class StreamDecoder:
         fit = tr.left if side == 0 else tr.right
         if tr.prev is None or not tr.fit_frame > tr.prev_frame:
             return [_extent(fit.centers)] * len(frame_ids)
-        o, v_o, v_p, _, g_lo, g_hi = self._grid_motion(side)
-        horizon = self.MOTION_HORIZON * self.settings.track_every_frames
+        g_lo, g_hi = self._grid_motion(side)[4:]
         out = []
         for i in frame_ids:
-            a = min(max(float(i) - tr.fit_frame, -horizon), horizon)
-            pitch = fit.pitch_px + a * v_p
+            ox, oy, pitch = self._grid_at(side, float(i))
             if not pitch > 0:
                 out.append(_extent(self.led_centres(side, np.array([i]))[0]))
                 continue
-            org = (o[0] + a * v_o[0], o[1] + a * v_o[1])
-            out.append(([g_lo[0] * pitch + org[0], g_lo[1] * pitch + org[1]],
-                        [g_hi[0] * pitch + org[0], g_hi[1] * pitch + org[1]]))
+            out.append(([g_lo[0] * pitch + ox, g_lo[1] * pitch + oy],
+                        [g_hi[0] * pitch + ox, g_hi[1] * pitch + oy]))
         return out
 
     # ------------------------------------------------------------------ acquisition/tracking

@@ -348,16 +348,17 @@ def follow_path(follow: Callable[..., tuple[list[np.ndarray], list[np.ndarray]]]
     PathResult
     """
     F = frames[0].shape[0]
-    # (the compiled path step broadcasts (N, 2) starts itself)
-    cur = list(starts) if compiled else [np.broadcast_to(np.asarray(s, np.float64), (F,) + np.shape(s)[-2:])
-                                         for s in starts]
+    cur = list(starts)  # ((N, 2) starts: the path steps broadcast them over the frames)
     info: dict = {}
     cs, lums = follow(frames, starts, size, sigmas, use, lit_light=lit_light, info=info,
                       backgrounds=backgrounds, spot_radius_px=spot_radius_px, subtract=subtract)
     n = len(frames)
     floors = [held_floor(floors[k], lums[k]) for k in range(n)]
     anchors = [a if a is not None and np.shape(a) == cs[k].shape[1:] else None for k, a in enumerate(anchors)]
-    block = _path_block_compiled() if compiled else path_block
+    if compiled:
+        from iscd.decode.tracking.path_kernel import path_block_compiled as block
+    else:
+        block = path_block
     off = None if offsets is None else [np.asarray(o, np.float64).reshape(F, 1, 2) for o in offsets]
     ran = 0
     while True:
@@ -391,18 +392,6 @@ def follow_path(follow: Callable[..., tuple[list[np.ndarray], list[np.ndarray]]]
     return PathResult(centres=list(cs), luminance=list(lums),
                       path_end=[p[-1].copy() for p in paths] if off is None else path_end,
                       passes=ran, floors=floors, info=info)
-
-
-_COMPILED_BLOCK: list[Callable[..., tuple]] = []
-
-
-def _path_block_compiled() -> Callable[..., tuple]:
-    """:func:`iscd.decode.tracking.path_kernel.path_block_compiled`, imported once (on first use:
-    the kernels' module loads Numba)."""
-    if not _COMPILED_BLOCK:
-        from iscd.decode.tracking.path_kernel import path_block_compiled
-        _COMPILED_BLOCK.append(path_block_compiled)
-    return _COMPILED_BLOCK[0]
 
 
 def held_floor(old: np.ndarray | None, lum: np.ndarray, rise_dn: float = 1.0) -> np.ndarray:
