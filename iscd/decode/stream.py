@@ -318,6 +318,7 @@ class StreamDecoder:
         self.rx_cfg = receiver_config(cfg)
         self.fps = cfg.camera.fps
         self.packet_frames = self.air.period_symbols * self.fps / cfg.transmitter.symbol_rate_hz
+        self.symbol_frames = self.fps / cfg.transmitter.symbol_rate_hz  # acquisition's pace test
         self.track: _Track | None = None
         self.excluded: list[tuple[tuple[int, int, int, int], int]] = []
         """(bbox, until frame id) of rejected candidates."""
@@ -1491,7 +1492,8 @@ class StreamDecoder:
             # the left camera's best candidate; one that the right camera does not confirm
             # is left out and the next one tried on the same frames (so that a packet whose
             # header is in them is not lost to a distractor)
-            fl = detect_auto(L, exclude=exclude) if auto else detect_array(L, *shape, exclude=exclude)
+            fl = (detect_auto(L, exclude=exclude, symbol_frames=self.symbol_frames) if auto
+                  else detect_array(L, *shape, exclude=exclude, symbol_frames=self.symbol_frames))
             if fl is None:
                 return None
             if auto and self.allowed_shapes is not None and (fl.rows, fl.cols) not in self.allowed_shapes:
@@ -1568,7 +1570,8 @@ class StreamDecoder:
         else:
             if (fl.rows, fl.cols) not in own_right:
                 own_right[(fl.rows, fl.cols)] = detect_array(R, fl.rows, fl.cols,
-                                                             exclude=exclude_right or None)
+                                                             exclude=exclude_right or None,
+                                                             symbol_frames=self.symbol_frames)
             fr = own_right[(fl.rows, fl.cols)]
         fr = match_stereo(fl, [fr], max_dy=max_dy) if fr is not None else None
         if fr is None:
@@ -1595,7 +1598,7 @@ class StreamDecoder:
             return None
         ex = [(b[0], b[1] - y0, b[2], b[3] - y0) for b in exclude_right]
         try:
-            fit = detect_array(R[:, y0:y1], fl.rows, fl.cols, exclude=ex or None)
+            fit = detect_array(R[:, y0:y1], fl.rows, fl.cols, exclude=ex or None, symbol_frames=self.symbol_frames)
         except ValueError:
             return None
         if fit is None:
