@@ -738,13 +738,14 @@ FAST_FLUX_FRACTION = 0.2
 for 500 symbols/s; rig vibration, 20-40 Hz engine vibration included, lies below it)."""
 
 MIN_FAST_FLUX_SHARE = 0.22
-"""Least :func:`fast_flux_share` of a one-LED candidate. Random symbols held for p frames
-put 0.61 of their variance above a fifth of the symbol rate (a sinc^2 spectrum); a light
-moved by rig vibration, little. Measured on the first 64 frames of 468 randomized motion
-scenes (13 seed sets x 3 vibration models, 1 LED, 40-100 km/h, 0.3-0.5 px): the LED
-0.30-0.83 (median 0.49; lowest at 100 m under 0.5 px), the textured background patches
-that outranked it in 3 of them 0.13-0.17 (their ``flux_modulation`` was 10^2-10^4: a
-background-subtracted mean flux near 0), other candidates 0.08-0.83."""
+"""Least :func:`fast_flux_share` of a one-LED candidate. Random symbols held for 2 frames
+put 0.61 of their variance above a fifth of the symbol rate (a cos^2 spectrum); a light
+moved by rig vibration, little. Measured on the first 64 frames of 540 randomized motion
+scenes (15 seed sets x 3 vibration models, 1 LED, 40-100 km/h, 0.3-0.5 px; the threshold
+set on 13 of the sets, the other two looked at after): the LED 0.30-0.64 (median 0.49;
+lowest at 100 m under 0.5 px), the textured background patches that outranked it in 3 of
+them 0.13-0.17 (their ``flux_modulation`` was 10^2-10^4: a background-subtracted mean flux
+near 0), other candidates 0.07-0.83."""
 
 
 def fast_flux_share(frames: np.ndarray, bbox: tuple[int, int, int, int], symbol_frames: float, *,
