@@ -18,7 +18,7 @@ from scipy import ndimage
 from iscd.core.config import default_config
 from iscd.decode.stream import StreamDecoder
 from iscd.decode.tracking.detect import (MIN_FAST_FLUX_SHARE, MIN_FLUX_MODULATION, detect_array,
-                                         fast_flux_share, flux_modulation)
+                                         detect_auto, fast_flux_share, flux_modulation)
 from iscd.eval.suites import MOTION_CASES, motion_cfg
 from iscd.sim.scene import Scene
 
@@ -100,6 +100,9 @@ def test_a_linear_brightening_is_not_fast() -> None:
     assert fast_flux_share(frames, (12, 12, 20, 20), 2.0) == pytest.approx(0.0, abs=1e-9)
     with pytest.raises(ValueError, match="symbol_frames"):
         fast_flux_share(frames, (12, 12, 20, 20), 0.0)
+    for detect in (lambda f, **k: detect_array(f, 1, 1, **k), detect_auto):
+        with pytest.raises(ValueError, match="symbol_frames must be > 0"):
+            detect(frames, symbol_frames=-2.0)
 
 
 @pytest.mark.parametrize("key, seed, model", [

@@ -680,6 +680,11 @@ def source_box(mean: np.ndarray, bbox: tuple[int, int, int, int], *,
             max(bbox[2], wx0 + int(xs.max()) + 1), max(bbox[3], wy0 + int(ys.max()) + 1))
 
 
+FLUX_PAD_PX = 4
+"""How far a source's box is grown on every side for its flux (so that the whole source
+stays inside while the rig vibrates), px."""
+
+
 def _source_flux(frames: np.ndarray, bbox: tuple[int, int, int, int], pad: int,
                  mean: np.ndarray | None) -> np.ndarray | None:
     """Per-frame flux (n,) of the light source that the blob ``bbox`` belongs to, DN: the
@@ -699,7 +704,7 @@ def _source_flux(frames: np.ndarray, bbox: tuple[int, int, int, int], pad: int,
     return box.sum(axis=(1, 2)) - border.mean(axis=1) * box.shape[1] * box.shape[2]
 
 
-def flux_modulation(frames: np.ndarray, bbox: tuple[int, int, int, int], pad: int = 4,
+def flux_modulation(frames: np.ndarray, bbox: tuple[int, int, int, int], pad: int = FLUX_PAD_PX,
                     mean: np.ndarray | None = None) -> float:
     """How much the light of a candidate changes, relative to the light itself (0 for a
     steady light, ~1 for an LED that switches between dark and full).
@@ -727,8 +732,11 @@ def flux_modulation(frames: np.ndarray, bbox: tuple[int, int, int, int], pad: in
         The relative modulation (0 when the clipped box is smaller than 3x3 px).
     """
     flux = _source_flux(frames, bbox, pad, mean)
-    if flux is None:
-        return 0.0
+    return 0.0 if flux is None else _modulation(flux)
+
+
+def _modulation(flux: np.ndarray) -> float:
+    """:func:`flux_modulation` of a source's flux (n,), DN."""
     lo, hi = np.percentile(flux, [5, 95])
     return float((hi - lo) / max(float(flux.mean()), 1.0))
 
@@ -749,7 +757,7 @@ near 0), other candidates 0.07-0.83."""
 
 
 def fast_flux_share(frames: np.ndarray, bbox: tuple[int, int, int, int], symbol_frames: float, *,
-                    pad: int = 4, mean: np.ndarray | None = None) -> float:
+                    pad: int = FLUX_PAD_PX, mean: np.ndarray | None = None) -> float:
     """How much of a candidate's flux changes at the pace of symbols rather than of motion.
 
     The flux of the light source (as :func:`flux_modulation` takes it), its linear trend
@@ -779,8 +787,11 @@ def fast_flux_share(frames: np.ndarray, bbox: tuple[int, int, int, int], symbol_
     if not symbol_frames > 0:
         raise ValueError(f"fast_flux_share: symbol_frames must be > 0, got {symbol_frames!r}")
     flux = _source_flux(frames, bbox, pad, mean)
-    if flux is None:
-        return 0.0
+    return 0.0 if flux is None else _fast_share(flux, symbol_frames)
+
+
+def _fast_share(flux: np.ndarray, symbol_frames: float) -> float:
+    """:func:`fast_flux_share` of a source's flux (n,), DN; ``symbol_frames`` > 0."""
     t = np.arange(flux.shape[0], dtype=np.float64)
     x = flux - np.polyval(np.polyfit(t, flux, 1), t)
     power = np.abs(np.fft.rfft(x)) ** 2
@@ -794,10 +805,12 @@ def fast_flux_share(frames: np.ndarray, bbox: tuple[int, int, int, int], symbol_
 def _one_led_changes(frames: np.ndarray, bbox: tuple[int, int, int, int], mean: np.ndarray,
                      symbol_frames: float | None) -> bool:
     """A one-LED candidate's light really changes (:data:`MIN_FLUX_MODULATION`), and, with
-    a known symbol period, at the pace of symbols (:data:`MIN_FAST_FLUX_SHARE`)."""
-    if flux_modulation(frames, bbox, mean=mean) < MIN_FLUX_MODULATION:
+    a known symbol period, at the pace of symbols (:data:`MIN_FAST_FLUX_SHARE`): both on
+    the one flux of its source."""
+    flux = _source_flux(frames, bbox, FLUX_PAD_PX, mean)
+    if flux is None or _modulation(flux) < MIN_FLUX_MODULATION:
         return False
-    return symbol_frames is None or fast_flux_share(frames, bbox, symbol_frames, mean=mean) >= MIN_FAST_FLUX_SHARE
+    return symbol_frames is None or _fast_share(flux, symbol_frames) >= MIN_FAST_FLUX_SHARE
 
 
 def detect_array(frames: np.ndarray, rows: int, cols: int, *, exclude: list[tuple[int, int, int, int]] | None = None,
@@ -823,6 +836,8 @@ def detect_array(frames: np.ndarray, rows: int, cols: int, *, exclude: list[tupl
     GridFit or None
         The best fit, px; None if nothing blinks.
     """
+    if symbol_frames is not None and not symbol_frames > 0:
+        raise ValueError(f"detect_array: symbol_frames must be > 0, got {symbol_frames!r}")
     act, mean, lo, _ = look_maps(frames)  # one compiled pass (the same values as numpy)
     light = mean - lo.astype(np.float32)
     blobs = find_blobs(act, mean)
@@ -835,10 +850,10 @@ def detect_array(frames: np.ndarray, rows: int, cols: int, *, exclude: list[tupl
         # the strongest blob whose light really changes: a steady lamp under vibration
         # shows pixel activity at its edges, but its integrated flux stays put; a textured
         # background under vibration changes its flux, but at the pace of the motion
-        cands = [b for b in blobs[:MAX_SINGLE_CANDIDATES] if _one_led_changes(frames, b.bbox, mean, symbol_frames)]
-        if not cands:
+        b = next((b for b in blobs[:MAX_SINGLE_CANDIDATES] if _one_led_changes(frames, b.bbox, mean, symbol_frames)),
+                 None)
+        if b is None:
             return None
-        b = cands[0]
         pad = 3
         return fit_grid(light, 1, 1, region=(b.bbox[0] - pad, b.bbox[1] - pad, b.bbox[2] + pad, b.bbox[3] + pad))
     # group blobs of one array: LEDs of an array are at most ~a pitch apart; a pitch is at
@@ -935,6 +950,8 @@ def detect_auto(frames: np.ndarray, *, exclude: list[tuple[int, int, int, int]] 
         The best fit (``rows`` and ``cols`` inferred), px; None if nothing blinks or no
         group makes a grid.
     """
+    if symbol_frames is not None and not symbol_frames > 0:
+        raise ValueError(f"detect_auto: symbol_frames must be > 0, got {symbol_frames!r}")
     act, mean, lo, hi = look_maps(frames)  # one compiled pass (the same values as numpy)
     blobs = find_blobs(act, mean)
     if exclude:
