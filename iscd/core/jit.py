@@ -93,11 +93,16 @@ def register_warm(jf: Callable[..., Any], args: Callable[[], tuple]) -> None:
     _REGISTRY.append((jf, args))
 
 
-def warm_up() -> float:
+def warm_up(should_stop: Callable[[], bool] | None = None) -> float:
     """Compile (or load from the cache) every kernel registered so far (a kernel registers
-    when its module is imported: import what you will run first); returns the seconds taken."""
+    when its module is imported: import what you will run first); returns the seconds taken.
+    ``should_stop`` is asked before each kernel: when it says True the rest are left (a
+    daemon stopped during its first start, whose compiling takes minutes, stops within one
+    kernel's compile time)."""
     t0 = time.perf_counter()
     for jf, args in list(_REGISTRY):
+        if should_stop is not None and should_stop():
+            break
         jf(*args())
     return time.perf_counter() - t0
 

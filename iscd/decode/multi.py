@@ -39,6 +39,7 @@ import logging
 import math
 import threading
 from collections import Counter, deque
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from typing import Any
 
@@ -507,8 +508,8 @@ class MultiDecoder:
         for s in self.slots:
             s.dec.wait_for_worker(most)
 
-    def wait_ready(self, timeout_s: float = 300.0) -> bool:
-        return all(s.dec.wait_ready(timeout_s) for s in self.slots)
+    def wait_ready(self, timeout_s: float = 300.0, should_stop: Callable[[], bool] | None = None) -> bool:
+        return all(s.dec.wait_ready(timeout_s, should_stop) for s in self.slots)
 
     # ------------------------------------------------------------------ views for the daemon
     @property

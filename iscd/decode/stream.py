@@ -29,6 +29,7 @@ import math
 import threading
 import time
 from collections import deque
+from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass, field, replace
@@ -470,17 +471,25 @@ class StreamDecoder:
                             tr.unconfirmed_bad, self.rows, self.cols)
                 self._reacquire = True
 
-    def wait_ready(self, timeout_s: float = 300.0) -> bool:
+    def wait_ready(self, timeout_s: float = 300.0, should_stop: Callable[[], bool] | None = None) -> bool:
         """Wait until the demodulation worker has started and loaded (or compiled) its
-        kernels, at most ``timeout_s`` s; True when it is ready (or there is none). The
-        daemon calls it before the cameras start."""
+        kernels, at most ``timeout_s`` s, and, with ``should_stop``, only until it says True
+        (asked every 0.2 s); True when it is ready (or there is none). The daemon calls it
+        before the cameras start."""
         if self._worker is None or not self._pending:
             return True
-        try:
-            self._pending[0][0].result(timeout=timeout_s)
-            return True
-        except Exception:  # noqa: BLE001 - a timeout or a dead worker: _collect handles it
-            return False
+        fut = self._pending[0][0]
+        deadline = time.monotonic() + timeout_s
+        while True:
+            left = deadline - time.monotonic()
+            try:
+                fut.result(timeout=max(0.0, min(left, 0.2) if should_stop is not None else left))
+                return True
+            except TimeoutError:
+                if left <= 0.2 or (should_stop is not None and should_stop()):
+                    return False
+            except Exception:  # noqa: BLE001 - a dead worker: _collect handles it
+                return False
 
     @property
     def pending_steps(self) -> int:

@@ -135,6 +135,10 @@ class Daemon:
         self.records_written = 0
         self.extra_outputs: list[Any] = []
 
+    def stop_requested(self) -> bool:
+        """Whether a stop was requested (:meth:`request_stop`)."""
+        return self._stop
+
     def request_stop(self, signum: object = None, *_: object) -> None:
         """Stop after the frames in hand (SIGTERM/SIGINT handler; also callable)."""
         if isinstance(signum, int) and not self._stop:
@@ -191,6 +195,8 @@ class Daemon:
             if self.install_signals and run.recorder is not None:  # SIGUSR1: the blackbox trigger
                 old_handlers[signal.SIGUSR1] = signal.signal(signal.SIGUSR1, run.recorder.on_signal)
             run.warm_up()
+            if self._stop:  # stopped while the kernels were loading: the cameras never start
+                return run.finish()
             run.start()
             _prof = None
             if os.environ.get("ISCD_PROFILE"):  # cProfile of the frame loop, written at the end
@@ -383,8 +389,12 @@ class _Run:
         self.notifier.status("loading compiled kernels")
         log.info("loading the compiled kernels (the first start after an install compiles them: "
                  "about three minutes on 2 cores; later starts load them in under a second)")
-        t_warm = warm_up()
-        if not self.decoder.wait_ready(timeout_s=300.0):
+        stopping = self.daemon.stop_requested
+        t_warm = warm_up(should_stop=stopping)
+        if stopping():
+            log.info("stopped while the compiled kernels were loading (%.1f s)", t_warm)
+            return
+        if not self.decoder.wait_ready(timeout_s=300.0, should_stop=stopping) and not stopping():
             log.warning("the demodulation worker is not ready yet; starting anyway")
         log.info("compiled kernels ready in %.2f s (%s)", t_warm,
                  f"cache {CACHE_DIR}" if CACHE_DIR is not None else "no cache: they compile at every start")
