@@ -48,8 +48,11 @@ def test_the_worst_stretch_counts() -> None:
 
 
 def test_a_saturated_close_led_says_so_in_its_packet_record() -> None:
-    """One very bright LED at 8 m: both apertures clip, the packet fails, its record says
-    "saturated"; the same LED at 30 m decodes (no reason in a good packet)."""
+    """One very bright LED at 8 m: both apertures clip; with the luminance window matched to
+    the spot (``one_led_window_scale = 1``, the receiver before session 30) the packet fails
+    and its record says "saturated"; the same LED at 30 m decodes (no reason in a good
+    packet). With the default window, 1.5x as wide, the 8 m packet is delivered: the level
+    lives in the clipped spot's wings, which that window reaches."""
     from iscd.core.airinterface import AirInterface
     from iscd.core.config import default_config
     from iscd.eval.sweeps import ReceiverMode, _decoder_cfg, frames_for_packets
@@ -58,8 +61,11 @@ def test_a_saturated_close_led_says_so_in_its_packet_record() -> None:
     from iscd.sim.scene import Scene
 
     seen = {}
-    for d in (8.0, 30.0):
-        cfg = override(single_led(default_config(), d, seed=3), transmitter={"radiance_dn": 3000.0})
+    for d in (8.0, 30.0, "8 m, default window"):
+        dist = 8.0 if isinstance(d, str) else d
+        cfg = override(single_led(default_config(), dist, seed=3), transmitter={"radiance_dn": 3000.0})
+        if not isinstance(d, str):
+            cfg = cfg.with_keys("tracking", one_led_window_scale=1.0)
         sc = Scene(cfg)
         n = frames_for_packets(sc, AirInterface.from_config(cfg.transmitter), 1)
         dec = StreamDecoder(_decoder_cfg(cfg, ReceiverMode("both", "both")))
@@ -76,6 +82,8 @@ def test_a_saturated_close_led_says_so_in_its_packet_record() -> None:
     assert len(seen[8.0]) == 1 and not seen[8.0][0]["crc_ok"]
     assert seen[8.0][0]["reason"].startswith("saturated")
     assert len(seen[30.0]) == 1 and seen[30.0][0]["crc_ok"] and "reason" not in seen[30.0][0]
+    wide = seen["8 m, default window"]
+    assert len(wide) == 1 and wide[0]["crc_ok"] and "reason" not in wide[0]
 
 
 def test_evenly_spaced_levels_lost_in_noise_are_low_light_not_saturation() -> None:

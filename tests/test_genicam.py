@@ -321,9 +321,14 @@ def test_device_loss_then_reconnect(how: str):
         cam.reconnect(max_tries=3, backoff_s=0.05)
         assert cam.stats["reconnects"] == 1
         assert cam.settings.roi == ROI  # settings re-applied
+        dropped = cam.stats["dropped"]
         frames = [cam.read(2.0) for _ in range(10)]
         assert [f.image.shape for f in frames] == [(120, 160)] * 10
-        assert np.all(np.diff([f.frame_id for f in frames]) == 1)
+        # in order; a busy machine may make the 200 fps producer overrun its buffers, and
+        # every frame so skipped is counted (a frame-id gap, not a silent loss)
+        steps = np.diff([f.frame_id for f in frames])
+        assert np.all(steps >= 1)
+        assert cam.stats["dropped"] - dropped == int(np.sum(steps - 1))
     finally:
         cam.close()
 

@@ -80,6 +80,7 @@ class PipelineSettings:
     background: bool = field(default=False, metadata={"doc": "luminance and centroids of the light above a per-pixel background (each pixel's least value in the frames its LEDs were dark): a textured background under a window that moves with the LED then cancels"})
     lit_background: bool = field(default=False, metadata={"doc": "judge which LEDs are lit (they steer the following) on the light above the per-pixel background held across blocks, not on each block's own minimum: blocks shorter than 16 pairs ([daemon] block_max = 8 for lower latency) then judge as well as long ones; costs ~20 % of the frame loop, so off for the daemon's blocks of 16"})
     window_scale: float = field(default=1.0, metadata={"lo": 0.5, "hi": 4.0, "doc": "luminance window relative to the spot-matched Gaussian (roi_sigma_px = -1): wider reaches the unsaturated wings of a spot whose core clips"})
+    one_led_window_scale: float = field(default=1.5, metadata={"lo": 0.5, "hi": 4.0, "doc": "one LED's luminance window relative to the spot-matched Gaussian, times window_scale: its brightest pixels clip as a car closes in and the level then lives in the spot's wings and blooming, which a wider window reaches (one LED has no neighbour to let in); measured on randomized approaches never looked at (docs/eval.md, session 30)"})
     window_follows_spot: bool = field(default=False, metadata={"doc": "the luminance window follows the spot's measured size (its half-maximum area, smoothed over ~10 blocks) times window_scale, instead of the size at acquisition grown with the array"})
     background_rise_dn: float = field(default=0.25, metadata={"lo": 0, "doc": "how fast the per-pixel background follows a background that brightens, DN per block"})
     background_one_led: bool = field(default=True, metadata={"doc": "the per-pixel background (as background) whenever the transmitter is one LED: measured on a moving car's randomized scenes it delivered more packets (4 seed sets, docs/eval.md), and one LED's static suites (SER, range errors) are unchanged; an array keeps background's setting (its neighbours' light under a pixel cost static f/4 receivers packets)"})
@@ -1231,7 +1232,7 @@ class StreamDecoder:
             if not np.isfinite(a):
                 out.append(s0)
                 continue
-            s = self.settings.window_scale * float(area_sigma(a))
+            s = self._window_scale(self.rows * self.cols) * float(area_sigma(a))
             fit = tr.left if side == 0 else tr.right
             if self.rows * self.cols > 1 and fit.pitch_px > 0:
                 s = min(s, (fit.pitch_px * g - 0.8) / 4.0)
@@ -1276,10 +1277,18 @@ class StreamDecoder:
         s = self.settings.roi_sigma_px
         if s > 0:
             return float(s)
-        s = self.settings.window_scale * fit.spot_px / 2.355
+        k = self._window_scale(fit.rows * fit.cols)
+        s = k * fit.spot_px / 2.355
         if fit.rows * fit.cols > 1 and fit.pitch_px > 0:
             s = min(s, (fit.pitch_px - 0.8) / 4.0)
-        return float(np.clip(s, 0.6, 2.0 * max(1.0, self.settings.window_scale)))
+        return float(np.clip(s, 0.6, 2.0 * max(1.0, k)))
+
+    def _window_scale(self, leds: int) -> float:
+        """The luminance window relative to the spot-matched Gaussian: ``window_scale``, for
+        one LED (``leds == 1``) times ``one_led_window_scale`` (in both cameras: widening only
+        the wider aperture's window of an HDR pair lost more packets, docs/eval.md, session 30)."""
+        k = self.settings.window_scale
+        return k * self.settings.one_led_window_scale if leds == 1 else k
 
     def _roi_radius(self, fit: GridFit) -> int:
         """ROI half-size: the configured one, or (auto) half the spot so that a saturated
