@@ -625,14 +625,13 @@ def test_one_leds_clipped_spot_is_measured_in_a_wider_window() -> None:
     spot's half-maximum weighs little (session 30). With one LED's window 1.5x the matched
     one (``[tracking] one_led_window_scale``, the default) both packets are bit-exact; with
     the matched window (1.0, the receiver before) the first is lost (11 wrong symbols)."""
+    from iscd.core.config import section
+    from iscd.decode.stream import PipelineSettings
     from iscd.eval.suites import MOTION_CASES, motion_cfg
 
     case = next(c for c in MOTION_CASES if c.key == "1led-40kmh-0.5px")
     cfg, note = motion_cfg(default_config(), case, 1116575497, scene={"vibration_model": "smooth"}, randomize=True)
     assert note.startswith("randomized")
-    from iscd.core.config import section
-    from iscd.decode.stream import PipelineSettings
-
     assert section(cfg, PipelineSettings).one_led_window_scale == 1.5  # the default under test
     (res,) = run_comms(cfg, [DIVERSITY], 2, block=16)
     _check_delivery(res)

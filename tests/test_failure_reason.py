@@ -61,11 +61,12 @@ def test_a_saturated_close_led_says_so_in_its_packet_record() -> None:
     from iscd.sim.scene import Scene
 
     seen = {}
-    for d in (8.0, 30.0, "8 m, default window"):
-        dist = 8.0 if isinstance(d, str) else d
+    # name: (distance m, one LED's window scale; None = the default)
+    runs = {"8 m": (8.0, 1.0), "30 m": (30.0, 1.0), "8 m, default window": (8.0, None)}
+    for name, (dist, scale) in runs.items():
         cfg = override(single_led(default_config(), dist, seed=3), transmitter={"radiance_dn": 3000.0})
-        if not isinstance(d, str):
-            cfg = cfg.with_keys("tracking", one_led_window_scale=1.0)
+        if scale is not None:
+            cfg = cfg.with_keys("tracking", one_led_window_scale=scale)
         sc = Scene(cfg)
         n = frames_for_packets(sc, AirInterface.from_config(cfg.transmitter), 1)
         dec = StreamDecoder(_decoder_cfg(cfg, ReceiverMode("both", "both")))
@@ -78,10 +79,10 @@ def test_a_saturated_close_led_says_so_in_its_packet_record() -> None:
                 sc.render_pair_into(int(k), L[i], R[i])
             recs += dec.push(ids, ids / sc.fps, L[:ids.size], R[:ids.size])
         recs += dec.finish()
-        seen[d] = [r for r in recs if r["type"] == "packet"]
-    assert len(seen[8.0]) == 1 and not seen[8.0][0]["crc_ok"]
-    assert seen[8.0][0]["reason"].startswith("saturated")
-    assert len(seen[30.0]) == 1 and seen[30.0][0]["crc_ok"] and "reason" not in seen[30.0][0]
+        seen[name] = [r for r in recs if r["type"] == "packet"]
+    assert len(seen["8 m"]) == 1 and not seen["8 m"][0]["crc_ok"]
+    assert seen["8 m"][0]["reason"].startswith("saturated")
+    assert len(seen["30 m"]) == 1 and seen["30 m"][0]["crc_ok"] and "reason" not in seen["30 m"][0]
     wide = seen["8 m, default window"]
     assert len(wide) == 1 and wide[0]["crc_ok"] and "reason" not in wide[0]
 
