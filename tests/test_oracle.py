@@ -120,6 +120,46 @@ def test_demod_hooks_fix_the_clock_and_replace_the_channel() -> None:
     assert np.count_nonzero(g.levels != sent) <= np.count_nonzero(fixed.levels != sent)
 
 
+def test_the_labels_hook_feeds_the_channel_fits_only() -> None:
+    """``demodulate_packet(labels=)`` (the ``+true labels`` row): the decision-directed
+    channel fits read the levels given, the decisions stay the receiver's. With the true
+    levels a clean packet is delivered as without them; levels that are wrong (the sent ones
+    shifted along the packet) wreck the channel and with it the decisions -- so the fits did
+    read them; a wrong shape is one clear error. (On a noisy packet true labels need not
+    give fewer errors than the receiver's own: a fit to its own decisions can suit that
+    noise better, 0 against 1 error at 50 DN.)"""
+    from iscd.core.airinterface import AirInterface
+    from iscd.core.config import TransmitterConfig
+    from iscd.decode.comms.demod import PacketResult, demodulate_packet
+    from iscd.decode.comms.settings import ReceiverConfig
+    from iscd.decode.comms.synth import SynthCamera, synth_recording
+
+    tx = TransmitterConfig(rows=1, cols=1, levels=8)
+    air = AirInterface.from_config(tx)
+    rec = synth_recording(air, [SynthCamera(peak_dn=60.0, read_noise_dn=2.5)] * 2, n_packets=1, drift_ppm=80,
+                          phase_s=0.0021, seed=6)
+    k0 = int(rec.packet_symbol0[0])
+    T, rate = 1.0 / 500.0, 1 + 80e-6
+    t_sym = (k0 + np.arange(air.packet_symbols + 1)) * T / rate + 0.0021
+    clock = true_clock(t_sym, rec.fps)
+    cfg = ReceiverConfig()
+    true_lev = rec.levels[k0:k0 + air.packet_symbols].astype(np.int64) - 1
+    sent = true_lev[air.data_offset:] + 1
+
+    def errors(**kw):  # type: ignore[no-untyped-def]
+        r = demodulate_packet(rec.L, clock.u0, air, 1.0, 2.0, 2.0, 2.0 * 300e-6, cfg, clock=clock, **kw)
+        assert isinstance(r, PacketResult)
+        return int(np.count_nonzero(r.levels != sent)) + (0 if r.crc_ok else 10_000)
+
+    assert errors() == 0  # a clean packet (the receiver's own decisions)
+    assert errors(labels=true_lev) == 0
+    wrong = true_lev.copy()
+    wrong[air.data_offset:] = np.roll(wrong[air.data_offset:], 7, axis=0)
+    assert errors(labels=wrong) > 10_000 + 100
+    with pytest.raises(ValueError, match="labels"):
+        errors(labels=true_lev[:-1])
+
+
 # ----------------------------------------------------------------------------- simulated
 
 def _short(cfg):  # type: ignore[no-untyped-def]

@@ -25,7 +25,11 @@ stage                        what changes against the row above
                              estimate costs; what is left is decision / noise floor
 ===========================  ===================================================================
 
-Reference rows (not in the split): ``+true channel (one per packet)`` (true levels, one
+Reference rows (not in the split): ``+true labels`` (``+true timing`` with the receiver's
+own channel estimate -- its windows, stretches and light matching -- fitted on the *true*
+levels instead of its decisions: ``demodulate_packet(labels=)``; against ``+true timing``
+it shows what decision feedback costs, against ``+true channel`` what the estimator and its
+windows cost); ``+true channel (one per packet)`` (true levels, one
 channel for the whole packet, as the dissertation estimates it: shows how stale a channel
 gets as the car closes in); ``genie luminance`` (a background-subtracted sum of the pixels
 within the spot's radius ``R = f_px D / (2 Z)`` plus the PSF, at the true centres, the
@@ -73,7 +77,7 @@ from iscd.sim.truth import Truth
 
 CHAIN = ("receiver", "+true positions", "+true timing", "+true channel")
 """The stages of the split, each with one more part of the receiver replaced by the truth."""
-REFERENCE = ("+true channel (one per packet)", "genie luminance", "genie luminance +true channel")
+REFERENCE = ("+true labels", "+true channel (one per packet)", "genie luminance", "genie luminance +true channel")
 """Reference decoders beside the chain (not in the split)."""
 STAGES = CHAIN + REFERENCE
 SPLIT = (("following", "receiver", "+true positions"), ("timing", "+true positions", "+true timing"),
@@ -802,6 +806,7 @@ def run_oracle(cfg: Config, packets: int = 2, *, mode: ReceiverMode | None = Non
         sent = true_lev[air.data_offset:] + 1
         runs: list[tuple[str, np.ndarray, ReceiverConfig, Sequence[Any]]] = [
             ("+true timing", L_tp, rx, ("receiver",)),
+            ("+true labels", L_tp, rx, ("labels",)),
             ("+true channel", L_tp, rx_genie, tuple(genie_windows)),
             ("+true channel (one per packet)", L_tp, rx_static, (None,))]
         if genie:
@@ -810,9 +815,9 @@ def run_oracle(cfg: Config, packets: int = 2, *, mode: ReceiverMode | None = Non
         for name, Lsrc, rcfg, windows in runs:
             buf = np.ascontiguousarray(Lsrc[list(cams), lo:hi])
             for w in windows:  # the best of the true channels counts
-                ch = None if w == "receiver" else genie_channel(buf, e, true_lev, M, rx, w)
+                ch = None if w in ("receiver", "labels") else genie_channel(buf, e, true_lev, M, rx, w)
                 r = demodulate_packet(buf, clock.u0, air, e, p_nom, clock.p, p_sig, rcfg, clock=clock,
-                                      channel=ch, grid=asm.grid)
+                                      channel=ch, grid=asm.grid, labels=true_lev if w == "labels" else None)
                 if isinstance(r, PacketResult):
                     sc = _score_levels(sent, r.levels.astype(np.int64), r.crc_ok, bins)
                     if idx not in scores[name] or sc.errors < scores[name][idx].errors:

@@ -285,6 +285,8 @@ def motion_section(rows: list[MotionRow], settings: dict[str, Any]) -> list[str]
            "the receiver's window), true symbol timing, true channel (true-level estimates per 8-symbol "
            "stretch from windows of 32 or 96 symbols or the whole packet, the best per packet). Stage SERs are over the 'common' packets (every stage "
            "demodulated them); following + timing + channel + decision/noise = receiver. References: "
+           "true labels (the receiver's own channel estimate fitted on the true levels instead of its "
+           "decisions, true positions and timing: what decision feedback costs), "
            "one true channel per packet (staleness), genie luminance (background-subtracted sum within "
            "the spot's radius R = f D / 2Z + 2 x blur, background from the nearest all-dark frames; "
            "true positions and timing) with the receiver's and with the true channel.", "",

@@ -970,8 +970,8 @@ ChannelOf = Callable[[SymbolClock, int, int], ChannelModel]
 def demodulate_packet(L: np.ndarray, u_guess: float, air: AirInterface, e: float,
                       p_nominal: float, p_prior: float, p_sigma: float, cfg: ReceiverConfig,
                       *, clock: SymbolClock | None = None, channel: ChannelOf | None = None,
-                      grid: tuple[int, int] | None = None, retry_unlocked: bool = False
-                      ) -> PacketResult | Rejection:
+                      grid: tuple[int, int] | None = None, retry_unlocked: bool = False,
+                      labels: np.ndarray | None = None) -> PacketResult | Rejection:
     """Demodulate the packet whose header starts near frame-unit time ``u_guess``.
 
     With ``channel_window_symbols`` the channel is first tracked along the packet; if that
@@ -1033,6 +1033,12 @@ def demodulate_packet(L: np.ndarray, u_guess: float, air: AirInterface, e: float
     retry_unlocked : bool
         ``p_prior`` is a delivered packet's period: a locked packet that fails is tried
         once more with the period free (above).
+    labels : ndarray, optional
+        Diagnosis hook (:mod:`iscd.eval.oracle`, ``+true labels``; the receiver never
+        passes it): (P, N) 0-based levels of the packet's symbols (the truth) that every
+        channel fit of the decision-directed estimate reads in place of the decisions;
+        the estimator, its windows and the decisions are the receiver's own. What is then
+        left of the errors is not decision feedback.
 
     Returns
     -------
@@ -1044,13 +1050,13 @@ def demodulate_packet(L: np.ndarray, u_guess: float, air: AirInterface, e: float
     ----------
     Dissertation, eqs. (3.11), (4.2) and (3.12), (4.3) (the ``dissertation`` rule).
     """
-    res = _demodulate(L, u_guess, air, e, p_nominal, p_prior, p_sigma, cfg, clock, channel)
+    res = _demodulate(L, u_guess, air, e, p_nominal, p_prior, p_sigma, cfg, clock, channel, labels=labels)
     if isinstance(res, PacketResult) and not res.crc_ok and res.channel == "tracked":
         best = res
         W = cfg.channel_window_symbols
         Lx = _without_crosstalk(L, res, e, grid)
         if Lx is not None:
-            alt = _demodulate(Lx, u_guess, air, e, p_nominal, p_prior, p_sigma, cfg, clock, channel)
+            alt = _demodulate(Lx, u_guess, air, e, p_nominal, p_prior, p_sigma, cfg, clock, channel, labels=labels)
             if isinstance(alt, PacketResult):
                 if alt.crc_ok:
                     return alt
@@ -1060,7 +1066,7 @@ def demodulate_packet(L: np.ndarray, u_guess: float, air: AirInterface, e: float
         others = [0] + ([WIDER_WINDOW * W] if WIDER_WINDOW * W < res.air.packet_symbols else [])
         for w in others:
             alt = _demodulate(L, u_guess, air, e, p_nominal, p_prior, p_sigma,
-                              replace(cfg, channel_window_symbols=w), clock, channel)
+                              replace(cfg, channel_window_symbols=w), clock, channel, labels=labels)
             if isinstance(alt, PacketResult):
                 if alt.crc_ok:
                     return alt
@@ -1070,7 +1076,7 @@ def demodulate_packet(L: np.ndarray, u_guess: float, air: AirInterface, e: float
             # one LED: the array's shorter tracking step (a CRC pass only; a failure here
             # leaves the report as it was)
             alt = _demodulate(L, u_guess, air, e, p_nominal, p_prior, p_sigma, cfg, clock, channel,
-                              tracking_step=_short_step(W))
+                              tracking_step=_short_step(W), labels=labels)
             if isinstance(alt, PacketResult) and alt.crc_ok:
                 return alt
         if SEQUENTIAL_RETRY and res.air.n_leds <= SEQUENTIAL_MAX_LEDS and channel is None:
@@ -1078,7 +1084,7 @@ def demodulate_packet(L: np.ndarray, u_guess: float, air: AirInterface, e: float
             # windows halved (a CRC pass only; an oracle's given channel has nothing to follow)
             alt = _demodulate(L, u_guess, air, e, p_nominal, p_prior, p_sigma,
                               replace(cfg, channel_window_symbols=max(1, W // 2)), clock, channel,
-                              sequential=True)
+                              sequential=True, labels=labels)
             if isinstance(alt, PacketResult):
                 if alt.crc_ok:
                     return alt
@@ -1091,7 +1097,7 @@ def demodulate_packet(L: np.ndarray, u_guess: float, air: AirInterface, e: float
                 and not _locked(wide, p_nominal):
             # last, the period as a first packet finds it: the lock is an assumption (the
             # last delivered packet's period), and a CRC failure is evidence against it
-            alt = _demodulate(L, u_guess, air, e, p_nominal, p_prior, wide, cfg, clock, channel)
+            alt = _demodulate(L, u_guess, air, e, p_nominal, p_prior, wide, cfg, clock, channel, labels=labels)
             if isinstance(alt, PacketResult) and alt.crc_ok:
                 return alt
         return best
@@ -1211,14 +1217,15 @@ def _demodulate(L: np.ndarray, u_guess: float, air: AirInterface, e: float,
                 p_nominal: float, p_prior: float, p_sigma: float, cfg: ReceiverConfig,
                 fixed_clock: SymbolClock | None = None, channel: ChannelOf | None = None,
                 tracking_step: int | None = None, after: np.ndarray | None = None,
-                sequential: bool = False) -> PacketResult | Rejection:
+                sequential: bool = False, labels: np.ndarray | None = None) -> PacketResult | Rejection:
     """One demodulation attempt (:func:`demodulate_packet`), channel as ``cfg`` says
     (``tracking_step``: the tracking pass's step, symbols, instead of :func:`_tracking_step`'s;
     ``sequential``: the tracking pass decides symbol by symbol, the centroids following each
     decision (:func:`~iscd.decode.comms.sequential.sequential_levels`; a tracked channel);
     ``after``: the 0-based levels (A, N) of the A symbols right after the packet, known --
     :func:`demodulate_anchored`: ``L`` must cover them, the tracked channel's tracking pass
-    runs backwards from them and the final pass fits them too)."""
+    runs backwards from them and the final pass fits them too; ``labels``: the
+    :func:`demodulate_packet` diagnosis hook, the packet's true levels for every channel fit)."""
     C, n, N = L.shape
     st = IscdChannelSettings(var_floor_dn=cfg.var_floor_dn)
     kind = cfg.noise_model
@@ -1236,7 +1243,7 @@ def _demodulate(L: np.ndarray, u_guess: float, air: AirInterface, e: float,
             # packet (few LEDs: H > 13 + K + F): decoded as v1, as a v1 receiver always did
             # (a v2 packet is then seen only by a receiver whose v1 packet is not shorter)
             return _demodulate(L, u_guess, air, e, p_nominal, p_prior, p_sigma, replace(cfg, air_v2=False),
-                               fixed_clock, channel, tracking_step)
+                               fixed_clock, channel, tracking_step, labels=labels)
         if hdr is not None:
             air = AirInterfaceV2.from_header(hdr)  # type: ignore[arg-type]
     M = air.levels
@@ -1284,6 +1291,14 @@ def _demodulate(L: np.ndarray, u_guess: float, air: AirInterface, e: float,
     lev[:n_known] = known
     if A:
         lev[P:] = after
+    # what the channel fits read: the decisions (lev, updated in place), or the diagnosis
+    # hook's true levels
+    fit_lev = lev
+    if labels is not None:
+        if np.shape(labels) != (P, N):
+            raise ValueError(f"labels: expected the packet's ({P}, {N}) levels, got shape {np.shape(labels)}")
+        fit_lev = lev.copy()
+        fit_lev[:P] = np.asarray(labels, dtype=np.int64)
     # each camera's brightest value in the buffer (the cap of _match_gain), once per packet
     tops = _camera_tops(L).tolist() if tracked else None  # (NaN: an absent camera, never used)
     starts, models = [0], [model]
@@ -1307,7 +1322,7 @@ def _demodulate(L: np.ndarray, u_guess: float, air: AirInterface, e: float,
         # the final pass re-fits it on the whole packet and the anchor)
         for k_b in range(P, n_known, -step):
             k_a = max(n_known, k_b - step)
-            model = _fit(L, clock, e, lev, k_b, min(P + A, k_b + W // 2), M, st, cfg)
+            model = _fit(L, clock, e, fit_lev, k_b, min(P + A, k_b + W // 2), M, st, cfg)
             model = _match_gain(model, L, clock, e, lev, k_a, k_b, tops)
             lev[k_a:k_b] = clean_levels(clean_costs(L, clock, e, k_a, k_b, model).costs)
     else:
@@ -1316,7 +1331,7 @@ def _demodulate(L: np.ndarray, u_guess: float, air: AirInterface, e: float,
             if tracked and channel is not None:
                 model = channel(clock, k_a, k_b)
             elif tracked:
-                model = _fit(L, clock, e, lev, max(0, k_a - W // 2), k_a, M, st, cfg)
+                model = _fit(L, clock, e, fit_lev, max(0, k_a - W // 2), k_a, M, st, cfg)
                 model = _match_gain(model, L, clock, e, lev, k_a, k_b, tops)
             # (decide_span without straddling frames: the levels are all this pass keeps)
             lev[k_a:k_b] = clean_levels(clean_costs(L, clock, e, k_a, k_b, model).costs)
@@ -1345,9 +1360,9 @@ def _demodulate(L: np.ndarray, u_guess: float, air: AirInterface, e: float,
         if channel is not None:
             models = [channel(clock, a, b) for a, b in segs]
         elif tracked:
-            models = [_fit_segment(L, clock, e, lev, a, b, W, M, st, cfg, tops) for a, b in segs]
+            models = [_fit_segment(L, clock, e, fit_lev, a, b, W, M, st, cfg, tops) for a, b in segs]
         elif cfg.decision_directed:
-            models = [_fit(L, clock, e, lev, 0, P, M, st, cfg)]
+            models = [_fit(L, clock, e, fit_lev, 0, P, M, st, cfg)]
         if cfg.decision_directed and fixed_clock is None:
             clock, _ = refine_clock(L, clock, e, lev, 0, _track(segs, models), p_prior, p_sigma,
                                     timing_sigma=ts, search_ends=True)
@@ -1368,7 +1383,7 @@ def _demodulate(L: np.ndarray, u_guess: float, air: AirInterface, e: float,
                 for j, (a, b) in enumerate(segs):
                     lo, hi = _centred(a, b, W, P)
                     if changed.size and ((changed >= lo) & (changed < hi)).any():
-                        models[j] = _fit_segment(L, clock, e, lev, a, b, W, M, st, cfg, tops)
+                        models[j] = _fit_segment(L, clock, e, fit_lev, a, b, W, M, st, cfg, tops)
                         pre[j] = None
             parts = []
             for j, (a, b) in enumerate(segs):
