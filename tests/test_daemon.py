@@ -152,8 +152,13 @@ def test_faults_are_counted_and_decoding_resumes(tmp_path: Path, pace: bool) -> 
     assert final["frames_dropped"] >= 201
     if not pace:  # nothing but the faults: the 200 stalled frames, the one dropped, and
         # while the pairer resyncs on the jumped ids, at most its window (16) on each side
-        # (10-11 measured; which ones depends on how the two readers interleave)
-        assert final["frames_dropped"] <= 201 + 2 * 16, (acq, final["frames_dropped"])
+        # (10-11 measured; which ones depends on how the two readers interleave). The pairs
+        # the ring still held when the test stopped the daemon and its 0.3 s drain ran out
+        # are no fault's (``stop_dropped``, part of frames_dropped): a loaded machine failed
+        # the bound once with 312 dropped; beside three busy loops, stop_dropped was 0-108
+        # while pair_gaps stayed 211-212
+        lost = final["frames_dropped"] - final["stop_dropped"]
+        assert lost <= 201 + 2 * 16, (acq, final["frames_dropped"], final["stop_dropped"])
         assert acq["duplicates_left"] == 1
     pk = _ok_packets(recs)
     assert stop.met_at_s is not None and any(r["frame"] > 4000 for r in pk), \
