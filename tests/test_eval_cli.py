@@ -94,6 +94,7 @@ def test_report_without_matplotlib_says_so(tmp_path: Path, monkeypatch: pytest.M
     (["--distances", "40,far"], "'far' is not a number"),
     (["--distances", "0.2"], "outside"),
     (["--config", "/nonexistent/iscd.toml"], "config file not found"),
+    (["--suite", "comms", "--traces", "t"], "--traces: only with --suite motion"),
 ])
 def test_bad_input_is_one_line_exit_2(argv: list[str], message: str, tmp_path: Path,
                                       capsys: pytest.CaptureFixture[str]) -> None:

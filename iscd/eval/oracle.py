@@ -492,14 +492,26 @@ class _RecordingDecoder(StreamDecoder):
     luminance and Gaussian window (px, per camera, as :meth:`_luminance` computed it) to
     ``hook(ids, left, right, lum_l, lum_r, sigmas)``."""
 
-    def __init__(self, cfg: Config, hook: Callable[..., None]) -> None:
+    def __init__(self, cfg: Config, hook: Callable[..., None],
+                 trace_steps: list[tuple[Any, ...]] | None = None) -> None:
         self._hook = hook
+        self._trace_steps = trace_steps
+        """with a list: every assembler is a :class:`~iscd.eval.lumtrace.TracingAssembler`
+        that appends its input to it"""
         self._last_growth: list[float] = [1.0, 1.0]
         self.window_error = 0.0
         """largest relative difference between the receiver's luminance and the oracle's
         window at the receiver's own followed centres (first frame of each block): ~1e-6
         unless the pipeline's window formula changed"""
         super().__init__(cfg)
+
+    def _make_assembler(self) -> PacketAssembler:
+        if self._trace_steps is None:
+            return super()._make_assembler()
+        from iscd.eval.lumtrace import TracingAssembler
+
+        return TracingAssembler(self.tx, fps=self.fps, exposure_s=self.cfg.camera.exposure_s, cfg=self.rx_cfg,
+                                steps=self._trace_steps)
 
     def _growth(self, starts: list[np.ndarray]) -> list[float]:
         g = super()._growth(starts)
@@ -637,7 +649,8 @@ def run_oracle(cfg: Config, packets: int = 2, *, mode: ReceiverMode | None = Non
                bins: int = 8, genie: bool = True,
                genie_windows: Sequence[int | None] = GENIE_WINDOWS,
                progress: Callable[[int], None] | None = None,
-               reader: FrameReader | None = None, truth: Truth | None = None) -> OracleResult:
+               reader: FrameReader | None = None, truth: Truth | None = None,
+               trace_to: str | Path | None = None, trace_label: str = "") -> OracleResult:
     """Decode a simulated recording with the receiver and with the oracle stages.
 
     Renders ``packets`` whole packets of ``cfg``'s scene (as
@@ -672,6 +685,10 @@ def run_oracle(cfg: Config, packets: int = 2, *, mode: ReceiverMode | None = Non
         ``cfg`` must then be the config it was made with.
     truth : Truth, optional
         That recording's truth (frames 0 .. len(truth) - 1).
+    trace_to : path, optional
+        Also write the receiver's luminance trace there (:mod:`iscd.eval.lumtrace`: what its
+        packet assembler was fed, the sent packets and the receiver's scores), labelled
+        ``trace_label``.
 
     Returns
     -------
@@ -738,7 +755,8 @@ def run_oracle(cfg: Config, packets: int = 2, *, mode: ReceiverMode | None = Non
                 dark_crops[c].append(img[y0:y1, x0:x1].copy())
     crops = [np.stack(dc) if dc else None for dc in dark_crops]
 
-    dec = _RecordingDecoder(dcfg, hook)
+    trace_steps: list[tuple[Any, ...]] | None = [] if trace_to is not None else None
+    dec = _RecordingDecoder(dcfg, hook, trace_steps)
     records: list[dict] = []
     Lb = np.empty((block, H, W), np.uint8)
     Rb = np.empty_like(Lb)
@@ -773,6 +791,8 @@ def run_oracle(cfg: Config, packets: int = 2, *, mode: ReceiverMode | None = Non
             if int(truth.packet_index[j]) < packets}
     scores: dict[str, dict[int, StageScore]] = {
         "receiver": _assembler_scores(records, truth, air, tol, want, bins)}
+    if trace_to is not None and trace_steps is not None:
+        _write_trace(trace_to, trace_label, dec, rx, cfg, truth, air, want, scores["receiver"], trace_steps)
 
     # +true positions: the receiver's assembler on the true-position luminance of the same frames
     asm = PacketAssembler(tx, fps=fps, exposure_s=cfg.camera.exposure_s, cfg=rx)
@@ -836,6 +856,24 @@ def run_oracle(cfg: Config, packets: int = 2, *, mode: ReceiverMode | None = Non
         out.append(po)
     lum = {"receiver": L_rx, "true positions": L_tp, **({"genie": L_g} if genie else {})}
     return OracleResult(res, out, bins, STAGES if genie else STAGES[:-2], notes, lum)
+
+
+def _write_trace(path: str | Path, label: str, dec: StreamDecoder, rx: ReceiverConfig, cfg: Config, truth: Truth,
+                 air: AirInterface, want: dict[int, int], scores: dict[int, StageScore],
+                 steps: list[tuple[Any, ...]]) -> None:
+    """:func:`run_oracle`'s ``trace_to``: the receiver's luminance trace with the truth's sent
+    packets (header start, data levels) and the receiver's own scores."""
+    from iscd.eval.lumtrace import PacketScore, SentPacket, Trace, save
+
+    F = air.data_symbols
+    sent = []
+    for idx, j in sorted(want.items()):
+        k = int(truth.packet_start_symbol[j]) + air.data_offset
+        sent.append(SentPacket(idx, float(truth.packet_t_s[j]), truth.levels_of(k, k + F).astype(np.int64)))
+    got = {idx: scores.get(idx, StageScore(False)) for idx in want}
+    captured = [PacketScore(idx, sc.found, sc.crc_ok, sc.errors) for idx, sc in sorted(got.items())]
+    save(Trace(label or Path(path).stem, dec.tx, rx, float(cfg.camera.fps), float(cfg.camera.exposure_s), sent,
+               steps, captured), path)
 
 
 def pool(results: Sequence[OracleResult]) -> OracleResult:

@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import math
 import zlib
+from pathlib import Path
 from dataclasses import dataclass, field
 from typing import Any, Callable, Sequence
 
@@ -357,6 +358,9 @@ class EvalPlan:
     """``[scene]`` keys over every motion case's (e.g. a vibration model)"""
     motion_randomize: bool = False
     """pass every motion case through ``iscd.sim.randomize.randomized`` when it exists"""
+    motion_traces: str | None = None
+    """a directory: every motion scene's luminance trace is written there
+    (:mod:`iscd.eval.lumtrace`, ``<case>-<seed>[-<key>=<value>...].npz``)"""
 
     def resolved(self) -> "EvalPlan":
         """Fill the defaults (full or ``quick``)."""
@@ -469,9 +473,11 @@ def jobs(base: Config, plan: EvalPlan, results: EvalResults) -> list[Job]:
                         s: int = s, note: str = note) -> list[Any]:
                     from iscd.eval.oracle import run_oracle
 
+                    label = "-".join([case.key, str(s)] + [f"{k}={v}" for k, v in p.motion_scene])
+                    trace = None if p.motion_traces is None else Path(p.motion_traces) / f"{label}.npz"
                     row = MotionRow(case, s, run_oracle(cfg, case.packets, mode=ReceiverMode(
                         "HDR f/4+f/8" if case.leds > 1 else "diversity", "both"), block=p.motion_block,
-                        progress=progress), note)
+                        progress=progress, trace_to=trace, trace_label=label), note)
                     results.motion.append(row)
                     return [row]
                 out.append(Job("motion", f"motion {case.key} seed {i + 1}", cfg,

@@ -71,6 +71,10 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     p.add_argument("--randomize", action="store_true",
                    help="motion suite: pass every case through iscd.sim.randomize.randomized(cfg, seed) "
                         "(runs without it, and says so, where that module is not there)")
+    p.add_argument("--traces", metavar="DIR",
+                   help="motion suite: also write each scene's luminance trace into DIR (what the receiver's "
+                        "demodulator was fed, with the truth); python -m iscd.eval.lumtrace DIR demodulates "
+                        "them again with other [receiver] settings in a fraction of the time")
     p.add_argument("--recording", metavar="DIR", action="append",
                    help="the oracle split of a recording instead of a suite (repeatable): DIR holds "
                         "left.iscr, right.iscr, truth.npz, truth.json and config.toml as iscd simulate "
@@ -147,10 +151,32 @@ def build_plan(args: argparse.Namespace) -> "object":
         if bad:
             raise UserError(f"--cases: unknown case {bad[0]!r} (known: {', '.join(known)})")
     scene = tuple(_scene_key(t) for t in (getattr(args, "scene", None) or ()))
+    traces = _traces_dir(getattr(args, "traces", None), suites)
     return EvalPlan(suites=suites, quick=args.quick, seed=args.seed, packets=args.packets,
                     frames=args.frames, rules=rules, methods=methods, comms_distances=d,
                     hdr_distances=d, ranging_distances=d, fec_distances=d, motion_seeds=seeds, motion_cases=cases,
-                    motion_scene=scene, motion_randomize=bool(getattr(args, "randomize", False)))
+                    motion_scene=scene, motion_randomize=bool(getattr(args, "randomize", False)),
+                    motion_traces=traces)
+
+
+def _traces_dir(text: str | None, suites: tuple[str, ...]) -> str | None:
+    """--traces: the directory made (absolute: the points may run in other processes), or
+    one clear error."""
+    from iscd.core.errors import UserError
+
+    if text is None:
+        return None
+    if "motion" not in suites:
+        raise UserError("--traces: only with --suite motion (the traces are of its scenes)")
+    path = Path(text).expanduser().resolve()
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+        probe = path / ".write-test"
+        probe.write_bytes(b"")
+        probe.unlink()
+    except OSError as e:
+        raise UserError(f"--traces: cannot write into {path} ({e.strerror or e})") from None
+    return str(path)
 
 
 def _scene_key(text: str) -> tuple[str, object]:
@@ -310,6 +336,8 @@ def _argv_of(args: argparse.Namespace) -> list[str]:
         a.append(f"--scene={t}")
     for t in getattr(args, "recording", None) or ():
         a.append(f"--recording={t}")
+    if getattr(args, "traces", None):
+        a.append(f"--traces={args.traces}")
     if getattr(args, "randomize", False):
         a.append("--randomize")
     for k in ("workers", "scheduler"):
