@@ -77,24 +77,30 @@ def test_nearest_dark_frames() -> None:
     assert set(idx[1].tolist()) == {1, 2}
 
 
-def test_demod_hooks_fix_the_clock_and_replace_the_channel() -> None:
-    """``demodulate_packet(clock=, channel=)``: the clock given is the clock used (no fits),
-    and every channel estimate comes from ``channel(clock, a, b)`` over stretches that
-    cover the packet; a true-level channel does not do worse than the estimate."""
+def _one_led_packet(peak_dn: float):  # type: ignore[no-untyped-def]
+    """One synthetic one-LED PWM-8 packet seen by two cameras (2.5 DN read noise, 80 ppm
+    drift): (air interface, recording, its first symbol, the true symbol clock)."""
     from iscd.core.airinterface import AirInterface
     from iscd.core.config import TransmitterConfig
-    from iscd.decode.comms.demod import PacketResult, demodulate_packet
-    from iscd.decode.comms.settings import ReceiverConfig
     from iscd.decode.comms.synth import SynthCamera, synth_recording
 
-    tx = TransmitterConfig(rows=1, cols=1, levels=8)
-    air = AirInterface.from_config(tx)
-    rec = synth_recording(air, [SynthCamera(peak_dn=40.0, read_noise_dn=2.5)] * 2, n_packets=1, drift_ppm=80,
+    air = AirInterface.from_config(TransmitterConfig(rows=1, cols=1, levels=8))
+    rec = synth_recording(air, [SynthCamera(peak_dn=peak_dn, read_noise_dn=2.5)] * 2, n_packets=1, drift_ppm=80,
                           phase_s=0.0021, seed=6)
     k0 = int(rec.packet_symbol0[0])
     T, rate = 1.0 / 500.0, 1 + 80e-6
     t_sym = (k0 + np.arange(air.packet_symbols + 1)) * T / rate + 0.0021
-    clock = true_clock(t_sym, rec.fps)
+    return air, rec, k0, true_clock(t_sym, rec.fps)
+
+
+def test_demod_hooks_fix_the_clock_and_replace_the_channel() -> None:
+    """``demodulate_packet(clock=, channel=)``: the clock given is the clock used (no fits),
+    and every channel estimate comes from ``channel(clock, a, b)`` over stretches that
+    cover the packet; a true-level channel does not do worse than the estimate."""
+    from iscd.decode.comms.demod import PacketResult, demodulate_packet
+    from iscd.decode.comms.settings import ReceiverConfig
+
+    air, rec, k0, clock = _one_led_packet(40.0)
     cfg = ReceiverConfig()
     base = demodulate_packet(rec.L, clock.u0 + 0.3, air, 1.0, 2.0, 2.0, 2.0 * 300e-6, cfg)
     fixed = demodulate_packet(rec.L, clock.u0 + 0.3, air, 1.0, 2.0, 2.0, 2.0 * 300e-6, cfg, clock=clock)
@@ -128,20 +134,10 @@ def test_the_labels_hook_feeds_the_channel_fits_only() -> None:
     read them; a wrong shape is one clear error. (On a noisy packet true labels need not
     give fewer errors than the receiver's own: a fit to its own decisions can suit that
     noise better, 0 against 1 error at 50 DN.)"""
-    from iscd.core.airinterface import AirInterface
-    from iscd.core.config import TransmitterConfig
     from iscd.decode.comms.demod import PacketResult, demodulate_packet
     from iscd.decode.comms.settings import ReceiverConfig
-    from iscd.decode.comms.synth import SynthCamera, synth_recording
 
-    tx = TransmitterConfig(rows=1, cols=1, levels=8)
-    air = AirInterface.from_config(tx)
-    rec = synth_recording(air, [SynthCamera(peak_dn=60.0, read_noise_dn=2.5)] * 2, n_packets=1, drift_ppm=80,
-                          phase_s=0.0021, seed=6)
-    k0 = int(rec.packet_symbol0[0])
-    T, rate = 1.0 / 500.0, 1 + 80e-6
-    t_sym = (k0 + np.arange(air.packet_symbols + 1)) * T / rate + 0.0021
-    clock = true_clock(t_sym, rec.fps)
+    air, rec, k0, clock = _one_led_packet(60.0)
     cfg = ReceiverConfig()
     true_lev = rec.levels[k0:k0 + air.packet_symbols].astype(np.int64) - 1
     sent = true_lev[air.data_offset:] + 1
