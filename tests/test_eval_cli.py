@@ -95,6 +95,7 @@ def test_report_without_matplotlib_says_so(tmp_path: Path, monkeypatch: pytest.M
     (["--distances", "0.2"], "outside"),
     (["--config", "/nonexistent/iscd.toml"], "config file not found"),
     (["--suite", "comms", "--traces", "t"], "--traces: only with --suite motion"),
+    (["--suite", "motion", "--recording", "r", "--traces", "t"], "--traces: not with --recording"),
 ])
 def test_bad_input_is_one_line_exit_2(argv: list[str], message: str, tmp_path: Path,
                                       capsys: pytest.CaptureFixture[str]) -> None:

@@ -171,11 +171,15 @@ def redemodulate(trace: Trace, receiver: ReceiverConfig | None = None) -> list[P
         Per sent packet, as :func:`score`.
     """
     rx = receiver or trace.receiver
-    asm = PacketAssembler(trace.transmitter, fps=trace.fps, exposure_s=trace.exposure_s, cfg=rx)
+
+    def new() -> PacketAssembler:
+        return PacketAssembler(trace.transmitter, fps=trace.fps, exposure_s=trace.exposure_s, cfg=rx)
+
+    asm = new()  # (a trace written by TracingAssembler starts with ("new",) anyway)
     out: list[Any] = []
     for step in trace.steps:
         if step[0] == "new":
-            asm = PacketAssembler(trace.transmitter, fps=trace.fps, exposure_s=trace.exposure_s, cfg=rx)
+            asm = new()
         elif step[0] == "push":
             out += asm.push(*step[1:])
         elif step[0] == "reset":
@@ -211,9 +215,13 @@ def save(trace: Trace, path: str | Path) -> Path:
             "captured": [[s.index, s.found, s.crc_ok, s.errors] for s in trace.captured]}
     arrays["meta"] = np.array(json.dumps(meta))
     tmp = path.with_name(path.name + ".part")
-    with open(tmp, "wb") as f:
-        np.savez_compressed(f, **arrays)
-    tmp.replace(path)
+    try:
+        with open(tmp, "wb") as f:
+            np.savez_compressed(f, **arrays)
+        tmp.replace(path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
     return path
 
 

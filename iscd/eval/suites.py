@@ -25,8 +25,8 @@ from __future__ import annotations
 
 import math
 import zlib
-from pathlib import Path
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any, Callable, Sequence
 
 from iscd.core.airinterface_v2 import from_config as air_from_config

@@ -151,7 +151,7 @@ def build_plan(args: argparse.Namespace) -> "object":
         if bad:
             raise UserError(f"--cases: unknown case {bad[0]!r} (known: {', '.join(known)})")
     scene = tuple(_scene_key(t) for t in (getattr(args, "scene", None) or ()))
-    traces = _traces_dir(getattr(args, "traces", None), suites)
+    traces = _traces_dir(getattr(args, "traces", None), suites, bool(getattr(args, "recording", None)))
     return EvalPlan(suites=suites, quick=args.quick, seed=args.seed, packets=args.packets,
                     frames=args.frames, rules=rules, methods=methods, comms_distances=d,
                     hdr_distances=d, ranging_distances=d, fec_distances=d, motion_seeds=seeds, motion_cases=cases,
@@ -159,13 +159,15 @@ def build_plan(args: argparse.Namespace) -> "object":
                     motion_traces=traces)
 
 
-def _traces_dir(text: str | None, suites: tuple[str, ...]) -> str | None:
+def _traces_dir(text: str | None, suites: tuple[str, ...], recordings: bool = False) -> str | None:
     """--traces: the directory made (absolute: the points may run in other processes), or
     one clear error."""
     from iscd.core.errors import UserError
 
     if text is None:
         return None
+    if recordings:
+        raise UserError("--traces: not with --recording (traces are written of the motion suite's scenes)")
     if "motion" not in suites:
         raise UserError("--traces: only with --suite motion (the traces are of its scenes)")
     path = Path(text).expanduser().resolve()
