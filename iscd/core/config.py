@@ -451,7 +451,14 @@ class Config:
     that uses it, e.g. ``[daemon]``); read them with :func:`section` (or :meth:`table`)."""
 
     def replace(self, **sections: Any) -> "Config":
-        return dataclasses.replace(self, **sections)
+        return _sourced(dataclasses.replace(self, **sections), self.source)
+
+    @property
+    def source(self) -> str:
+        """The file this config was loaded from ('' if none): the owned tables' errors
+        (:func:`section`, :func:`check_sections`) name it, as :func:`load` names it for
+        the tables defined here. Not a field: not in :func:`to_dict` nor compared."""
+        return str(self.__dict__.get("_source", ""))
 
     def table(self, name: str) -> dict[str, Any]:
         """A copy of the raw table ``[name]`` (one of :data:`SECTION_NAMES`; empty if the
@@ -463,7 +470,21 @@ class Config:
     def with_keys(self, name: str, **keys: Any) -> "Config":
         """A copy with ``keys`` set in table ``[name]`` over what it holds (validated when
         its owner reads it with :func:`section`)."""
-        return dataclasses.replace(self, owned={**self.owned, name: {**self.table(name), **keys}})
+        return _sourced(dataclasses.replace(self, owned={**self.owned, name: {**self.table(name), **keys}}),
+                        self.source)
+
+
+def _sourced(cfg: Config, source: str) -> Config:
+    """``cfg`` marked as loaded from ``source`` (see :attr:`Config.source`)."""
+    if source:
+        object.__setattr__(cfg, "_source", source)
+    return cfg
+
+
+def named_error(cfg: Config, e: ConfigError) -> ConfigError:
+    """``e`` with the file ``cfg`` was loaded from in front (once), as :func:`load` says it."""
+    msg, src = str(e), cfg.source
+    return ConfigError(msg if not src or msg.startswith(src) else f"{src}: {msg}")
 
 
 SECTION_NAMES: tuple[str, ...] = ("daemon", "acquisition", "tracking", "receiver", "ranging", "output",
@@ -529,7 +550,10 @@ def section(cfg: "Config", cls: type[_S]) -> _S:
     name = getattr(cls, "__config_section__", None)
     if name is None or _OWNERS.get(name) is not cls:
         raise TypeError(f"{cls.__qualname__} is not declared with @config_section")
-    return build_section(cls, cfg.table(name), name)
+    try:
+        return build_section(cls, cfg.table(name), name)
+    except ConfigError as e:
+        raise named_error(cfg, e) from None
 
 
 def check_sections(cfg: "Config") -> None:
@@ -538,12 +562,15 @@ def check_sections(cfg: "Config") -> None:
 
     The owners must be imported (``import iscd.cli.sections`` does it); a table whose owner
     is not is a programming error here (RuntimeError), never silently passed."""
-    resolve_rig(cfg.rig)
-    for name, table in cfg.owned.items():
-        cls = _OWNERS.get(name)
-        if cls is None:
-            raise RuntimeError(f"[{name}]: its owner module is not imported (import iscd.cli.sections)")
-        build_section(cls, dict(table), name)
+    try:
+        resolve_rig(cfg.rig)
+        for name, table in cfg.owned.items():
+            cls = _OWNERS.get(name)
+            if cls is None:
+                raise RuntimeError(f"[{name}]: its owner module is not imported (import iscd.cli.sections)")
+            build_section(cls, dict(table), name)
+    except ConfigError as e:
+        raise named_error(cfg, e) from None
 
 
 def _type_name(tp: Any) -> str:
@@ -696,10 +723,14 @@ def load(path: str | Path | None = None, *, receiver: bool = False) -> Config:
         text = p.read_text(encoding="utf-8")
     except FileNotFoundError:
         raise ConfigError(f"{p}: config file not found") from None
-    except (OSError, UnicodeDecodeError) as e:
+    except IsADirectoryError:
+        raise ConfigError(f"{p}: is a folder, not a config file") from None
+    except OSError as e:
+        raise ConfigError(f"{p}: cannot read config file: {e.strerror or e}") from None
+    except UnicodeDecodeError as e:
         raise ConfigError(f"{p}: cannot read config file: {e}") from None
     try:
-        return loads(text, str(p), receiver=receiver)
+        return _sourced(loads(text, str(p), receiver=receiver), str(p))
     except ConfigError as e:
         msg = str(e)
         raise ConfigError(msg if msg.startswith(str(p)) else f"{p}: {msg}") from None

@@ -84,6 +84,8 @@ def resolve(inp: ReplayInputs) -> tuple[Path, Path, str | None, str | None]:
     """
     left = Path(inp.left)
     if inp.right is None:
+        if not left.exists():
+            raise UserError(f"{left}: no such file or folder")
         if not left.is_dir() or not (left / "left.iscr").exists():
             raise UserError(f"{left}: give LEFT and RIGHT recordings, or a folder made by 'iscd simulate'")
         cfg = inp.config or (str(left / "config.toml") if (left / "config.toml").exists() else None)
@@ -179,6 +181,32 @@ def load_sized_calibration(path: str, width: int, height: int) -> Any:
     return cal
 
 
+def camera_mismatch(lpath: Path, rpath: Path, left: object, right: object) -> list[str]:
+    """What says that LEFT and RIGHT are swapped: two recordings whose own metadata name the
+    other camera each (``camera`` "right" for LEFT and "left" for RIGHT, as ``iscd simulate``
+    writes them). One name alone is not trusted (the .iscr writer's default is "left"), other
+    names (a Photron model) are not compared, and one recording given as both is allowed (a
+    test of the decoder on one camera's frames).
+
+    Parameters
+    ----------
+    lpath, rpath : Path
+        The LEFT and RIGHT paths.
+    left, right : Recording
+        Opened; each has ``camera`` (str or None).
+
+    Returns
+    -------
+    list of str
+        Phrases, empty when nothing is wrong.
+    """
+    lcam, rcam = getattr(left, "camera", None), getattr(right, "camera", None)
+    if (lcam, rcam) == ("right", "left"):
+        return [f"LEFT {lpath} is the right camera's recording and RIGHT {rpath} the left one's (their "
+                "metadata say so): swap LEFT and RIGHT"]
+    return []
+
+
 def _check_mismatch(rec: object, cfg: Any, where: object, allow: bool, warn: Warn) -> None:
     refuse, warned = config_mismatch(rec, cfg.camera)
     if refuse and not allow:
@@ -201,6 +229,17 @@ def _opened(opener: Callable[[], Any], warn: Warn) -> Any:
     for w in caught:
         warn(str(w.message))
     return out
+
+
+def _decoder(make: Callable[[Any, Any], Any], cfg: Any, cal: Any) -> Any:
+    """``make(cfg, cal)``; a bad ``[tracking]``/``[receiver]``/``[ranging]`` key, which the
+    decoder reads, named with the config file it is in."""
+    from iscd.core.config import ConfigError, named_error
+
+    try:
+        return make(cfg, cal)
+    except ConfigError as e:
+        raise named_error(cfg, e) from None
 
 
 @dataclass(frozen=True)
@@ -274,7 +313,7 @@ def _replay_stereo(inp: ReplayInputs, out: str | Path, warn: Warn, rotate_bytes:
             raise UserError(str(e)) from None
         _check_mismatch(session, cfg, inp.left, inp.allow_mismatch, warn)
         fps = float(cfg.camera.fps)
-        dec = make_decoder(cfg, cal)
+        dec = _decoder(make_decoder, cfg, cal)
         t0 = time.perf_counter()
         last = prev = None
         gaps = 0
@@ -342,6 +381,10 @@ def _replay_pair(inp: ReplayInputs, out: str | Path, warn: Warn, progress: Progr
     left, right = _opened(lambda: (open_recording(lpath), open_recording(rpath)), warn)
     if (left.width, left.height) != (right.width, right.height):
         raise UserError(f"left is {left.width}x{left.height} px but right is {right.width}x{right.height} px")
+    for problem in camera_mismatch(lpath, rpath, left, right):
+        if not inp.allow_mismatch:
+            raise UserError(f"{problem} (--allow-mismatch decodes anyway)")
+        warn(problem)
     _check_mismatch(left, cfg, lpath, inp.allow_mismatch, warn)
     cal = calibration(cal_path, left.width, left.height) if cal_path else None
     li, ri = match_frames(left.frame_ids, right.frame_ids)
@@ -349,7 +392,7 @@ def _replay_pair(inp: ReplayInputs, out: str | Path, warn: Warn, progress: Progr
         raise UserError(f"{lpath} and {rpath} share no frame ids: not a stereo pair")
     unpaired = (left.n_frames - li.size) + (right.n_frames - ri.size)
     fps = left.fps or cfg.camera.fps
-    dec = make_decoder(cfg, cal)
+    dec = _decoder(make_decoder, cfg, cal)
     t0 = time.perf_counter()
     block = inp.block
     with JsonlWriter(out, rotate_bytes=rotate_bytes) as sink:

@@ -34,7 +34,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                                     "reads v1 packets with the SPEC's M, K, F (v2 packets say their own)")
     add_calibration_options(p, "the recording's image size")
     p.add_argument("--allow-mismatch", action="store_true",
-                   help="decode even when the recording's size or frame rate differ from [camera] "
+                   help="decode even when the recording's size or frame rate differ from [camera], or "
+                        "when the recordings' metadata say LEFT and RIGHT are swapped "
                         "(a warning instead of an error)")
     p.add_argument("--out", required=True, help="JSON Lines output file")
     p.add_argument("--block", type=int, default=64, help="frames per processing block (default 64)")

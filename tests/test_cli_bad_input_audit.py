@@ -1,0 +1,123 @@
+"""Session 32's bad-input audit of the command line: each case below was a traceback, a hang,
+exit status 0 on bad input or an error that did not name the bad file/key/option; now it is
+one line on stderr naming it and exit status 2 (or, for a closed stdout pipe, exit 1 and no
+traceback).
+
+The ``iscd run`` case must stop before the daemon is built (the ``no_daemon`` fixture).
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from fakes import cli, one_error_line
+from iscd.core.config import ConfigError, load
+
+SMALL = """\
+[transmitter]
+rows = 1
+cols = 1
+levels = 4
+training_symbols = 10
+data_symbols = 40
+[camera]
+width = 64
+height = 64
+"""
+
+
+@pytest.fixture(scope="module")
+def sim(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A 40-frame 64x64 'iscd simulate' recording (left.iscr, right.iscr, config, calibration)."""
+    from iscd.cli.main import main
+
+    d = tmp_path_factory.mktemp("audit")
+    (d / "small.toml").write_text(SMALL)
+    assert main(["-q", "simulate", "--config", str(d / "small.toml"), "--out", str(d / "sim"),
+                 "--frames", "40"]) == 0
+    return d / "sim"
+
+
+def _toml(tmp: Path, name: str, text: str) -> Path:
+    p = tmp / name
+    p.write_text(text)
+    return p
+
+
+# --------------------------------------------------------------------------- config: owned tables
+def test_config_check_owned_table_error_names_the_file(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    # before: "daemon.rotate_mb: expected ..." without the file ([camera] errors named it)
+    cfg = _toml(tmp_path, "c.toml", "[daemon]\nrotate_mb = -1\n")
+    rc, _, err = cli(capsys, "config", "--check", str(cfg))
+    assert rc == 2
+    line = one_error_line(err, "config")
+    assert f"{cfg}: daemon.rotate_mb:" in line
+
+
+def test_run_owned_table_error_names_the_file(tmp_path: Path, no_daemon: None,
+                                              capsys: pytest.CaptureFixture[str]) -> None:
+    cfg = _toml(tmp_path, "c.toml", "[board]\nport = 5\n")
+    rc, _, err = cli(capsys, "run", "--duration", "1", "--config", str(cfg))
+    assert rc == 2
+    assert f"{cfg}: board.port:" in one_error_line(err, "run")
+
+
+def test_section_error_names_the_file_once(tmp_path: Path) -> None:
+    from iscd.core import config as C
+    from iscd.decode.ranging.config import RangingSettings
+
+    cfg = load(_toml(tmp_path, "c.toml", "[ranging]\nnope = 1\n"))
+    assert cfg.source == str(tmp_path / "c.toml")
+    assert cfg.with_keys("daemon", out="x").source == cfg.source  # carried over
+    with pytest.raises(ConfigError, match=r"c\.toml: ranging\.nope: unknown key") as e:
+        C.section(cfg, RangingSettings)
+    assert str(e.value).count("c.toml") == 1
+    assert "source" not in C.to_dict(cfg)  # not a field: not in recordings' metadata nor hashes
+
+
+def test_config_that_is_a_folder(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    # before: "cannot read config file: [Errno 21] Is a directory: '...'"
+    rc, _, err = cli(capsys, "config", "--check", str(tmp_path))
+    assert rc == 2
+    assert one_error_line(err, "config").endswith(f"{tmp_path}: is a folder, not a config file")
+
+
+# --------------------------------------------------------------------------- replay
+def test_replay_swapped_cameras_refused(sim: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    # before: exit 0, 0 packets, 0 ranges, not a word
+    out = tmp_path / "o.jsonl"
+    rc, _, err = cli(capsys, "replay", str(sim / "right.iscr"), str(sim / "left.iscr"), "--config",
+                     str(sim / "config.toml"), "--out", str(out), "--no-progress")
+    assert rc == 2
+    assert "swap LEFT and RIGHT" in one_error_line(err, "replay")
+    assert not out.exists()
+
+
+def test_replay_swapped_with_allow_mismatch_is_a_warning(sim: Path, tmp_path: Path,
+                                                         capsys: pytest.CaptureFixture[str]) -> None:
+    rc, _, err = cli(capsys, "replay", str(sim / "right.iscr"), str(sim / "left.iscr"), "--config",
+                     str(sim / "config.toml"), "--out", str(tmp_path / "o.jsonl"), "--no-progress",
+                     "--allow-mismatch")
+    assert rc == 0
+    assert "iscd replay: warning: " in err and "swap LEFT and RIGHT" in err
+
+
+def test_replay_missing_left_says_so(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    # before: "give LEFT and RIGHT recordings, or a folder made by 'iscd simulate'"
+    rc, _, err = cli(capsys, "replay", str(tmp_path / "nope"), "--out", str(tmp_path / "o.jsonl"))
+    assert rc == 2
+    assert one_error_line(err, "replay").endswith(f"{tmp_path / 'nope'}: no such file or folder")
+
+
+def test_replay_bad_receiver_key_names_the_file(sim: Path, tmp_path: Path,
+                                                capsys: pytest.CaptureFixture[str]) -> None:
+    cfg = _toml(tmp_path, "c.toml", (sim / "config.toml").read_text() + "\n[receiver]\nfoo = 1\n")
+    rc, _, err = cli(capsys, "replay", str(sim), "--config", str(cfg), "--out", str(tmp_path / "o.jsonl"),
+                     "--no-progress")
+    assert rc == 2
+    assert f"{cfg}: receiver.foo: unknown key" in one_error_line(err, "replay")
