@@ -121,3 +121,103 @@ def test_replay_bad_receiver_key_names_the_file(sim: Path, tmp_path: Path,
                      "--no-progress")
     assert rc == 2
     assert f"{cfg}: receiver.foo: unknown key" in one_error_line(err, "replay")
+
+
+# --------------------------------------------------------------------------- eval
+@pytest.mark.parametrize("key", ["distance_m", "seed"])
+def test_eval_scene_key_the_cases_set(key: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    # before: TypeError: chapter3_cfg() got multiple values for argument 'distance_m'
+    rc, _, err = cli(capsys, "eval", "--suite", "motion", "--quick", "--scene", f"{key}=3",
+                     "--out", str(tmp_path / "ev"))
+    assert rc == 2
+    assert f"--scene {key}:" in one_error_line(err, "eval")
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["--distances", ""], "--distances: expected a comma-separated list, got ''"),  # before: the defaults, exit 0
+    (["--out", ""], "--out: the path is empty"),  # before: wrote the report into the current folder
+])
+def test_eval_empty_option_values(argv: list[str], message: str, tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+                                  capsys: pytest.CaptureFixture[str]) -> None:
+    monkeypatch.chdir(tmp_path)
+    out = [] if "--out" in argv else ["--out", str(tmp_path / "ev")]
+    rc, _, err = cli(capsys, "eval", "--suite", "comms", "--quick", *argv, *out)
+    assert rc == 2
+    assert message in one_error_line(err, "eval")
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_eval_bad_receiver_key_names_the_file_before_any_point(tmp_path: Path,
+                                                              capsys: pytest.CaptureFixture[str]) -> None:
+    cfg = _toml(tmp_path, "c.toml", "[receiver]\nfoo = 1\n")
+    rc, _, err = cli(capsys, "eval", "--quick", "--config", str(cfg), "--out", str(tmp_path / "ev"))
+    assert rc == 2
+    assert f"{cfg}: receiver.foo: unknown key" in one_error_line(err, "eval")
+
+
+@pytest.mark.parametrize("address", ["bogus", "http://host:1", "tcp://127.0.0.1:abc", "inproc://x",
+                                     "tcp://127.0.0.1:99999"])
+def test_scheduler_address_refused_at_once(address: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    # before: a Client made of it failed, and its clean-up printed a TimeoutError traceback 20 s later
+    t0 = time.perf_counter()
+    rc, _, err = cli(capsys, "eval", "--quick", "--scheduler", address, "--out", str(tmp_path / "ev"))
+    assert rc == 2
+    assert f"--scheduler {address}: not a scheduler address" in one_error_line(err, "eval")
+    assert time.perf_counter() - t0 < 5
+
+
+def test_check_address_accepts_good_addresses() -> None:
+    from iscd.campaign.runner import check_address
+
+    for a in ("tcp://127.0.0.1:8786", "tcp://[::1]:8786", "tls://head:8786"):
+        check_address(a, a)
+
+
+# --------------------------------------------------------------------------- campaign
+def test_campaign_manifest_that_is_a_folder(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    # before: "DIR: no such manifest file"
+    rc, _, err = cli(capsys, "campaign", str(tmp_path), "--out", str(tmp_path / "out"))
+    assert rc == 2
+    assert "is a folder, not a manifest file" in one_error_line(err, "campaign")
+
+
+# --------------------------------------------------------------------------- python -m iscd.eval.lumtrace
+def _trace(tmp: Path, **meta: object) -> Path:
+    from iscd.core.config import TransmitterConfig
+    from iscd.decode.comms.settings import ReceiverConfig
+    from iscd.eval.lumtrace import Trace, save
+
+    path = save(Trace("t", TransmitterConfig(rows=1, cols=1), ReceiverConfig(), 1000.0, 0.001, []), tmp / "t.npz")
+    with np.load(path) as z:
+        data = {k: z[k] for k in z.files}
+    m = json.loads(str(data["meta"]))
+    for k, v in meta.items():
+        m[k] = {**m[k], **v} if isinstance(v, dict) else v
+    data["meta"] = np.array(json.dumps(m))
+    np.savez(path, **data)
+    return path
+
+
+@pytest.mark.parametrize("meta, message", [
+    ({"transmitter": {"rows": "a"}}, "transmitter.rows: expected an integer"),  # before: TypeError in the demodulator
+    ({"transmitter": {"levels": 3}}, "transmitter.levels: expected one of"),  # before: AirInterfaceError traceback
+    ({"fps": float("nan")}, "camera.fps: expected a finite number"),  # before: ValueError traceback
+    ({"fps": 0}, "camera.fps: expected a number > 0"),
+])
+def test_lumtrace_damaged_settings_are_one_line(meta: dict, message: str, tmp_path: Path,
+                                                capsys: pytest.CaptureFixture[str]) -> None:
+    from iscd.eval.lumtrace import main
+
+    path = _trace(tmp_path, **meta)
+    assert main([str(path)]) == 2
+    err = capsys.readouterr().err
+    lines = [ln for ln in err.splitlines() if ln.strip()]
+    assert len(lines) == 1 and "Traceback" not in err, err
+    assert lines[0].startswith(f"lumtrace: {path}: a damaged trace (") and message in lines[0]
+
+
+def test_lumtrace_undamaged_trace_still_reads(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    from iscd.eval.lumtrace import main
+
+    assert main([str(_trace(tmp_path))]) == 0
+    assert "in all: 0 of 0 delivered" in capsys.readouterr().out

@@ -156,6 +156,8 @@ def load_manifest(path: str | Path) -> list[TaskSpec]:
         One line naming the problem.
     """
     p = Path(path)
+    if p.is_dir():
+        raise ManifestError(f"{p}: is a folder, not a manifest file (a .toml or .csv file)")
     if not p.is_file():
         raise ManifestError(f"{p}: no such manifest file")
     suffix = p.suffix.lower()

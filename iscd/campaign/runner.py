@@ -76,6 +76,28 @@ def default_workers() -> int:
         return max(1, os.cpu_count() or 1)
 
 
+def check_address(addr: str, given: str) -> None:
+    """Raise UserError (one line naming ``--scheduler given``) unless ``addr`` is a scheduler
+    address distributed can connect to: a known scheme other than inproc and, for tcp/tls/ws/wss, HOST:PORT
+    with a port in 1..65535. Checked before the Client is made: a Client that fails on
+    its address leaves an object whose clean-up prints a traceback after 20 s."""
+    from distributed.comm import get_address_host_port, parse_address
+    from distributed.comm.registry import get_backend
+
+    try:
+        scheme, _ = parse_address(addr)
+        get_backend(scheme)
+        if scheme == "inproc":
+            raise ValueError("inproc:// is a scheduler in this process only")
+        if scheme in ("tcp", "tls", "ws", "wss"):
+            _, port = get_address_host_port(addr)
+            if not 0 < int(port) < 65536:
+                raise ValueError(f"port {port} is not in 1..65535")
+    except (ValueError, TypeError) as e:
+        raise UserError(f"--scheduler {given}: not a scheduler address ({' '.join(str(e).split())}); "
+                        "expected e.g. tcp://HOST:8786") from None
+
+
 class Runner:
     """Dask client (and LocalCluster) for a campaign or an ``iscd eval`` sweep.
 
@@ -120,6 +142,7 @@ class Runner:
             addr = self.scheduler
             if "://" not in addr:
                 addr = f"tcp://{addr}"
+            check_address(addr, self.scheduler)
             try:
                 self.client = Client(addr, timeout=f"{CONNECT_TIMEOUT_S}s", set_as_default=False)
             except (OSError, TimeoutError, ValueError) as e:

@@ -233,6 +233,21 @@ def _dataclass_from(cls: Any, d: dict[str, Any], what: str) -> Any:
     return cls(**d)
 
 
+def _check_settings(meta: dict[str, Any], path: Path) -> None:
+    """The transmitter and camera settings of a trace checked as a config's ``[transmitter]``
+    and ``[camera]`` are (levels, shape, fps, exposure...): a damaged value is one line
+    naming it, not an exception in the demodulator."""
+    from iscd.core.config import CameraConfig, ConfigError, build_section
+
+    try:
+        if not isinstance(meta["transmitter"], dict):
+            raise ConfigError(f"transmitter: expected a table, got {meta['transmitter']!r}")
+        build_section(TransmitterConfig, meta["transmitter"], "transmitter")
+        build_section(CameraConfig, {"fps": meta["fps"], "exposure_s": meta["exposure_s"]}, "camera")
+    except ConfigError as e:
+        raise TraceError(f"{path}: a damaged trace ({e})") from None
+
+
 def _receiver_from(table: Any, path: Path) -> ReceiverConfig:
     from iscd.core.config import ConfigError
     from iscd.decode.comms.settings import receiver_config
@@ -267,6 +282,7 @@ def load(path: str | Path) -> Trace:
             raise TraceError(f"{path}: trace format {meta.get('format')!r}, this version reads {FORMAT}")
         tx = _dataclass_from(TransmitterConfig, meta["transmitter"], f"{path}: transmitter")
         rx = _receiver_from(meta["receiver"], path)
+        _check_settings(meta, path)
         steps: list[tuple[Any, ...]] = []
         for i, st in enumerate(meta["steps"]):
             if st[0] == "push":

@@ -136,7 +136,7 @@ def build_plan(args: argparse.Namespace) -> "object":
         bad = [r for r in rules if r not in ("iscd", "dissertation")]
         if bad:
             raise UserError(f"--rules: unknown rule {bad[0]!r} (known: iscd, dissertation)")
-    d = _distances(args.distances) if args.distances else None
+    d = _distances(args.distances) if args.distances is not None else None
     suites = SUITES if args.suite == "all" else (args.suite,)
     seeds = getattr(args, "seeds", None)
     if seeds is not None and seeds < 1:
@@ -181,6 +181,13 @@ def _traces_dir(text: str | None, suites: tuple[str, ...], recordings: bool = Fa
     return str(path)
 
 
+SCENE_KEYS_OF_THE_CASES = {
+    "distance_m": "each motion case sets its own start distance (choose cases with --cases)",
+    "seed": "each scene's seed is derived from --seed",
+}
+"""``[scene]`` keys that --scene cannot set: the motion suite sets them for every case."""
+
+
 def _scene_key(text: str) -> tuple[str, object]:
     """``KEY=VALUE`` of --scene: the value as a TOML value (number, boolean, quoted or
     bare string)."""
@@ -192,6 +199,8 @@ def _scene_key(text: str) -> tuple[str, object]:
     key = key.strip()
     if not sep or not key:
         raise UserError(f"--scene: expected KEY=VALUE, got {text!r}")
+    if key in SCENE_KEYS_OF_THE_CASES:
+        raise UserError(f"--scene {key}: {SCENE_KEYS_OF_THE_CASES[key]}")
     try:
         v = tomllib.loads(f"v = {value.strip()}")["v"]
     except tomllib.TOMLDecodeError:
@@ -207,6 +216,8 @@ def run(args: argparse.Namespace) -> int:
     from iscd.eval.report import NO_MATPLOTLIB, write_report
     from iscd.eval.suites import run_plan, total_frames
 
+    if not args.out:
+        raise UserError("--out: the path is empty; give a folder")
     plan = build_plan(args)
     if getattr(args, "recording", None):
         for name in ("iscd.decode.stream", "iscd.decode.comms", "iscd.decode.tracking"):
@@ -214,6 +225,7 @@ def run(args: argparse.Namespace) -> int:
                 logging.getLogger(name).setLevel(logging.WARNING)
         return _run_recordings(args)
     base = load(args.config)
+    _check_sections(base)
     if not getattr(args, "verbose", 0):  # per-decoder acquisition/search logs are noise here (-v shows them)
         for name in ("iscd.decode.stream", "iscd.decode.comms", "iscd.decode.tracking", "matplotlib"):
             logging.getLogger(name).setLevel(logging.WARNING)
@@ -257,6 +269,17 @@ def run(args: argparse.Namespace) -> int:
         except ValueError as e:  # a bad value (a --scene key the config rejects...): one line
             raise UserError(str(e)) from None
     return _finish(args, results, out)
+
+
+def _check_sections(cfg: "object") -> None:
+    """Every owned table of the base config (``[receiver]``, ``[tracking]``, ...) checked
+    before the first point: a bad key is one line naming the file and the key (``[rig]``,
+    which the simulated points do not use, is not resolved)."""
+    import iscd.cli.sections  # noqa: F401  (every section's owner)
+    from iscd.core import config as C
+
+    for cls in C.section_owners().values():
+        C.section(cfg, cls)  # type: ignore[arg-type]
 
 
 def _finish(args: argparse.Namespace, results: "object", out: Path) -> int:
