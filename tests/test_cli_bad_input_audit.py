@@ -123,6 +123,28 @@ def test_replay_bad_receiver_key_names_the_file(sim: Path, tmp_path: Path,
     assert f"{cfg}: receiver.foo: unknown key" in one_error_line(err, "replay")
 
 
+# --------------------------------------------------------------------------- simulate
+def test_simulate_empty_out_refused(tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+                                    capsys: pytest.CaptureFixture[str]) -> None:
+    # before: --out '' rendered into the current folder, exit 0
+    monkeypatch.chdir(tmp_path)
+    rc, _, err = cli(capsys, "simulate", "--out", "", "--frames", "2")
+    assert rc == 2
+    assert "--out: the path is empty" in one_error_line(err, "simulate")
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_simulate_more_than_the_disk_holds_refused(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    # before: wrote until the disk was full (or for hours: 10^10 frames, 327680 GB)
+    out = tmp_path / "big"
+    t0 = time.perf_counter()
+    rc, _, err = cli(capsys, "simulate", "--out", str(out), "--frames", "10000000000")
+    assert rc == 2
+    assert "GB free" in one_error_line(err, "simulate")
+    assert time.perf_counter() - t0 < 30
+    assert not (out / "left.iscr").exists()
+
+
 # --------------------------------------------------------------------------- eval
 @pytest.mark.parametrize("key", ["distance_m", "seed"])
 def test_eval_scene_key_the_cases_set(key: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
@@ -181,6 +203,106 @@ def test_campaign_manifest_that_is_a_folder(tmp_path: Path, capsys: pytest.Captu
     assert "is a folder, not a manifest file" in one_error_line(err, "campaign")
 
 
+# --------------------------------------------------------------------------- calibrate
+BOARD = ["--left", "nope/l*.png", "--right", "nope/r*.png", "--board", "9x6", "--square", "0.025"]
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["--alpha", "5"], "--alpha must be -1 or in 0..1"),  # before: accepted, exit 0
+    (["--alpha", "nan"], "--alpha must be -1 or in 0..1"),
+    (["--outlier-floor", "nan"], "--outlier-floor must be"),
+    (["--outlier-factor", "inf"], "--outlier-factor must be"),
+    (["--max-epipolar-px", "nan"], "--max-epipolar-px must be"),  # before: RECALIBRATE, exit 1
+    (["--max-transfer-px", "-1"], "--max-transfer-px must be"),
+    (["--max-scale-error", "0"], "--max-scale-error must be"),
+    (["--pairs", "0"], "--pairs must be at least 1"),  # before: "no pairs were taken"
+    (["--steady-px", "-1"], "--steady-px must be"),
+    (["--steady-frames", "0"], "--steady-frames must be at least 1"),
+    (["--max-seconds", "nan"], "--max-seconds must be"),
+])
+def test_calibrate_option_out_of_range(argv: list[str], message: str, tmp_path: Path,
+                                       capsys: pytest.CaptureFixture[str]) -> None:
+    rc, _, err = cli(capsys, "calibrate", *BOARD, "--out", str(tmp_path / "rig.yml"), *argv)
+    assert rc == 2
+    assert message in one_error_line(err, "calibrate")
+
+
+@pytest.mark.parametrize("where", ["out_under_a_file", "report_is_a_file", "report_under_a_file",
+                                   "save_pairs_is_a_file"])
+def test_calibrate_output_path_refused_before_the_work(where: str, tmp_path: Path,
+                                                       capsys: pytest.CaptureFixture[str]) -> None:
+    # before: a traceback (FileExistsError, NotADirectoryError) after calibrating
+    f = tmp_path / "f"
+    f.write_text("x")
+    argv = {"out_under_a_file": ["--out", str(f / "rig.yml")],
+            "report_is_a_file": ["--out", str(tmp_path / "rig.yml"), "--report", str(f)],
+            "report_under_a_file": ["--out", str(tmp_path / "rig.yml"), "--report", str(f / "rep")],
+            "save_pairs_is_a_file": ["--out", str(tmp_path / "rig.yml"), "--save-pairs", str(f)]}[where]
+    rc, _, err = cli(capsys, "calibrate", *BOARD, *argv)
+    assert rc == 2
+    line = one_error_line(err, "calibrate")
+    assert str(f) in line and ("is a file" in line)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["f"]
+
+
+@pytest.fixture(scope="module")
+def board_pairs(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    from iscd.calibration.synthetic import make_pairs
+
+    folder = tmp_path_factory.mktemp("pairs")
+    make_pairs(7, seed=5).write(folder)
+    return folder
+
+
+@pytest.mark.parametrize("what", ["calibration", "report"])
+def test_calibrate_write_failure_is_one_line(what: str, board_pairs: Path, tmp_path: Path,
+                                             monkeypatch: pytest.MonkeyPatch,
+                                             capsys: pytest.CaptureFixture[str]) -> None:
+    # before: FileNotFoundError traceback (e.g. --out /proc/x/rig.yml), after the calibration
+    import iscd.calibration.io
+    import iscd.calibration.report
+
+    def fail(*_a: object, **_k: object) -> None:
+        raise OSError(28, "No space left on device")
+
+    if what == "calibration":
+        monkeypatch.setattr(iscd.calibration.io, "save_calibration", fail)
+    else:
+        monkeypatch.setattr(iscd.calibration.report, "write_report", fail)
+    out = tmp_path / "rig.yml"
+    rc, _, err = cli(capsys, "-q", "calibrate", "--left", str(board_pairs / "left_*.png"), "--right",
+                     str(board_pairs / "right_*.png"), "--board", "9x6", "--square", "0.08", "--out", str(out))
+    assert rc == 2
+    line = one_error_line(err, "calibrate")
+    assert "No space left on device" in line
+    assert (f"--out {out}: cannot write there" in line if what == "calibration"
+            else line.startswith(f"iscd calibrate: error: wrote {out}, but not the report"))
+
+
+# --------------------------------------------------------------------------- tx
+@pytest.mark.parametrize("argv, message", [
+    (["--timeout", "nan"], "--timeout must be > 0 and <= 10 s"),  # before: "within nan s", exit 1
+    (["--timeout", "inf"], "--timeout must be > 0 and <= 10 s"),  # before: hung on a silent board
+    (["--timeout", "0"], "--timeout must be > 0 and <= 10 s"),
+    (["--retries", "1000000000"], "--retries must be in 0..20"),  # before: hung
+    (["--retries", "-1"], "--retries must be in 0..20"),
+])
+def test_tx_link_options_out_of_range(argv: list[str], message: str, capsys: pytest.CaptureFixture[str]) -> None:
+    t0 = time.perf_counter()
+    rc, _, err = cli(capsys, "tx", "--port", "loop://", "--status", *argv)
+    assert rc == 2
+    assert message in one_error_line(err, "tx")
+    assert time.perf_counter() - t0 < 5
+
+
+@pytest.mark.parametrize("value", ["nan", "-1", "inf"])
+def test_tx_emulate_duration_out_of_range(value: str, capsys: pytest.CaptureFixture[str]) -> None:
+    # before: nan and -1 served for no time and exited 0
+    rc, _, err = cli(capsys, "tx", "--emulate", "--status", f"--duration={value}")
+    assert rc == 2
+    assert "--duration must be a finite number of seconds >= 0" in one_error_line(err, "tx")
+
+
 # --------------------------------------------------------------------------- python -m iscd.eval.lumtrace
 def _trace(tmp: Path, **meta: object) -> Path:
     from iscd.core.config import TransmitterConfig
@@ -221,3 +343,18 @@ def test_lumtrace_undamaged_trace_still_reads(tmp_path: Path, capsys: pytest.Cap
 
     assert main([str(_trace(tmp_path))]) == 0
     assert "in all: 0 of 0 delivered" in capsys.readouterr().out
+
+
+# --------------------------------------------------------------------------- a closed stdout
+def test_closed_stdout_pipe_is_no_traceback(monkeypatch: pytest.MonkeyPatch,
+                                            capsys: pytest.CaptureFixture[str]) -> None:
+    # before: 'iscd config --describe | head' ended in a BrokenPipeError traceback
+    import iscd.cli.commands.config as config_cmd
+
+    def describe(_args: object) -> int:
+        raise BrokenPipeError(32, "Broken pipe")
+
+    monkeypatch.setattr(config_cmd, "run", describe)
+    rc, _, err = cli(capsys, "config", "--describe")
+    assert rc == 1
+    assert err == ""

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import math
 import sys
 from pathlib import Path
 
@@ -129,8 +130,42 @@ def _check_args(args: argparse.Namespace) -> None:
         raise UserError(f"--out {args.out} is a folder; give a file name such as rig.yml")
     if args.min_pairs < 3:
         raise UserError("--min-pairs must be at least 3")
-    if not args.outlier_factor > 1:
-        raise UserError("--outlier-factor must be > 1")
+    if not (args.outlier_factor > 1 and math.isfinite(args.outlier_factor)):
+        raise UserError(f"--outlier-factor must be a finite number > 1, got {args.outlier_factor}")
+    if not (args.outlier_floor >= 0 and math.isfinite(args.outlier_floor)):
+        raise UserError(f"--outlier-floor must be a finite number of pixels >= 0, got {args.outlier_floor}")
+    if not (args.alpha == -1 or 0 <= args.alpha <= 1):
+        raise UserError(f"--alpha must be -1 or in 0..1, got {args.alpha}")
+    for opt, value in (("--max-epipolar-px", args.max_epipolar_px), ("--max-transfer-px", args.max_transfer_px),
+                       ("--max-scale-error", args.max_scale_error), ("--steady-px", args.steady_px),
+                       ("--max-seconds", args.max_seconds)):
+        if not (value > 0 and math.isfinite(value)):
+            raise UserError(f"{opt} must be a finite number > 0, got {value}")
+    for opt, n in (("--pairs", args.pairs), ("--steady-frames", args.steady_frames)):
+        if n < 1:
+            raise UserError(f"{opt} must be at least 1, got {n}")
+    if args.out and not args.verify:
+        _check_target(args.out, "--out", folder=False)
+    if args.report:
+        _check_target(args.report, "--report", folder=True)
+    if args.save_pairs:
+        _check_target(args.save_pairs, "--save-pairs", folder=True)
+
+
+def _check_target(path: str, what: str, *, folder: bool) -> None:
+    """Refuse (one line) an output path that cannot be made, before the slow part and
+    without making anything (a failed calibration leaves nothing behind): a file where a
+    folder is needed, or a file in the way of a folder to be made; other failures (a
+    read-only file system) are reported when writing."""
+    p = Path(path)
+    if folder and p.exists() and not p.is_dir():
+        raise UserError(f"{what} {path}: is a file; give a folder")
+    parent = p if folder else p.parent
+    for a in (parent, *parent.parents):
+        if a.exists():
+            if not a.is_dir():
+                raise UserError(f"{what} {path}: cannot write there: {a} is a file")
+            break
 
 
 def run(args: argparse.Namespace) -> int:
@@ -193,8 +228,11 @@ def _calibrate(args: argparse.Namespace, board, det, images) -> int:  # type: ig
     for w in res.warnings:
         print(f"warning: {w}", file=sys.stderr)
     out = Path(args.out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    save_calibration(res.calibration, out)
+    try:
+        out.parent.mkdir(parents=True, exist_ok=True)
+        save_calibration(res.calibration, out)
+    except OSError as e:
+        raise UserError(f"--out {out}: cannot write there: {e.strerror or e}") from None
     report_dir = Path(args.report) if args.report else out.with_name(f"{out.stem}_report")
     preview = None
     shown = res_first_used(res, det)
@@ -202,7 +240,10 @@ def _calibrate(args: argparse.Namespace, board, det, images) -> int:  # type: ig
         left_img, right_img = images(shown.name)
         if left_img is not None and right_img is not None:
             preview = (left_img, right_img, shown)
-    write_report(res, report_dir, str(out), preview)
+    try:
+        write_report(res, report_dir, str(out), preview)
+    except OSError as e:
+        raise UserError(f"wrote {out}, but not the report: {report_dir}: {e.strerror or e}") from None
     c = res.calibration
     print(f"calibrated from {len(res.used)} of {len(det.names)} pairs: baseline {c.baseline_m:.5f} m, "
           f"focal {c.focal_px:.2f} px (rectified), rotation {c.rotation_deg:.3f} deg")
@@ -236,7 +277,10 @@ def _verify(args: argparse.Namespace, board, cal, det) -> int:  # type: ignore[n
     vr = verify_calibration(cal, det.observations, board, th)
     print(vr.summary())
     if args.report:
-        write_verify_report(vr, args.report, args.verify)
+        try:
+            write_verify_report(vr, args.report, args.verify)
+        except OSError as e:
+            raise UserError(f"--report {args.report}: cannot write the report: {e.strerror or e}") from None
     return 0 if vr.ok else 1
 
 
@@ -287,10 +331,14 @@ def _run_live(args: argparse.Namespace, board) -> int:  # type: ignore[no-untype
         raise UserError(f"camera: {e}") from None
     if args.save_pairs:
         folder = Path(args.save_pairs)
-        folder.mkdir(parents=True, exist_ok=True)
+        try:
+            folder.mkdir(parents=True, exist_ok=True)
+        except OSError as e:
+            raise UserError(f"--save-pairs {folder}: cannot write there: {e.strerror or e}") from None
         for i, c in enumerate(logic.captures):
-            cv2.imwrite(str(folder / f"left_{i:03d}.png"), c.left)
-            cv2.imwrite(str(folder / f"right_{i:03d}.png"), c.right)
+            for side, img in (("left", c.left), ("right", c.right)):
+                if not cv2.imwrite(str(folder / f"{side}_{i:03d}.png"), img):
+                    raise UserError(f"--save-pairs {folder}: cannot write {side}_{i:03d}.png")
     if not logic.captures:
         raise UserError("no pairs were taken (board never steady in both views?)")
     size = logic.image_size or (cam.width, cam.height)

@@ -83,6 +83,8 @@ def run(args: argparse.Namespace) -> int:
         raise UserError(f"--frames: expected a number of frames >= 1, got {args.frames}")
     if args.duration is not None and not (args.duration > 0 and math.isfinite(args.duration)):
         raise UserError(f"--duration: expected seconds > 0, got {args.duration}")
+    if not args.out:
+        raise UserError("--out: the path is empty; give a folder")
     out = Path(args.out)
     if out.exists() and not out.is_dir():
         raise UserError(f"--out: {out} exists and is not a folder")
@@ -111,6 +113,10 @@ def run(args: argparse.Namespace) -> int:
     else:
         n_frames = default_frames(cfg, scene)
     gb = 2 * n_frames * cfg.camera.width * cfg.camera.height / 1e9
+    free_gb = _free_gb(out)
+    if free_gb is not None and gb > free_gb:
+        raise UserError(f"--out: {n_frames} stereo frames need {gb:.2f} GB but {out} has {free_gb:.2f} GB "
+                        f"free; render fewer frames (--frames, --duration)")
     print(f"iscd simulate: {n_frames} stereo frames ({n_frames / cfg.camera.fps:.3f} s, "
           f"{gb:.2f} GB) -> {out}", file=sys.stderr)
     from iscd.recording import RecordingError
@@ -130,6 +136,16 @@ def run(args: argparse.Namespace) -> int:
     print(f"iscd simulate: wrote left.iscr, right.iscr, truth.npz, truth.json{extra}, config.toml"
           f"{cal_note}", file=sys.stderr)
     return 0
+
+
+def _free_gb(folder: Path) -> float | None:
+    """Free space on ``folder``'s file system, GB (None where it cannot be told)."""
+    import shutil
+
+    try:
+        return shutil.disk_usage(folder).free / 1e9
+    except OSError:
+        return None
 
 
 def write_recording(scene: object, out: Path, n_frames: int, block: int = 32,

@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import math
 import sys
 import threading
 from pathlib import Path
@@ -113,6 +114,22 @@ def _levels(path: str, tx: Any) -> np.ndarray:
     return lv.astype(np.uint8)
 
 
+def _check_link_options(args: argparse.Namespace, settings: Any) -> None:
+    """--timeout and --retries within the bounds of the ``[board]`` keys they override
+    (timeout_s, retries): one line naming the option (a NaN timeout would never time out,
+    an infinite one or a billion retries would hang on a silent board)."""
+    from iscd.core.errors import UserError
+
+    bounds = {f.name: f.metadata for f in dataclasses.fields(settings)}
+    hi_t = bounds["timeout_s"].get("hi") or math.inf
+    hi_r = bounds["retries"].get("hi") or math.inf
+    t, r = args.timeout, args.retries
+    if t is not None and not (0 < t <= hi_t and math.isfinite(t)):
+        raise UserError(f"--timeout must be > 0 and <= {hi_t:g} s (as [board] timeout_s), got {t}")
+    if r is not None and not 0 <= r <= hi_r:
+        raise UserError(f"--retries must be in 0..{hi_r:g} (as [board] retries), got {r}")
+
+
 def _find_port(settings: Any) -> str:
     from iscd.drivers.board.discovery import find_boards
     from iscd.core.errors import UserError
@@ -138,10 +155,9 @@ def run(args: argparse.Namespace) -> int:
 
     cfg = load(args.config)
     settings = board_settings(cfg)
+    _check_link_options(args, settings)
     timeout = settings.timeout_s if args.timeout is None else args.timeout
     retries = settings.retries if args.retries is None else args.retries
-    if timeout <= 0 or retries < 0:
-        raise UserError("--timeout must be > 0 s and --retries >= 0")
     if args.list:
         boards = find_boards(settings.vid, settings.pid)
         for b in boards:
@@ -153,6 +169,8 @@ def run(args: argparse.Namespace) -> int:
         raise UserError("--emulate and --port exclude each other")
     if args.duration is not None and not args.emulate:
         raise UserError("--duration only applies with --emulate")
+    if args.duration is not None and not (args.duration >= 0 and math.isfinite(args.duration)):
+        raise UserError(f"--duration must be a finite number of seconds >= 0, got {args.duration}")
 
     tx = cfg.transmitter
     if args.air_interface or args.fec:
