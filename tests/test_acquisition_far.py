@@ -16,12 +16,10 @@ import numpy as np
 import pytest
 from scipy import ndimage
 
-from iscd.core.config import default_config
 from iscd.decode.stream import StreamDecoder
 from iscd.decode.tracking.detect import (MIN_FLUX_MODULATION, activity_map, detect_array, find_blobs,
                                          flux_modulation, source_box)
-from iscd.eval.suites import MOTION_CASES, motion_cfg
-from iscd.sim.scene import Scene
+from test_acquisition_pace import randomized_first_frames
 
 
 def _lamp_and_led(n: int = 64, amplitude_px: float = 0.85, hz: float = 30.0, seed: int = 3) -> np.ndarray:
@@ -80,17 +78,9 @@ def test_the_far_led_is_acquired_beside_the_lamp(key: str, seed: int) -> None:
     """Randomized physics (seeds not among those the cause was diagnosed on): the daemon's
     decoder, fed blocks of 16 pairs, acquires the LED at 100 m in both cameras on its first
     attempt."""
-    case = next(c for c in MOTION_CASES if c.key == key)
-    cfg, note = motion_cfg(default_config(), case, seed, randomize=True)
-    assert note.startswith("randomized"), note  # the randomizer is part of the simulator
+    cfg, L, R, tr = randomized_first_frames(key, seed)
+    n = L.shape[0]
     assert cfg.scene.distractors  # the steady lamp at 40 m
-    sc = Scene(cfg)
-    n = 64
-    L = np.empty((n, sc.height, sc.width), np.uint8)
-    R = np.empty_like(L)
-    for k in range(n):
-        sc.render_pair_into(k, L[k], R[k])
-    tr = sc.truth(np.arange(n))
     dec = StreamDecoder(cfg)
     try:
         for s in range(0, n, 16):

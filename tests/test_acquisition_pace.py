@@ -18,13 +18,14 @@ import numpy as np
 import pytest
 from scipy import ndimage
 
-from iscd.core.config import default_config
+from iscd.core.config import Config, default_config
 from iscd.decode.stream import StreamDecoder
 from iscd.decode.tracking import detect
 from iscd.decode.tracking.detect import (MIN_FAST_FLUX_SHARE, MIN_FLUX_MODULATION, detect_array, detect_auto,
                                          fast_flux_share, flux_modulation, symbol_null_ratio)
 from iscd.eval.suites import MOTION_CASES, motion_cfg
 from iscd.sim.scene import Scene
+from iscd.sim.truth import Truth
 
 
 def _frames(motion: np.ndarray, symbol_frames: int, seed: int, *, texture_dn: float, led_dn: float,
@@ -65,6 +66,23 @@ def _most_active_boxes(frames: np.ndarray, k: int, side: int = 8) -> list[tuple[
     H, W = act.shape
     boxes = [(x, y, x + side, y + side) for y in range(8, H - 8 - side, side) for x in range(8, W - 8 - side, side)]
     return sorted(boxes, key=lambda b: -act[b[1]:b[3], b[0]:b[2]].sum())[:k]
+
+
+def randomized_first_frames(key: str, seed: int, model: str | None = None, n: int = 64
+                            ) -> tuple[Config, np.ndarray, np.ndarray, Truth]:
+    """The config of motion case ``key`` at ``seed`` through the randomized physics (under
+    vibration ``model``, or the case's own), its first ``n`` stereo frames (n, H, W) uint8
+    and their truth."""
+    case = next(c for c in MOTION_CASES if c.key == key)
+    cfg, note = motion_cfg(default_config(), case, seed, scene=None if model is None else {"vibration_model": model},
+                           randomize=True)
+    assert note.startswith("randomized"), note  # the randomizer is part of the simulator
+    sc = Scene(cfg)
+    L = np.empty((n, sc.height, sc.width), np.uint8)
+    R = np.empty_like(L)
+    for k in range(n):
+        sc.render_pair_into(k, L[k], R[k])
+    return cfg, L, R, sc.truth(np.arange(n))
 
 
 @pytest.mark.parametrize("motion", [_engine(64, 20.0, 0.5), _engine(64, 30.0, 0.5), _engine(64, 40.0, 0.5),
@@ -120,16 +138,8 @@ def test_the_led_is_acquired_not_the_texture(key: str, seed: int, model: str) ->
     of 13 sets): the flux-swing rule alone, as before, takes a textured patch; the daemon's
     decoder, fed blocks of 16 pairs with the symbol period it knows, acquires the LED in
     both cameras."""
-    case = next(c for c in MOTION_CASES if c.key == key)
-    cfg, note = motion_cfg(default_config(), case, seed, scene={"vibration_model": model}, randomize=True)
-    assert note.startswith("randomized"), note
-    sc = Scene(cfg)
-    n = 64
-    L = np.empty((n, sc.height, sc.width), np.uint8)
-    R = np.empty_like(L)
-    for k in range(n):
-        sc.render_pair_into(k, L[k], R[k])
-    tr = sc.truth(np.arange(n))
+    cfg, L, R, tr = randomized_first_frames(key, seed, model)
+    n = L.shape[0]
     u, v = float(tr.u_left[-1, 0]), float(tr.v_left[-1, 0])
     old = detect_array(L, 1, 1)  # the swing alone (the strongest candidate that passes it)
     assert old is not None and np.hypot(old.center[0] - u, old.center[1] - v) > 20.0
@@ -173,15 +183,7 @@ def test_a_texture_edge_that_passes_the_pace_test_is_passed_over(monkeypatch: py
     the LED (their flux is mostly noise, white up to the Nyquist frequency); the strongest
     was taken and followed for the whole approach (both packets lost). By the null at the
     symbol rate the LED is picked; without it (``NULL_PREFERENCE`` = inf) an edge is."""
-    case = next(c for c in MOTION_CASES if c.key == "1led-40kmh-0.5px")
-    cfg, _ = motion_cfg(default_config(), case, 1116076507, scene={"vibration_model": "engine"}, randomize=True)
-    sc = Scene(cfg)
-    n = 64
-    L = np.empty((n, sc.height, sc.width), np.uint8)
-    R = np.empty_like(L)
-    for k in range(n):
-        sc.render_pair_into(k, L[k], R[k])
-    tr = sc.truth(np.arange(n))
+    cfg, L, R, tr = randomized_first_frames("1led-40kmh-0.5px", 1116076507, "engine")
     sf = cfg.camera.fps / cfg.transmitter.symbol_rate_hz
     for frames, u, v in ((L, tr.u_left, tr.v_left), (R, tr.u_right, tr.v_right)):
         fit = detect_array(frames, 1, 1, symbol_frames=sf)
