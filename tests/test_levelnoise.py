@@ -18,6 +18,7 @@ def test_the_moving_clipped_spot_makes_the_top_levels_noisy() -> None:
     still = measure(scene_config("1led-40kmh-0.5px", 285800105, "engine", STILL), 1300)
     approach = measure(scene_config("1led-40kmh-0.5px", 285800105, "engine", STILL[1:]), 1300)
     assert still.z_m[0] == pytest.approx(still.z_m[1]) and approach.z_m[1] < approach.z_m[0] - 5.0
+    assert approach.light.shape == (2, 1300) and approach.level.shape == approach.clean.shape == (1300,)
     # nothing moving: every level within 0.5 % of the range, neighbours > 10 noise widths apart
     assert np.all(still.noise_pct < 0.5), still.noise_pct
     assert np.nanmin(still.d_prime) > 10.0, still.d_prime

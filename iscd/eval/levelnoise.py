@@ -42,12 +42,17 @@ class LevelNoise:
     """Per camera (0 left, 1 right): ``noise_pct`` (2, M) each level's scatter about its
     trend, the median over the bins, % of the level range; ``d_prime`` (2, B) per bin the
     least separation of neighbouring levels, (mu_{k+1} - mu_k) / sqrt((s_k^2 + s_{k+1}^2) / 2)
-    (NaN where a bin lacks a level); ``frames`` rendered; ``z_m`` (first, last) distance, m."""
+    (NaN where a bin lacks a level); ``frames`` rendered; ``z_m`` (first, last) distance, m;
+    ``light`` (2, frames) each frame's measured light, DN, and ``level`` (frames,) the level
+    at mid-exposure, 1 .. M, with ``clean`` (frames,) the frames inside one symbol."""
 
     noise_pct: np.ndarray
     d_prime: np.ndarray
     frames: int
     z_m: tuple[float, float]
+    light: np.ndarray
+    level: np.ndarray
+    clean: np.ndarray
 
 
 def scene_config(key: str, seed: int, model: str | None = None, off: Sequence[str] = ()) -> Config:
@@ -168,7 +173,7 @@ def measure(cfg: Config, frames: int = 2700, *, sigma_px: float = 1.8, bin_frame
             rel.append(100.0 * sd / (mu[-1] - mu[0]))
         with np.errstate(all="ignore"):
             noise[c] = np.nanmedian(np.array(rel), axis=0)
-    return LevelNoise(noise, dp, frames, (float(tr.z_m[0]), float(tr.z_m[-1])))
+    return LevelNoise(noise, dp, frames, (float(tr.z_m[0]), float(tr.z_m[-1])), light, level, tr.clean.copy())
 
 
 def _trend_fits(x: np.ndarray, level: np.ndarray, clean: np.ndarray, t: np.ndarray, a: int, b: int, M: int
