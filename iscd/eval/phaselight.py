@@ -1,0 +1,217 @@
+"""Sub-pixel phase in a clipped spot's light: what taking it out of the luminance would give.
+
+    python -m iscd.eval.phaselight CASE SEED MODEL [--labels decisions|truth] [--window N] [--centre-noise PX]
+
+A clipped spot's light in a fixed window depends on where the spot sits within its pixel
+(docs/eval.md, session 32; :mod:`iscd.eval.levelnoise`). This offline experiment takes the
+oracle's ``+true positions`` luminance of a one-LED motion scene (:func:`iscd.eval.oracle.run_oracle`),
+regresses each level's light, in windows of ``window`` frames, on a quadratic trend and the
+first harmonics of the sub-pixel phase of the true centres (:func:`phase_features`), takes
+the phase part out (:func:`take_out_phase`) and runs the receiver's packet assembler again. The
+levels of the fit are either the truth's or those of one demodulation of each packet with the
+true clock (``decisions``: what a receiver could use; header and training known). It is not
+in the receiver: the followed centres, not the true ones, would carry the phase there
+(``--centre-noise`` adds white noise to the centres to see what that costs). Units: px, DN,
+frames.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from typing import Any, Sequence
+
+import numpy as np
+
+
+def phase_features(x_px: np.ndarray, y_px: np.ndarray) -> np.ndarray:
+    """The first harmonics of the sub-pixel phase of positions on the pixel grid (pixel
+    centres at integers).
+
+    Parameters
+    ----------
+    x_px, y_px : numpy.ndarray
+        (n,) positions, px.
+
+    Returns
+    -------
+    numpy.ndarray
+        (n, 4): cos and sin of 2 pi x, cos and sin of 2 pi y.
+    """
+    x = 2.0 * np.pi * np.asarray(x_px, dtype=np.float64)
+    y = 2.0 * np.pi * np.asarray(y_px, dtype=np.float64)
+    return np.stack([np.cos(x), np.sin(x), np.cos(y), np.sin(y)], axis=1)
+
+
+def take_out_phase(light: np.ndarray, labels: np.ndarray, use: np.ndarray, features: np.ndarray, *,
+                   window: int = 400, min_frames: int = 12) -> np.ndarray:
+    """Each label's light less its fitted dependence on ``features``, window by window.
+
+    In each window of ``window`` frames and for each label, the light of the frames in
+    ``use`` is fitted (least squares) by a quadratic in time plus a linear combination of
+    the features; the features' part is subtracted from those frames. Frames outside ``use``,
+    and labels with fewer than ``min_frames`` frames in a window, are left as they are.
+
+    Parameters
+    ----------
+    light : numpy.ndarray
+        (n,) light per frame, DN (NaN: not measured, left out).
+    labels : numpy.ndarray
+        (n,) int label per frame (a level).
+    use : numpy.ndarray
+        (n,) bool, the frames to fit and correct (e.g. those inside one symbol).
+    features : numpy.ndarray
+        (n, k) regressors, e.g. :func:`phase_features`.
+    window : int
+        Frames per window.
+    min_frames : int
+        Least frames of a label in a window to fit it (> k + 3).
+
+    Returns
+    -------
+    numpy.ndarray
+        (n,) the corrected light, DN.
+    """
+    x = np.asarray(light, dtype=np.float64)
+    n, k = features.shape
+    if x.shape != (n,) or labels.shape != (n,) or use.shape != (n,):
+        raise ValueError("light, labels, use and features must have n rows alike")
+    if window < 1 or min_frames <= k + 3:
+        raise ValueError(f"need window >= 1 and min_frames > {k + 3}")
+    out = x.copy()
+    ok = use & np.isfinite(x)
+    t = np.arange(n, dtype=np.float64)
+    for s in range(0, n, window):
+        sl = slice(s, min(n, s + window))
+        for lab in np.unique(labels[sl][ok[sl]]):
+            idx = np.flatnonzero(ok[sl] & (labels[sl] == lab)) + s
+            if idx.size < min_frames:
+                continue
+            dt = t[idx] - s
+            A = np.concatenate([np.stack([np.ones(idx.size), dt, dt * dt], 1), features[idx]], axis=1)
+            coef, *_ = np.linalg.lstsq(A, x[idx], rcond=None)
+            out[idx] = x[idx] - features[idx] @ coef[3:]
+    return out
+
+
+def run(case_key: str, seed: int, model: str, *, labels: str = "decisions", window: int = 400,
+        centre_noise_px: float = 0.0) -> dict[str, Any]:
+    """The experiment on one randomized one-LED motion scene.
+
+    Returns
+    -------
+    dict
+        ``wrong_labels`` (decisions that differ from the truth, 0 with ``labels="truth"``),
+        and per stage (``+true positions``, ``phase taken out``) a dict packet index ->
+        (delivered bit-exact, wrong symbols).
+
+    Raises
+    ------
+    ValueError
+        An unknown case or labels, an array case, or bad numbers.
+    """
+    from iscd.core.airinterface import AirInterface
+    from iscd.core.config import default_config
+    from iscd.decode.comms.demod import PacketResult, demodulate_packet
+    from iscd.decode.comms.packets import PacketAssembler
+    from iscd.decode.comms.settings import receiver_config
+    from iscd.decode.comms.timing import SymbolClock
+    from iscd.eval.oracle import _assembler_scores, run_oracle, true_clock
+    from iscd.eval.suites import MOTION_CASES, motion_cfg
+    from iscd.eval.sweeps import ReceiverMode, _decoder_cfg
+    from iscd.sim.scene import Scene
+
+    case = next((c for c in MOTION_CASES if c.key == case_key), None)
+    if case is None or case.leds != 1:
+        raise ValueError(f"{case_key!r}: not a one-LED motion case "
+                         f"(one of {', '.join(c.key for c in MOTION_CASES if c.leds == 1)})")
+    if labels not in ("decisions", "truth"):
+        raise ValueError(f"labels: decisions or truth, got {labels!r}")
+    if not (window >= 16 and centre_noise_px >= 0):
+        raise ValueError(f"need window >= 16 frames and centre noise >= 0 px, got {window} and {centre_noise_px}")
+    cfg, _ = motion_cfg(default_config(), case, seed, scene={"vibration_model": model}, randomize=True)
+    mode = ReceiverMode("diversity", "both")
+    res = run_oracle(cfg, case.packets, mode=mode, genie=False)
+    L = res.luminance["true positions"]  # (2, n, 1)
+    n = L.shape[1]
+    truth = Scene(cfg).truth(np.arange(n))
+    rx = receiver_config(_decoder_cfg(cfg, mode))
+    air = AirInterface.from_config(cfg.transmitter)
+    fps = cfg.camera.fps
+    asm0 = PacketAssembler(cfg.transmitter, fps=fps, exposure_s=cfg.camera.exposure_s, cfg=rx)
+    sym0 = int(truth.symbol_index[0])
+    level = truth.levels[:, 0].astype(np.int64)  # per scheduled symbol
+    wrong = 0
+    if labels == "decisions":
+        level = level.copy()
+        e, p_nom = cfg.camera.exposure_s * fps, fps / cfg.transmitter.symbol_rate_hz
+        P = air.packet_symbols
+        for j in range(truth.packet_index.size):
+            k0 = int(truth.packet_start_symbol[j]) - sym0
+            if k0 < 0 or k0 + P + 1 > truth.symbol_t_s.size:
+                continue
+            clk = true_clock(truth.symbol_t_s[k0:k0 + P + 1], fps)
+            lo, hi = max(0, int(np.floor(clk.u0)) - 8), min(n, int(np.ceil(clk.boundary(P))) + 8)
+            buf = np.ascontiguousarray(L[list(rx.camera_indices), lo:hi])
+            r = demodulate_packet(buf, clk.u0 - lo, air, e, p_nom, clk.p, rx.drift_max_ppm * 1e-6 * p_nom, rx,
+                                  clock=SymbolClock(clk.u0 - lo, clk.p), grid=asm0.grid)
+            if isinstance(r, PacketResult):
+                d0 = k0 + air.data_offset
+                got = r.levels.astype(np.int64).reshape(-1)
+                wrong += int((got != level[d0:d0 + got.size]).sum())
+                level[d0:d0 + got.size] = got
+    per_frame = level[truth.symbol_mid - sym0]
+    rng = np.random.default_rng(seed)
+    Lc = L.copy()
+    for c, (u, v) in enumerate(((truth.u_left, truth.v_left), (truth.u_right, truth.v_right))):
+        x, y = u[:, 0], v[:, 0]
+        if centre_noise_px > 0:
+            x, y = x + rng.normal(0.0, centre_noise_px, n), y + rng.normal(0.0, centre_noise_px, n)
+        Lc[c, :, 0] = take_out_phase(L[c, :, 0], per_frame, truth.clean, phase_features(x, y), window=window)
+    tol = 0.5 / cfg.transmitter.symbol_rate_hz
+    want = {int(truth.packet_index[j]): j for j in range(truth.packet_index.size)
+            if int(truth.packet_index[j]) < case.packets}
+    out: dict[str, Any] = {"wrong_labels": wrong}
+    for name, X in (("+true positions", L), ("phase taken out", Lc)):
+        asm = PacketAssembler(cfg.transmitter, fps=fps, exposure_s=cfg.camera.exposure_s, cfg=rx)
+        got_packets: list[Any] = []
+        ids = np.flatnonzero(np.isfinite(X[0, :, 0]))
+        for s in range(0, ids.size, 32):
+            i = ids[s:s + 32]
+            got_packets += asm.push(i, i / fps, X[0, i], X[1, i])
+        got_packets += asm.flush()
+        sc = _assembler_scores(got_packets, truth, air, tol, want, 8)
+        out[name] = {k: (bool(v.crc_ok and v.errors == 0), int(v.errors)) for k, v in sorted(sc.items())}
+    return out
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(
+        prog="python -m iscd.eval.phaselight",
+        description="Offline: the oracle's +true positions luminance of a one-LED motion scene with each "
+                    "level's dependence on the sub-pixel phase taken out, and the packets the receiver's "
+                    "assembler delivers before and after (docs/eval.md, session 32).")
+    ap.add_argument("case", help="a one-LED motion case, e.g. 1led-40kmh-0.5px")
+    ap.add_argument("seed", type=int, help="the scene's seed, e.g. 134326035")
+    ap.add_argument("model", help="vibration model: smooth, engine or bumps")
+    ap.add_argument("--labels", default="decisions", help="the levels of the fit: decisions (default) or truth")
+    ap.add_argument("--window", type=int, default=400, help="frames per fit window (default 400)")
+    ap.add_argument("--centre-noise", type=float, default=0.0, help="white noise on the centres, px (default 0)")
+    a = ap.parse_args(argv)
+    try:
+        r = run(a.case, a.seed, a.model, labels=a.labels, window=a.window, centre_noise_px=a.centre_noise)
+    except ValueError as e:
+        print(f"phaselight: {e}", file=sys.stderr)
+        return 2
+
+    def fmt(d: dict[int, tuple[bool, int]]) -> str:
+        return ", ".join(f"p{k} {'delivered' if ok else f'lost ({e} wrong)'}" for k, (ok, e) in d.items())
+
+    print(f"{a.case} {a.seed} {a.model}: labels {a.labels} ({r['wrong_labels']} wrong)")
+    print(f"  +true positions:  {fmt(r['+true positions'])}")
+    print(f"  phase taken out:  {fmt(r['phase taken out'])}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
