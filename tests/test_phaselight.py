@@ -48,14 +48,24 @@ def test_own_decisions_suffice_on_a_randomized_scene() -> None:
     fitted on its own decisions (tens of them wrong), both are delivered."""
     r = run("1led-40kmh-0.5px", 134326035, "smooth")
     assert r["wrong_labels"] > 0
-    assert not all(ok for ok, _ in r["+true positions"].values()), r
+    assert not all(ok for ok, _ in r["before"].values()), r
     assert len(r["phase taken out"]) == 2 and all(ok for ok, _ in r["phase taken out"].values()), r
+
+
+def test_the_receivers_own_luminance_and_followed_centres() -> None:
+    """The same scene as the receiver measured it (its luminance, its followed centres): the
+    receiver loses both packets; with the phase taken out the second is delivered."""
+    r = run("1led-40kmh-0.5px", 134326035, "smooth", source="receiver")
+    assert r["wrong_labels"] > 0
+    assert len(r["before"]) == 2 and not any(ok for ok, _ in r["before"].values()), r
+    assert r["phase taken out"][1][0], r
 
 
 def test_bad_input_is_one_line_and_exit_2(capsys: pytest.CaptureFixture[str]) -> None:
     for argv, what in ((["8x8-40kmh-0.3px", "1", "smooth"], "not a one-LED motion case"),
                        (["1led-40kmh-0.5px", "1", "smooth", "--labels", "oracle"], "labels"),
-                       (["1led-40kmh-0.5px", "1", "smooth", "--window", "3"], "window")):
+                       (["1led-40kmh-0.5px", "1", "smooth", "--window", "3"], "window"),
+                       (["1led-40kmh-0.5px", "1", "smooth", "--source", "genie"], "source")):
         assert main(argv) == 2
         err = capsys.readouterr().err.strip()
         assert err.startswith("phaselight: ") and what in err and "\n" not in err, err
