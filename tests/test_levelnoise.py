@@ -33,7 +33,7 @@ def test_the_moving_clipped_spot_makes_the_top_levels_noisy() -> None:
 def test_bad_input_is_one_line_and_exit_2(capsys: pytest.CaptureFixture[str]) -> None:
     for argv, what in ((["--off", "bogus"], "unknown part"), (["--case", "8x8-40kmh-0.3px"], "one LED only"),
                        (["--case", "nope"], "unknown case"), (["--frames", "100"], "fewer than two bins"),
-                       (["--sigma", "nan"], "sigma")):
+                       (["--sigma", "nan"], "sigma"), (["--sigma", "inf"], "sigma")):
         assert main(argv) == 2
         err = capsys.readouterr().err.strip()
         assert err.startswith("levelnoise: ") and what in err and "\n" not in err, err

@@ -65,7 +65,9 @@ def test_bad_input_is_one_line_and_exit_2(capsys: pytest.CaptureFixture[str]) ->
     for argv, what in ((["8x8-40kmh-0.3px", "1", "smooth"], "not a one-LED motion case"),
                        (["1led-40kmh-0.5px", "1", "smooth", "--labels", "oracle"], "labels"),
                        (["1led-40kmh-0.5px", "1", "smooth", "--window", "3"], "window"),
-                       (["1led-40kmh-0.5px", "1", "smooth", "--source", "genie"], "source")):
+                       (["1led-40kmh-0.5px", "1", "smooth", "--source", "genie"], "source"),
+                       (["1led-40kmh-0.5px", "1", "smooth", "--centre-noise", "inf"], "centre noise"),
+                       (["1led-40kmh-0.5px", "-5", "smooth"], "seed")):
         assert main(argv) == 2
         err = capsys.readouterr().err.strip()
         assert err.startswith("phaselight: ") and what in err and "\n" not in err, err

@@ -111,7 +111,7 @@ def measure(cfg: Config, frames: int = 2700, *, sigma_px: float = 1.8, bin_frame
 
     if cfg.transmitter.n_leds != 1:
         raise ValueError(f"one LED only (the scene has {cfg.transmitter.n_leds})")
-    if not sigma_px > 0:
+    if not (sigma_px > 0 and math.isfinite(sigma_px)):
         raise ValueError(f"sigma: expected a window sigma > 0 px, got {sigma_px}")
     if bin_frames < 8 or block < 1:
         raise ValueError(f"bin_frames must be >= 8 and block >= 1, got {bin_frames} and {block}")
@@ -186,7 +186,7 @@ def _trend_fits(x: np.ndarray, level: np.ndarray, clean: np.ndarray, t: np.ndarr
         k = np.flatnonzero(clean[a:b] & (level[a:b] == v)) + a
         if k.size > 3:
             A = np.stack([np.ones(k.size), t[k] - (a + b) / 2], 1)
-            coef, res, *_ = np.linalg.lstsq(A, x[k], rcond=None)
+            coef, *_ = np.linalg.lstsq(A, x[k], rcond=None)
             r = x[k] - A @ coef
             mu[v - 1] = coef[0]
             sd[v - 1] = math.sqrt(float(r @ r) / (k.size - 2))

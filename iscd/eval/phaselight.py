@@ -20,6 +20,7 @@ what their error costs). Units: px, DN, frames.
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 from typing import Any, Sequence
 
@@ -134,8 +135,10 @@ def run(case_key: str, seed: int, model: str, *, source: str = "oracle", labels:
         raise ValueError(f"source: oracle or receiver, got {source!r}")
     if labels not in ("decisions", "truth"):
         raise ValueError(f"labels: decisions or truth, got {labels!r}")
-    if not (window >= 16 and centre_noise_px >= 0):
-        raise ValueError(f"need window >= 16 frames and centre noise >= 0 px, got {window} and {centre_noise_px}")
+    if seed < 0:
+        raise ValueError(f"seed: expected an integer >= 0, got {seed}")
+    if not (window >= 16 and 0 <= centre_noise_px < math.inf):
+        raise ValueError(f"need window >= 16 frames and a finite centre noise >= 0 px, got {window} and {centre_noise_px}")
     cfg, _ = motion_cfg(default_config(), case, seed, scene={"vibration_model": model}, randomize=True)
     mode = ReceiverMode("diversity", "both")
     if source == "oracle":

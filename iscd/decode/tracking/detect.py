@@ -790,14 +790,23 @@ def fast_flux_share(frames: np.ndarray, bbox: tuple[int, int, int, int], symbol_
     return 0.0 if flux is None else _fast_share(flux, symbol_frames)
 
 
-def _fast_share(flux: np.ndarray, symbol_frames: float) -> float:
-    """:func:`fast_flux_share` of a source's flux (n,), DN; ``symbol_frames`` > 0."""
+def _periodogram(flux: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
+    """A source's flux (n,), DN, with its linear trend removed: (frequencies, cycles per
+    frame; power; the level below which a band's power is rounding only: what a line
+    leaves)."""
     t = np.arange(flux.shape[0], dtype=np.float64)
     x = flux - np.polyval(np.polyfit(t, flux, 1), t)
-    power = np.abs(np.fft.rfft(x)) ** 2
-    freq = np.fft.rfftfreq(flux.shape[0])  # cycles per frame
+    return np.fft.rfftfreq(flux.shape[0]), np.abs(np.fft.rfft(x)) ** 2, \
+        1e-12 * flux.shape[0] * float(np.dot(flux, flux))
+
+
+def _fast_share(flux: np.ndarray, symbol_frames: float,
+                spectrum: tuple[np.ndarray, np.ndarray, float] | None = None) -> float:
+    """:func:`fast_flux_share` of a source's flux (n,), DN; ``symbol_frames`` > 0;
+    ``spectrum``: its :func:`_periodogram` if already made."""
+    freq, power, floor = spectrum or _periodogram(flux)
     total = float(power[1:].sum())
-    if not total > 1e-12 * flux.shape[0] * float(np.dot(flux, flux)):  # a line (rounding only)
+    if not total > floor:  # a line (rounding only)
         return 0.0
     return float(power[freq > FAST_FLUX_FRACTION / symbol_frames].sum() / total)
 
@@ -861,15 +870,14 @@ def symbol_null_ratio(frames: np.ndarray, bbox: tuple[int, int, int, int], symbo
     return math.inf if flux is None else _null_ratio(flux, symbol_frames)
 
 
-def _null_ratio(flux: np.ndarray, symbol_frames: float) -> float:
-    """:func:`symbol_null_ratio` of a source's flux (n,), DN."""
-    t = np.arange(flux.shape[0], dtype=np.float64)
-    x = flux - np.polyval(np.polyfit(t, flux, 1), t)
-    power = np.abs(np.fft.rfft(x)) ** 2
-    freq = np.fft.rfftfreq(flux.shape[0])  # cycles per frame
+def _null_ratio(flux: np.ndarray, symbol_frames: float,
+                spectrum: tuple[np.ndarray, np.ndarray, float] | None = None) -> float:
+    """:func:`symbol_null_ratio` of a source's flux (n,), DN; ``spectrum``: its
+    :func:`_periodogram` if already made."""
+    freq, power, floor = spectrum or _periodogram(flux)
     top = float(power[(freq > NULL_BAND / symbol_frames) & (freq < (2.0 - NULL_BAND) / symbol_frames)].sum())
     mid = float(power[(freq > FAST_FLUX_FRACTION / symbol_frames) & (freq <= NULL_BAND / symbol_frames)].sum())
-    if not mid > 1e-12 * flux.shape[0] * float(np.dot(flux, flux)):  # a line (rounding only)
+    if not mid > floor:  # a line (rounding only)
         return math.inf
     return top / mid
 
@@ -883,14 +891,18 @@ def _one_led_changes(frames: np.ndarray, bbox: tuple[int, int, int, int], mean: 
 
 
 def _changing_flux(frames: np.ndarray, bbox: tuple[int, int, int, int], mean: np.ndarray,
-                   symbol_frames: float | None) -> np.ndarray | None:
-    """The flux of a one-LED candidate that passes :func:`_one_led_changes`, else None."""
+                   symbol_frames: float | None) -> tuple[np.ndarray, tuple | None] | None:
+    """The flux of a one-LED candidate that passes :func:`_one_led_changes` and, with a
+    symbol period, its :func:`_periodogram`; None if it does not pass."""
     flux = _source_flux(frames, bbox, FLUX_PAD_PX, mean)
     if flux is None or _modulation(flux) < MIN_FLUX_MODULATION:
         return None
-    if symbol_frames is not None and _fast_share(flux, symbol_frames) < MIN_FAST_FLUX_SHARE:
+    if symbol_frames is None:
+        return flux, None
+    spectrum = _periodogram(flux)
+    if _fast_share(flux, symbol_frames, spectrum) < MIN_FAST_FLUX_SHARE:
         return None
-    return flux
+    return flux, spectrum
 
 
 def _one_led_candidate(frames: np.ndarray, blobs: list[Blob], mean: np.ndarray,
@@ -904,9 +916,9 @@ def _one_led_candidate(frames: np.ndarray, blobs: list[Blob], mean: np.ndarray,
                     None)
     passing = []
     for b in blobs[:MAX_SINGLE_CANDIDATES]:
-        flux = _changing_flux(frames, b.bbox, mean, symbol_frames)
-        if flux is not None:
-            passing.append((b, _null_ratio(flux, symbol_frames)))
+        got = _changing_flux(frames, b.bbox, mean, symbol_frames)
+        if got is not None:
+            passing.append((b, _null_ratio(got[0], symbol_frames, got[1])))
     if not passing:
         return None
     deepest = min(r for _, r in passing)
