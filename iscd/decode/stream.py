@@ -526,17 +526,27 @@ class StreamDecoder:
             self._pending.append((self._worker.submit("new", self.tx, self.fps,
                                                       self.cfg.camera.exposure_s, self.rx_cfg), 0))
 
-    def _demod(self, frame_ids: np.ndarray, t_s: np.ndarray, lum_l: np.ndarray, lum_r: np.ndarray) -> list[dict]:
+    def _demod(self, frame_ids: np.ndarray, t_s: np.ndarray, lum_l: np.ndarray, lum_r: np.ndarray,
+               centres: tuple[np.ndarray, np.ndarray] | None = None) -> list[dict]:
         n = len(frame_ids)
         if self._worker is not None:
-            self._pending.append((self._worker.submit("push", frame_ids, t_s, lum_l, lum_r), n))
+            self._pending.append((self._worker.submit("push", frame_ids, t_s, lum_l, lum_r, centres), n))
             return []
         if self._pool is None:
             if self.track is not None:
                 self.track.frames_since_header += n
-            return self._records(self.assembler.push(frame_ids, t_s, lum_l, lum_r))
-        self._pending.append((self._pool.submit(self.assembler.push, frame_ids, t_s, lum_l, lum_r), n))
+            return self._records(self.assembler.push(frame_ids, t_s, lum_l, lum_r, centres))
+        self._pending.append((self._pool.submit(self.assembler.push, frame_ids, t_s, lum_l, lum_r, centres), n))
         return []
+
+    def _block_centres(self, n: int) -> tuple[np.ndarray, np.ndarray] | None:
+        """One LED: the centres the luminance of the block of ``n`` frames was measured at
+        (:attr:`last_centres`), for the packet assembler's phase attempt
+        (:mod:`iscd.decode.comms.pixelphase`); None for an array (the assembler keeps none)."""
+        c = self.last_centres
+        if self.rows * self.cols != 1 or c is None or c[0].shape[0] != n or c[1].shape[0] != n:
+            return None
+        return c
 
     def _reset_assembler(self) -> list[dict]:
         """Restart the packet search; returns the records of a failed packet the assembler
@@ -776,6 +786,7 @@ class StreamDecoder:
         assert tr is not None
         n = len(frame_ids)
         records: list[dict] = []
+        centres = self._block_centres(n)
         first, last = int(frame_ids[0]), int(frame_ids[-1])
         if last - first == n - 1 and (n < 3 or bool((frame_ids[1:] > frame_ids[:-1]).all())) \
                 and (self._last_id is None or first - self._last_id <= self.settings.reset_gap_frames):
@@ -793,7 +804,8 @@ class StreamDecoder:
                 tr.since_frame = int(frame_ids[a])  # the header wait starts again
                 tr.frames_since_header = 0
             if b > a:
-                records += self._demod(frame_ids[a:b], t_s[a:b], lum_l[a:b], lum_r[a:b])
+                records += self._demod(frame_ids[a:b], t_s[a:b], lum_l[a:b], lum_r[a:b],
+                                       None if centres is None else (centres[0][a:b], centres[1][a:b]))
         self._last_id = int(frame_ids[-1])
         return records
 

@@ -79,7 +79,9 @@ class Trace:
     sent: list[SentPacket]
     steps: list[tuple[Any, ...]] = field(default_factory=list)
     """("new",) (a fresh assembler: the decoder's new track), ("push", ids (n,), t_s (n,),
-    L_left (n, N) or None, L_right (n, N) or None), ("reset",) or ("flush",), in call order"""
+    L_left (n, N) or None, L_right (n, N) or None, centres or None), ("reset",) or
+    ("flush",), in call order; centres: one LED's (left, right) followed centres (n, 1, 2)
+    px, each or both None (a trace written before they were kept has none)"""
     captured: list[PacketScore] = field(default_factory=list)
     """the scores of the run that wrote the trace"""
 
@@ -101,11 +103,13 @@ class TracingAssembler(PacketAssembler):
         super().__init__(*a, **k)
 
     def push(self, frame_ids: np.ndarray, t_s: np.ndarray, L_left: np.ndarray | None,
-             L_right: np.ndarray | None = None) -> list[Any]:
+             L_right: np.ndarray | None = None,
+             centres: tuple[np.ndarray | None, np.ndarray | None] | None = None) -> list[Any]:
+        kept = None if centres is None else tuple(None if c is None else np.array(c) for c in centres)
         self.steps.append(("push", np.array(frame_ids), np.array(t_s),
                            None if L_left is None else np.array(L_left),
-                           None if L_right is None else np.array(L_right)))
-        return super().push(frame_ids, t_s, L_left, L_right)
+                           None if L_right is None else np.array(L_right), kept))
+        return super().push(frame_ids, t_s, L_left, L_right, centres)
 
     def reset(self) -> list[Any]:
         self.steps.append(("reset",))
@@ -201,10 +205,11 @@ def save(trace: Trace, path: str | Path) -> Path:
     for i, st in enumerate(trace.steps):
         if st[0] == "push":
             arrays[f"ids{i}"], arrays[f"t{i}"] = np.asarray(st[1]), np.asarray(st[2], dtype=np.float64)
-            for side, a in (("l", st[3]), ("r", st[4])):
+            cl, cr = st[5] if len(st) > 5 and st[5] is not None else (None, None)
+            for side, a in (("l", st[3]), ("r", st[4]), ("cl", cl), ("cr", cr)):
                 if a is not None:
                     arrays[f"{side}{i}"] = np.asarray(a, dtype=np.float64)
-            steps.append(["push", st[3] is not None, st[4] is not None])
+            steps.append(["push", st[3] is not None, st[4] is not None, cl is not None, cr is not None])
         else:
             steps.append([st[0]])
     for j, p in enumerate(trace.sent):
@@ -286,8 +291,11 @@ def load(path: str | Path) -> Trace:
         steps: list[tuple[Any, ...]] = []
         for i, st in enumerate(meta["steps"]):
             if st[0] == "push":
+                cl = data[f"cl{i}"] if len(st) > 3 and st[3] else None
+                cr = data[f"cr{i}"] if len(st) > 4 and st[4] else None
                 steps.append(("push", data[f"ids{i}"], data[f"t{i}"],
-                              data[f"l{i}"] if st[1] else None, data[f"r{i}"] if st[2] else None))
+                              data[f"l{i}"] if st[1] else None, data[f"r{i}"] if st[2] else None,
+                              None if cl is None and cr is None else (cl, cr)))
             elif st[0] in ("new", "reset", "flush"):
                 steps.append((st[0],))
             else:

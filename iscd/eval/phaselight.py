@@ -26,75 +26,9 @@ from typing import Any, Sequence
 
 import numpy as np
 
+from iscd.decode.comms.pixelphase import phase_features, take_out_phase
 
-def phase_features(x_px: np.ndarray, y_px: np.ndarray) -> np.ndarray:
-    """The first harmonics of the sub-pixel phase of positions on the pixel grid (pixel
-    centres at integers).
-
-    Parameters
-    ----------
-    x_px, y_px : numpy.ndarray
-        (n,) positions, px.
-
-    Returns
-    -------
-    numpy.ndarray
-        (n, 4): cos and sin of 2 pi x, cos and sin of 2 pi y.
-    """
-    x = 2.0 * np.pi * np.asarray(x_px, dtype=np.float64)
-    y = 2.0 * np.pi * np.asarray(y_px, dtype=np.float64)
-    return np.stack([np.cos(x), np.sin(x), np.cos(y), np.sin(y)], axis=1)
-
-
-def take_out_phase(light: np.ndarray, labels: np.ndarray, use: np.ndarray, features: np.ndarray, *,
-                   window: int = 400, min_frames: int = 12) -> np.ndarray:
-    """Each label's light less its fitted dependence on ``features``, window by window.
-
-    In each window of ``window`` frames and for each label, the light of the frames in
-    ``use`` is fitted (least squares) by a quadratic in time plus a linear combination of
-    the features; the features' part is subtracted from those frames. Frames outside ``use``,
-    and labels with fewer than ``min_frames`` frames in a window, are left as they are.
-
-    Parameters
-    ----------
-    light : numpy.ndarray
-        (n,) light per frame, DN (NaN: not measured, left out).
-    labels : numpy.ndarray
-        (n,) int label per frame (a level).
-    use : numpy.ndarray
-        (n,) bool, the frames to fit and correct (e.g. those inside one symbol).
-    features : numpy.ndarray
-        (n, k) regressors, e.g. :func:`phase_features`.
-    window : int
-        Frames per window.
-    min_frames : int
-        Least frames of a label in a window to fit it (> k + 3).
-
-    Returns
-    -------
-    numpy.ndarray
-        (n,) the corrected light, DN.
-    """
-    x = np.asarray(light, dtype=np.float64)
-    n, k = features.shape
-    if x.shape != (n,) or labels.shape != (n,) or use.shape != (n,):
-        raise ValueError("light, labels, use and features must have n rows alike")
-    if window < 1 or min_frames <= k + 3:
-        raise ValueError(f"need window >= 1 and min_frames > {k + 3}")
-    out = x.copy()
-    ok = use & np.isfinite(x)
-    t = np.arange(n, dtype=np.float64)
-    for s in range(0, n, window):
-        sl = slice(s, min(n, s + window))
-        for lab in np.unique(labels[sl][ok[sl]]):
-            idx = np.flatnonzero(ok[sl] & (labels[sl] == lab)) + s
-            if idx.size < min_frames:
-                continue
-            dt = t[idx] - s
-            A = np.concatenate([np.stack([np.ones(idx.size), dt, dt * dt], 1), features[idx]], axis=1)
-            coef, *_ = np.linalg.lstsq(A, x[idx], rcond=None)
-            out[idx] = x[idx] - features[idx] @ coef[3:]
-    return out
+__all__ = ["phase_features", "take_out_phase", "run", "receiver_luminance", "main"]
 
 
 def run(case_key: str, seed: int, model: str, *, source: str = "oracle", labels: str = "decisions",

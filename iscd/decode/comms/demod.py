@@ -91,6 +91,9 @@ class PacketResult:
     not reported, but list-decoded after the others (:class:`~iscd.decode.comms.packets.PacketAssembler`).
     On that attempt's own result: its survivors' own decisions, where its final pass changed
     some (:func:`_survivors_own`; list-decoded after it)"""
+    phase_corrected: bool = False
+    """one LED: delivered with the sub-pixel phase of its followed centres taken out of the
+    luminance (:mod:`~iscd.decode.comms.pixelphase`), after every other attempt failed"""
     list_flips: int = 0
     """symbols that CRC-aided list decoding (:mod:`~iscd.decode.comms.listdecode`) changed from
     this attempt's decisions for the CRC to pass (0: as decided)"""
@@ -118,6 +121,7 @@ class PacketResult:
                 "channel_tracked": self.channel in ("tracked", "anchored"),
                 **({"channel_anchored": True} if self.channel == "anchored" else {}),
                 **({"list_flips": int(self.list_flips)} if self.list_flips else {}),
+                **({"phase_corrected": True} if self.phase_corrected else {}),
                 "header_r2": float(self.header_r2), "training_rho": float(self.training_rho),
                 "contrast": float(self.contrast),
                 **({"reason": self.reason} if not self.crc_ok and self.reason else {})}

@@ -27,10 +27,11 @@ from iscd.core.airinterface_v2 import AirInterfaceV2, header_symbols
 from iscd.core.config import TransmitterConfig
 from iscd.core.jit import njit, register_warm
 from iscd.core.records import PacketRecord
-from iscd.decode.comms import demod, listdecode
-from iscd.decode.comms.demod import PacketResult, Rejection, after_levels, demodulate_anchored, demodulate_packet
+from iscd.decode.comms import demod, listdecode, pixelphase
+from iscd.decode.comms.demod import (PacketResult, Rejection, after_levels, demodulate_anchored, demodulate_packet,
+                                      known_levels)
 from iscd.decode.comms.settings import ReceiverConfig
-from iscd.decode.comms.timing import coarse_header_search, luminance_range, normalized_mean
+from iscd.decode.comms.timing import SymbolClock, coarse_header_search, luminance_range, normalized_mean
 
 log = logging.getLogger(__name__)
 
@@ -136,6 +137,10 @@ class PacketAssembler:
         self._L = np.zeros((len(self.cams), 0, self.N))
         self._t = np.zeros(0)
         self._Lbuf, self._tbuf = self._L, self._t  # the allocations (_L, _t: views from a row on)
+        # one LED: its followed centre (x, y) px per camera and frame, for the phase attempt
+        # (pixelphase); NaN where the caller gave none
+        self._X: np.ndarray | None = np.zeros((len(self.cams), 0, 1, 2)) if self.N == 1 else None
+        self._Xbuf = self._X
         self._n = 0  # filled rows
         self._base: int | None = None  # frame id of row 0
         self._search = 0.0  # buffer position (frames) from which headers are still searched
@@ -152,9 +157,12 @@ class PacketAssembler:
         self._expect_wait = 0.0  # the expected packet is longer: not before this many rows
         self._held: PacketResult | None = None  # a failed packet waiting for the frames after it
         self._held_need = 0.0  # the buffer rows its anchored attempt needs
+        self._held_prior: tuple[float, float, bool] = (self.p_nom, self._p_sigma, False)
+        """the period prior the held packet was demodulated with (_p, _p_sigma, _prior_delivered)"""
         self.stats = {"frames_in": 0, "frames_missing": 0, "frames_rejected": 0,
                       "packets_ok": 0, "packets_bad": 0, "false_headers": 0, "resyncs": 0,
-                      "anchored_tries": 0, "anchored_delivered": 0, "list_tries": 0, "list_delivered": 0}
+                      "anchored_tries": 0, "anchored_delivered": 0, "list_tries": 0, "list_delivered": 0,
+                      "phase_tries": 0, "phase_delivered": 0}
 
     # ---- buffer ----------------------------------------------------------------------
     def _reserve(self, extra: int) -> None:
@@ -162,6 +170,7 @@ class PacketAssembler:
         the allocation when it has room for twice them, else to one twice as large."""
         need = self._n + extra
         if need > self._L.shape[1]:
+            X = self._Xbuf
             if 2 * need <= self._Lbuf.shape[1]:
                 L, t = self._Lbuf, self._tbuf  # (numpy copies overlapping ranges correctly)
             else:
@@ -169,9 +178,14 @@ class PacketAssembler:
                 L = np.full((len(self.cams), cap, self.N), np.nan)
                 t = np.zeros(cap)
                 self._Lbuf, self._tbuf = L, t
+                if X is not None:
+                    X = self._Xbuf = np.full((len(self.cams), cap, 1, 2), np.nan)
             L[:, :self._n] = self._L[:, :self._n]
             t[:self._n] = self._t[:self._n]
             self._L, self._t = L, t
+            if X is not None and self._X is not None:
+                X[:, :self._n] = self._X[:, :self._n]
+                self._X = X
 
     def _trim(self) -> None:
         """Drop rows before max(search position, end) - keep, shifting positions (the
@@ -185,6 +199,8 @@ class PacketAssembler:
             return
         self._L = self._L[:, cut:]
         self._t = self._t[cut:]
+        if self._X is not None:
+            self._X = self._X[:, cut:]
         self._n -= cut
         self._base = (self._base or 0) + cut
         self._search -= cut
@@ -220,7 +236,8 @@ class PacketAssembler:
         return out
 
     def push(self, frame_ids: np.ndarray, t_s: np.ndarray, L_left: np.ndarray | None,
-             L_right: np.ndarray | None = None) -> list[Packet]:
+             L_right: np.ndarray | None = None,
+             centres: tuple[np.ndarray | None, np.ndarray | None] | None = None) -> list[Packet]:
         """Append frames (ids increasing; gaps become NaN rows) and return finished packets.
 
         Frames whose id does not increase are dropped (counted in ``stats["frames_rejected"]``).
@@ -236,6 +253,11 @@ class PacketAssembler:
             (n, N) luminance of each LED in the left camera, DN (None: that camera is absent).
         L_right : ndarray or None
             (n, N) luminance of each LED in the right camera, DN (None: that camera is absent).
+        centres : tuple of ndarray or None, optional
+            One LED: (left, right) its followed centre (n, 1, 2) (x, y) px in each frame, as
+            the luminance was measured there (None, or a camera's None: not known). A packet
+            that every other attempt failed is tried with the sub-pixel phase taken out
+            (:mod:`~iscd.decode.comms.pixelphase`); ignored for an array.
 
         Returns
         -------
@@ -251,7 +273,7 @@ class PacketAssembler:
         ts = np.asarray(t_s, dtype=np.float64).reshape(-1)
         n = ids.size
         early: list[Packet] = []  # a held packet released by a resynchronization
-        if self._fast_push(ids, ts, L_left, L_right):
+        if self._fast_push(ids, ts, L_left, L_right, centres):
             out = self._process()
             self._trim()
             return out
@@ -280,6 +302,7 @@ class PacketAssembler:
         if n == 0:
             return []
         Lb = np.stack(blocks)  # (C, n, N)
+        Xb = self._centre_block(n, centres)
         # keep strictly increasing ids only
         last = None if self._base is None else self._base + self._n - 1
         prev_max = np.maximum.accumulate(np.concatenate([[ids[0] - 1 if last is None else last], ids]))
@@ -287,6 +310,7 @@ class PacketAssembler:
         if not keep.all():
             self.stats["frames_rejected"] += int((~keep).sum())
             ids, ts, Lb = ids[keep], ts[keep], Lb[:, keep]
+            Xb = None if Xb is None else Xb[:, keep]
         if ids.size == 0:
             return []
         self.stats["frames_in"] += int(ids.size)
@@ -305,6 +329,10 @@ class PacketAssembler:
         self.stats["frames_missing"] += int(gap_rows.sum())
         self._L[:, self._n:self._n + span] = np.nan
         self._L[:, rows] = Lb
+        if self._X is not None:
+            self._X[:, self._n:self._n + span] = np.nan
+            if Xb is not None:
+                self._X[:, rows] = Xb
         # timestamps: measured where present, interpolated (frame period) in gaps
         all_rows = np.arange(self._n, self._n + span)
         if gap_rows.any():
@@ -326,8 +354,25 @@ class PacketAssembler:
         self._trim()
         return early + out
 
+    def _centre_block(self, n: int, centres: tuple[np.ndarray | None, np.ndarray | None] | None
+                      ) -> np.ndarray | None:
+        """(C, n, 1, 2) float64 centres of a pushed block, NaN for a camera without (None when
+        this assembler keeps none or none were given)."""
+        if self._X is None or centres is None:
+            return None
+        out = np.full((len(self.cams), n, 1, 2), np.nan)
+        for j, c in enumerate(self.cams):
+            src = centres[c]
+            if src is not None:
+                a = np.asarray(src, dtype=np.float64)
+                if a.size != 2 * n:
+                    raise ValueError(f"expected centres (n, 1, 2) of {n} frames, got shape {a.shape}")
+                out[j] = a.reshape(n, 1, 2)
+        return out
+
     def _fast_push(self, ids: np.ndarray, ts: np.ndarray, L_left: np.ndarray | None,
-                   L_right: np.ndarray | None) -> bool:
+                   L_right: np.ndarray | None, centres: tuple[np.ndarray | None, np.ndarray | None] | None = None
+                   ) -> bool:
         """The usual block -- ids following the last one by one, all timestamps, each
         camera's (n, N) luminance -- appended directly (what :meth:`push` does with it,
         without its general bookkeeping); False (nothing done) for any other block."""
@@ -340,11 +385,14 @@ class PacketAssembler:
             return False
         if not _consecutive(ids, ts, self._base + self._n):
             return False
+        Xb = self._centre_block(n, centres)
         self.stats["frames_in"] += n
         self._reserve(n)
         a = self._n
         for j, src in enumerate(srcs):
             self._L[j, a:a + n] = src
+        if self._X is not None:
+            self._X[:, a:a + n] = np.nan if Xb is None else Xb
         self._t[a:a + n] = ts
         self._n += n
         return True
@@ -365,6 +413,7 @@ class PacketAssembler:
         self._release(out, force=True)  # (released already: its anchor precedes this packet)
         if self._holds(res):
             self._held = res
+            self._held_prior = (self._p, self._p_sigma, self._prior_delivered)
             self._held_need = res.u0 + after_levels(res.air).shape[0] * res.p + res.air.packet_symbols * res.p + 3
             self._release(out)
             return
@@ -397,11 +446,48 @@ class PacketAssembler:
                 self.stats["anchored_delivered"] += int(alt.crc_ok)
                 tries.insert(0, alt)
         good = tries[0] if tries[0].crc_ok else (self._list_decode(tries) if listdecode.LIST_DECODE else None)
+        if good is None and pixelphase.PHASE_RETRY and self._X is not None:
+            good = self._phase_attempt(res, tries[0])
         if good is not None:
             res = good
             if not force:  # (waiting for the next packet still: lock on the delivered one)
                 self._accept(res)
         out.append(self._emit(res))
+
+    def _phase_attempt(self, held: PacketResult, best: PacketResult) -> PacketResult | None:
+        """A one-LED packet that every attempt failed, demodulated again with the sub-pixel
+        phase of its followed centres taken out of its luminance
+        (:func:`~iscd.decode.comms.pixelphase.phase_corrected`; each level's light in a frame
+        from ``best``'s decisions and clock, the header, training and what follows known),
+        then as :meth:`_release` does: the same prior as ``held`` had, anchored when the
+        frames after it are in, list decoding. Only a CRC pass is returned (None otherwise):
+        the correction can spoil a packet, so it runs only where nothing else delivered."""
+        air = best.air
+        if self._X is None or not isinstance(air, AirInterface) or isinstance(air, AirInterfaceV2) \
+                or best.levels.shape != (air.data_symbols, 1) or not np.isfinite(best.p):
+            return None
+        levels = np.concatenate([known_levels(air)[:, 0], best.levels[:, 0].astype(np.int64) - 1,
+                                 after_levels(air)[:, 0]])
+        Lc = pixelphase.phase_corrected(self._L[:, :self._n], self._X[:, :self._n], levels,
+                                        SymbolClock(best.u0, best.p), self.e)
+        if Lc is None:
+            return None
+        self.stats["phase_tries"] += 1
+        p, p_sigma, unlocked = self._held_prior
+        first = demodulate_packet(Lc, held.u0, self.air, self.e, self.p_nom, p, p_sigma, self.cfg,
+                                  grid=self.grid, retry_unlocked=unlocked)
+        if not isinstance(first, PacketResult):
+            return None
+        tries = [first]
+        if not first.crc_ok and self._n >= self._held_need:
+            alt = demodulate_anchored(Lc, first, self.e, self.p_nom, self.cfg)
+            if isinstance(alt, PacketResult):
+                tries.insert(0, alt)
+        good = tries[0] if tries[0].crc_ok else (self._list_decode(tries) if listdecode.LIST_DECODE else None)
+        if good is None:
+            return None
+        self.stats["phase_delivered"] += 1
+        return replace(good, phase_corrected=True)
 
     def _list_decode(self, tries: list[PacketResult]) -> PacketResult | None:
         """The last resort for a held packet that every attempt failed: CRC-aided list
