@@ -466,28 +466,31 @@ class PacketAssembler:
         if self._X is None or not isinstance(air, AirInterface) or isinstance(air, AirInterfaceV2) \
                 or best.levels.shape != (air.data_symbols, 1) or not np.isfinite(best.p):
             return None
-        levels = np.concatenate([known_levels(air)[:, 0], best.levels[:, 0].astype(np.int64) - 1,
-                                 after_levels(air)[:, 0]])
-        Lc = pixelphase.phase_corrected(self._L[:, :self._n], self._X[:, :self._n], levels,
-                                        SymbolClock(best.u0, best.p), self.e)
-        if Lc is None:
-            return None
-        self.stats["phase_tries"] += 1
         p, p_sigma, unlocked = self._held_prior
-        first = demodulate_packet(Lc, held.u0, self.air, self.e, self.p_nom, p, p_sigma, self.cfg,
-                                  grid=self.grid, retry_unlocked=unlocked)
-        if not isinstance(first, PacketResult):
-            return None
-        tries = [first]
-        if not first.crc_ok and self._n >= self._held_need:
-            alt = demodulate_anchored(Lc, first, self.e, self.p_nom, self.cfg)
-            if isinstance(alt, PacketResult):
-                tries.insert(0, alt)
-        good = tries[0] if tries[0].crc_ok else (self._list_decode(tries) if listdecode.LIST_DECODE else None)
-        if good is None:
-            return None
-        self.stats["phase_delivered"] += 1
-        return replace(good, phase_corrected=True)
+        for _ in range(pixelphase.ROUNDS):
+            levels = np.concatenate([known_levels(air)[:, 0], best.levels[:, 0].astype(np.int64) - 1])
+            Lc = pixelphase.phase_corrected(self._L[:, :self._n], self._X[:, :self._n], levels,
+                                            SymbolClock(best.u0, best.p), self.e)
+            if Lc is None:
+                return None
+            self.stats["phase_tries"] += 1
+            first = demodulate_packet(Lc, held.u0, self.air, self.e, self.p_nom, p, p_sigma, self.cfg,
+                                      grid=self.grid, retry_unlocked=unlocked)
+            if not isinstance(first, PacketResult):
+                return None
+            tries = [first]
+            if not first.crc_ok and self._n >= self._held_need:
+                alt = demodulate_anchored(Lc, first, self.e, self.p_nom, self.cfg)
+                if isinstance(alt, PacketResult):
+                    tries.insert(0, alt)
+            good = tries[0] if tries[0].crc_ok else (self._list_decode(tries) if listdecode.LIST_DECODE else None)
+            if good is not None:
+                self.stats["phase_delivered"] += 1
+                return replace(good, phase_corrected=True)
+            best = tries[0]  # its decisions label the next round (from the luminance as it was)
+            if best.levels.shape != (air.data_symbols, 1) or not np.isfinite(best.p):
+                return None
+        return None
 
     def _list_decode(self, tries: list[PacketResult]) -> PacketResult | None:
         """The last resort for a held packet that every attempt failed: CRC-aided list

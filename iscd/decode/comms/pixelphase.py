@@ -29,12 +29,21 @@ PHASE_RETRY = True
 """A one-LED packet that every attempt failed is demodulated once more with the sub-pixel
 phase taken out (:class:`~iscd.decode.comms.packets.PacketAssembler`)."""
 
+ROUNDS = 1
+"""Rounds of the phase attempt: each after the first takes its labels from the last round's
+decisions (fewer of them wrong), the correction always made on the luminance as measured."""
+
 WINDOW_FRAMES = 400
 """Frames per window of the regression (:func:`take_out_phase`): the trend and the phase's
 effect change as the spot grows and the vibration moves it."""
 
 MIN_FRAMES = 12
 """Least frames of a level in a window to fit it (more than the 7 unknowns)."""
+
+OUTLIER_SIGMAS = 3.5
+"""With ``robust``: frames further than this many robust standard deviations (1.4826 x the
+median absolute deviation) from a level's first fit are left out of its second: a frame
+labelled with a wrong decision sits a level step (many noise widths) off."""
 
 
 def phase_features(x_px: np.ndarray, y_px: np.ndarray) -> np.ndarray:
@@ -57,7 +66,7 @@ def phase_features(x_px: np.ndarray, y_px: np.ndarray) -> np.ndarray:
 
 
 def take_out_phase(light: np.ndarray, labels: np.ndarray, use: np.ndarray, features: np.ndarray, *,
-                   window: int = WINDOW_FRAMES, min_frames: int = MIN_FRAMES) -> np.ndarray:
+                   window: int = WINDOW_FRAMES, min_frames: int = MIN_FRAMES, robust: bool = False) -> np.ndarray:
     """Each label's light less its fitted dependence on ``features``, window by window.
 
     In each window of ``window`` frames and for each label, the light of the frames in
@@ -108,6 +117,12 @@ def take_out_phase(light: np.ndarray, labels: np.ndarray, use: np.ndarray, featu
             dt = t[idx] - s
             A = np.concatenate([np.stack([np.ones(idx.size), dt, dt * dt], 1), features[idx]], axis=1)
             coef, *_ = np.linalg.lstsq(A, x[idx], rcond=None)
+            if robust:  # refit without the frames far off the fit (a wrong label's)
+                r = x[idx] - A @ coef
+                sigma = 1.4826 * float(np.median(np.abs(r - np.median(r))))
+                keep = np.abs(r) <= OUTLIER_SIGMAS * sigma
+                if min_frames <= keep.sum() < idx.size:
+                    coef, *_ = np.linalg.lstsq(A[keep], x[idx][keep], rcond=None)
             out[idx] = x[idx] - features[idx] @ coef[3:]
     return out
 
@@ -165,7 +180,8 @@ def phase_corrected(L: np.ndarray, centres: np.ndarray, levels: np.ndarray, cloc
         if use.sum() < MIN_FRAMES:
             continue
         xy = np.where(np.isfinite(xy), xy, 0.0)
-        fixed = take_out_phase(out[c, lo:hi, 0], labels, use, phase_features(xy[:, 0], xy[:, 1]), window=window)
+        fixed = take_out_phase(out[c, lo:hi, 0], labels, use, phase_features(xy[:, 0], xy[:, 1]), window=window,
+                               robust=True)
         changed = changed or bool((fixed != out[c, lo:hi, 0]).any())
         out[c, lo:hi, 0] = fixed
     return out if changed else None
