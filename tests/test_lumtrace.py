@@ -43,6 +43,11 @@ def test_the_trace_holds_what_the_demodulator_was_fed(traced: tuple[Path, object
     got = np.stack([np.concatenate([st[3] for st in pushes]), np.concatenate([st[4] for st in pushes])])
     assert np.array_equal(got, lum[:, ids], equal_nan=True)
     assert np.isfinite(got).mean() > 0.9
+    # one LED: the followed centres each luminance was measured at (the phase attempt's)
+    for side in (0, 1):
+        cen = np.concatenate([st[5][side] for st in pushes])
+        assert cen.shape == (ids.size, 1, 2) and np.isfinite(cen).mean() > 0.9
+        assert np.array_equal(np.isfinite(cen[:, 0, 0]), np.isfinite(got[side, :, 0]))
     assert [p.index for p in tr.sent] == [p.index for p in res.packets]
     assert all(p.levels.shape == (tr.transmitter.data_symbols, 1) for p in tr.sent)
     assert all(1 <= p.levels.min() and p.levels.max() <= tr.transmitter.levels for p in tr.sent)
@@ -98,3 +103,15 @@ def test_damaged_files_are_one_clear_error(traced: tuple[Path, object], tmp_path
         lumtrace.load(newer)
     # written under a temporary name first: no partial file is left under the name asked for
     assert not list(path.parent.glob("*.part"))
+
+
+def test_a_trace_without_centres_still_reads(traced: tuple[Path, object], tmp_path: Path) -> None:
+    """A trace written before the centres were kept (its pushes have none) reads and
+    demodulates as it was (no phase attempt)."""
+    path, _ = traced
+    tr = lumtrace.load(path)
+    old = lumtrace.Trace(tr.label, tr.transmitter, tr.receiver, tr.fps, tr.exposure_s, tr.sent,
+                         [st[:5] if st[0] == "push" else st for st in tr.steps], tr.captured)
+    back = lumtrace.load(lumtrace.save(old, tmp_path / "old.npz"))
+    assert all(st[5] is None for st in back.steps if st[0] == "push")
+    assert [s.index for s in lumtrace.redemodulate(back)] == [s.index for s in tr.captured]

@@ -191,13 +191,15 @@ def approach() -> oracle.OracleResult:
     per-pixel background (``background_one_led = false``, the receiver before issue 12's
     session 11), without list decoding (session 21, which delivers its packets even so) and
     without the symbol-by-symbol attempt (session 25; since session 27's survivors it
-    delivers them too): the receiver fails (with the background, this scene decodes at SER 0)."""
-    from iscd.decode.comms import demod, listdecode
+    delivers them too) and without the sub-pixel phase attempt (session 33, which delivers
+    them too): the receiver fails (with the background, this scene decodes at SER 0)."""
+    from iscd.decode.comms import demod, listdecode, pixelphase
 
     cfg = chapter3_cfg(default_config(), 50.0, 8, 7, speed_mps=40 / 3.6, vibration_px=0.5, min_distance_m=25.0)
     with pytest.MonkeyPatch.context() as mp:
         mp.setattr(listdecode, "LIST_DECODE", False)
         mp.setattr(demod, "SEQUENTIAL_RETRY", False)
+        mp.setattr(pixelphase, "PHASE_RETRY", False)
         return run_oracle(cfg.with_keys("tracking", background_one_led=False), 2)
 
 

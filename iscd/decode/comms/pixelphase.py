@@ -29,7 +29,7 @@ PHASE_RETRY = True
 """A one-LED packet that every attempt failed is demodulated once more with the sub-pixel
 phase taken out (:class:`~iscd.decode.comms.packets.PacketAssembler`)."""
 
-ROUNDS = 1
+ROUNDS = 2
 """Rounds of the phase attempt: each after the first takes its labels from the last round's
 decisions (fewer of them wrong), the correction always made on the luminance as measured."""
 
@@ -88,6 +88,9 @@ def take_out_phase(light: np.ndarray, labels: np.ndarray, use: np.ndarray, featu
         Frames per window.
     min_frames : int
         Least frames of a label in a window to fit it (> k + 3).
+    robust : bool
+        Fit each label twice, the second time without the frames more than
+        :data:`OUTLIER_SIGMAS` robust standard deviations off the first fit.
 
     Returns
     -------
@@ -128,7 +131,7 @@ def take_out_phase(light: np.ndarray, labels: np.ndarray, use: np.ndarray, featu
 
 
 def phase_corrected(L: np.ndarray, centres: np.ndarray, levels: np.ndarray, clock: SymbolClock,
-                    e: float, *, window: int = WINDOW_FRAMES) -> np.ndarray | None:
+                    e: float, *, window: int | None = None) -> np.ndarray | None:
     """One LED's luminance with the sub-pixel phase taken out over a packet's frames.
 
     Parameters
@@ -145,8 +148,8 @@ def phase_corrected(L: np.ndarray, centres: np.ndarray, levels: np.ndarray, cloc
         The packet's symbol clock in buffer frames.
     e : float
         Exposure window length, frames (exposure_s * fps).
-    window : int
-        Frames per window of :func:`take_out_phase`.
+    window : int, optional
+        Frames per window of :func:`take_out_phase` (default :data:`WINDOW_FRAMES`).
 
     Returns
     -------
@@ -164,6 +167,7 @@ def phase_corrected(L: np.ndarray, centres: np.ndarray, levels: np.ndarray, cloc
     if N != 1 or centres.shape != (C, n, 1, 2):
         raise ValueError(f"phase_corrected: one LED's (C, n, 1) luminance and (C, n, 1, 2) centres, "
                          f"got {L.shape} and {centres.shape}")
+    window = WINDOW_FRAMES if window is None else int(window)
     lev = np.asarray(levels, dtype=np.int64).reshape(-1)
     lo = int(max(0.0, np.floor(clock.u0)))
     hi = int(min(float(n), np.ceil(clock.boundary(lev.size)) + 1))
