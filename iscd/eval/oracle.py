@@ -795,6 +795,8 @@ def run_oracle(cfg: Config, packets: int = 2, *, mode: ReceiverMode | None = Non
         _write_trace(trace_to, trace_label, dec, rx, cfg, truth, air, want, scores["receiver"], trace_steps)
 
     # +true positions: the receiver's assembler on the true-position luminance of the same frames
+    # (one LED: with the true centres, for its sub-pixel phase attempt, as the receiver has its
+    # followed ones)
     asm = PacketAssembler(tx, fps=fps, exposure_s=cfg.camera.exposure_s, cfg=rx)
     got: list[Any] = []
     if decoded:
@@ -803,7 +805,7 @@ def run_oracle(cfg: Config, packets: int = 2, *, mode: ReceiverMode | None = Non
         ids_all = ids_all[np.sort(first)]
         for s in range(0, ids_all.size, block):
             i = ids_all[s:s + block]
-            got += asm.push(i, i / fps, L_tp[0, i], L_tp[1, i])
+            got += asm.push(i, i / fps, L_tp[0, i], L_tp[1, i], (centres[0][i], centres[1][i]) if N == 1 else None)
         got += asm.flush()
     scores["+true positions"] = _assembler_scores(got, truth, air, tol, want, bins)
 

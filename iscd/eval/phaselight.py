@@ -13,8 +13,10 @@ levels of the fit are either the truth's or those of one demodulation of each pa
 true clock (``decisions``: what a receiver could use; header and training known). With
 ``--source receiver`` the luminance is the receiver's own (what its stream decoder hands its
 packet assembler) and the phase is that of its followed centres, as a receiver would have
-them. It is not in the receiver (``--centre-noise`` adds white noise to the centres to see
-what their error costs). Units: px, DN, frames.
+them (``--centre-noise`` adds white noise to the centres to see what their error costs).
+Its "before" and "phase taken out" runs use an assembler given no centres, so that the
+receiver's own phase attempt (:mod:`iscd.decode.comms.pixelphase`, built from this
+experiment in session 33) stays out of them. Units: px, DN, frames.
 """
 
 from __future__ import annotations
