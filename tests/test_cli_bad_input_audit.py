@@ -139,7 +139,18 @@ def test_simulate_more_than_the_disk_holds_refused(tmp_path: Path, capsys: pytes
     rc, _, err = cli(capsys, "simulate", "--out", str(out), "--frames", "10000000000")
     assert rc == 2
     assert "GB free" in one_error_line(err, "simulate")
-    assert not (out / "left.iscr").exists()
+    assert not out.exists()  # refused before anything was made (it left an empty folder before)
+
+
+def test_simulate_refused_for_space_keeps_the_recording_it_would_replace(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    # before: --overwrite deleted the old recording, then refused for lack of space
+    out = tmp_path / "rec"
+    assert cli(capsys, "simulate", "--out", str(out), "--frames", "2")[0] == 0
+    before = sorted(p.name for p in out.iterdir())
+    rc, _, err = cli(capsys, "simulate", "--out", str(out), "--frames", "10000000000", "--overwrite")
+    assert rc == 2 and "GB free" in one_error_line(err, "simulate")
+    assert sorted(p.name for p in out.iterdir()) == before and "left.iscr" in before
 
 
 # --------------------------------------------------------------------------- eval

@@ -96,13 +96,6 @@ def run(args: argparse.Namespace) -> int:
         raise UserError(f"--out: {out} already holds a recording ({', '.join(existing)}); "
                         f"use --overwrite to replace it")
     try:
-        out.mkdir(parents=True, exist_ok=True)
-    except OSError as e:
-        raise UserError(f"--out: cannot create {out}: {e.strerror or e}") from None
-    for name in existing:
-        (out / name).unlink()
-
-    try:
         scene = Scene(cfg, noise=not args.no_noise)
     except ValueError as e:
         raise UserError(str(e)) from None
@@ -113,10 +106,20 @@ def run(args: argparse.Namespace) -> int:
     else:
         n_frames = default_frames(cfg, scene)
     gb = 2 * n_frames * cfg.camera.width * cfg.camera.height / 1e9
+    # checked before anything is created or replaced: a refusal leaves the folder as it was
+    # (no empty folder, and an old recording that --overwrite would replace still there)
     free_gb = _free_gb(out)
+    if free_gb is not None:
+        free_gb += sum((out / name).stat().st_size for name in existing) / 1e9
     if free_gb is not None and gb > free_gb:
         raise UserError(f"--out: {n_frames} stereo frames need {gb:.2f} GB but {out} has {free_gb:.2f} GB "
                         f"free; render fewer frames (--frames, --duration)")
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        raise UserError(f"--out: cannot create {out}: {e.strerror or e}") from None
+    for name in existing:
+        (out / name).unlink()
     print(f"iscd simulate: {n_frames} stereo frames ({n_frames / cfg.camera.fps:.3f} s, "
           f"{gb:.2f} GB) -> {out}", file=sys.stderr)
     from iscd.recording import RecordingError
@@ -139,11 +142,15 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _free_gb(folder: Path) -> float | None:
-    """Free space on ``folder``'s file system, GB (None where it cannot be told)."""
+    """Free space on the file system ``folder`` is (or would be made) on: that of its nearest
+    existing ancestor, GB (None where it cannot be told)."""
     import shutil
 
+    here = folder.absolute()
+    while not here.exists() and here != here.parent:
+        here = here.parent
     try:
-        return shutil.disk_usage(folder).free / 1e9
+        return shutil.disk_usage(here).free / 1e9
     except OSError:
         return None
 
