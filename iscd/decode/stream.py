@@ -81,6 +81,7 @@ class PipelineSettings:
     lit_background: bool = field(default=False, metadata={"doc": "judge which LEDs are lit (they steer the following) on the light above the per-pixel background held across blocks, not on each block's own minimum: blocks shorter than 16 pairs ([daemon] block_max = 8 for lower latency) then judge as well as long ones; costs ~20 % of the frame loop, so off for the daemon's blocks of 16"})
     window_scale: float = field(default=1.0, metadata={"lo": 0.5, "hi": 4.0, "doc": "luminance window relative to the spot-matched Gaussian (roi_sigma_px = -1): wider reaches the unsaturated wings of a spot whose core clips"})
     one_led_window_scale: float = field(default=1.5, metadata={"lo": 0.5, "hi": 4.0, "doc": "one LED's luminance window relative to the spot-matched Gaussian, times window_scale: its brightest pixels clip as a car closes in and the level then lives in the spot's wings and blooming, which a wider window reaches (one LED has no neighbour to let in); measured on randomized approaches never looked at (docs/eval.md, session 30)"})
+    growth_from_block: bool = field(default=True, metadata={"doc": "one LED: its image's growth (the luminance window's and the following box's scale) from the median disparity of the last block's followed frames; false = from the disparity of the block's starting positions alone, where one frame followed 2 px off widened the window 10 % for a block (docs/eval.md, session 33)"})
     window_follows_spot: bool = field(default=False, metadata={"doc": "the luminance window follows the spot's measured size (its half-maximum area, smoothed over ~10 blocks) times window_scale, instead of the size at acquisition grown with the array"})
     background_rise_dn: float = field(default=0.25, metadata={"lo": 0, "doc": "how fast the per-pixel background follows a background that brightens, DN per block"})
     background_one_led: bool = field(default=True, metadata={"doc": "the per-pixel background (as background) whenever the transmitter is one LED: measured on a moving car's randomized scenes it delivered more packets (4 seed sets, docs/eval.md), and one LED's static suites (SER, range errors) are unchanged; an array keeps background's setting (its neighbours' light under a pixel cost static f/4 receivers packets)"})
@@ -383,6 +384,9 @@ class StreamDecoder:
         self._shift_sum = np.zeros((2, 2))
         self._shift_n = 0
         self._followed: list[np.ndarray | None] = [None, None]
+        self._followed_disparity: float | None = None
+        """one LED: the median over the last decoded block's frames of its followed right minus
+        left x, px (:meth:`_growth`)"""
         self._motion_memo: list[Any] = [None, None]  # _grid_motion's per camera
         self._extent_memo: list[Any] = [None, None]  # _reach_window's: (fit, extent of its centres)
         """per camera, the LED centres (N, 2) px refined in the last decoded frame"""
@@ -421,6 +425,7 @@ class StreamDecoder:
             self._lum_floor = [None, None]
             self._path_end = [None, None]
             self._followed = [None, None]
+            self._followed_disparity = None
         self.rows, self.cols = int(rows), int(cols)
         self._use = grid_sample(self.rows, self.cols)
         """the LEDs whose centroids steer the following (fixed by the array's shape)"""
@@ -926,6 +931,7 @@ class StreamDecoder:
         self._shift_sum = np.zeros((2, 2))
         self._shift_n = 0
         self._followed = [None, None]
+        self._followed_disparity = None
         self._lit_light = None
         self._lum_floor = [None, None]
         self._path_end = [None, None]
@@ -1157,6 +1163,10 @@ class StreamDecoder:
         light = info["light"]
         self._lit_light = light if self._lit_light is None else np.maximum(light, self.LIT_DECAY * self._lit_light)
         self._followed = [c_l[-1].copy(), c_r[-1].copy()]
+        if self.rows * self.cols == 1:
+            d = c_r[:, 0, 0] - c_l[:, 0, 0]
+            d = d[np.isfinite(d)]
+            self._followed_disparity = float(np.median(d)) if d.size else None
         self.last_centres = (c_l, c_r)
         return lum_l, lum_r
 
@@ -1262,9 +1272,17 @@ class StreamDecoder:
         assert tr is not None
         if self.rows * self.cols == 1:
             # one LED: its image grows as 1/Z, as the stereo disparity does (raw x
-            # difference; ``disparity0`` at acquisition). Both cameras alike.
+            # difference; ``disparity0`` at acquisition). Both cameras alike. The disparity
+            # is the last block's median over its frames, not that of the block's starts:
+            # one frame followed 2 px off (a right camera's last frame, 195152883 at 80 m)
+            # made the growth 1.41 for a block between 1.28 and 1.30, the window 10 % wider
+            # and the light of an unresolved spot 13 % lower in both cameras for that block
+            # alone -- a step mid-packet that cost the packet (docs/eval.md, session 33)
             c = [np.asarray(st, dtype=np.float64).reshape(-1, 2)[0] for st in starts]
             d = float(c[1][0] - c[0][0])
+            if self.settings.growth_from_block and self._followed_disparity is not None \
+                    and np.isfinite(self._followed_disparity):
+                d = self._followed_disparity
             g = abs(d) / abs(tr.disparity0) if abs(tr.disparity0) >= self.MIN_DISPARITY_PX else 1.0
             g = float(np.clip(g, 1.0, self.MAX_GROWTH))
             return [g, g]
@@ -1450,6 +1468,7 @@ class StreamDecoder:
             self._set_shape(fl.rows, fl.cols)
             self._shape_hint = None
         self._followed = [None, None]
+        self._followed_disparity = None
         self._lit_light = None
         self._backgrounds = None
         self._registered = None
