@@ -374,3 +374,28 @@ def test_following_holds_against_a_prediction_half_a_pitch_off() -> None:
     c_r = dec.last_centres[1]
     err = np.hypot(c_r[..., 0] - truth.u_right, c_r[..., 1] - truth.v_right)
     assert err.max() < 0.5, f"following left the LEDs by {err.max():.2f} px"
+
+
+@pytest.mark.parametrize("from_block", [True, False])
+def test_one_leds_growth_ignores_a_start_followed_off(from_block: bool) -> None:
+    """One LED's growth (its window's and following box's scale) comes from the median
+    disparity of the last block's followed frames ([tracking] growth_from_block, session 33):
+    a block whose right start is 2 px off (one frame followed off: 195152883 at 80 m widened
+    the window 10 % for that block) keeps the growth the block's frames give. Measured from
+    the starts alone (false, as before), the same 2 px move it by 2 px over the disparity."""
+    cfg = single_led(default_config(), 30.0)
+    cfg = cfg.replace(owned={**cfg.owned, "tracking": {**cfg.table("tracking"), "growth_from_block": from_block}})
+    _, dec, _ = _decode(cfg, np.arange(0, 160))
+    assert dec.track is not None and dec.last_centres is not None
+    c_l, c_r = dec.last_centres
+    starts = [c_l[-1].copy(), c_r[-1].copy()]
+    d = float(np.median(c_r[:, 0, 0] - c_l[:, 0, 0]))
+    off = [starts[0], starts[1] + np.array([2.0 * np.sign(d), 0.0])]  # the disparity 2 px larger
+    assert abs(d) > 8  # a disparity the growth is measured from (MIN_DISPARITY_PX = 4)
+    g, g_off = dec._growth(starts)[0], dec._growth(off)[0]
+    if from_block:
+        assert g_off == g == pytest.approx(max(1.0, abs(d) / abs(dec.track.disparity0)))
+    else:
+        d_start = abs(float(starts[1][0, 0] - starts[0][0, 0]))
+        assert g == pytest.approx(max(1.0, d_start / abs(dec.track.disparity0)))
+        assert g_off == pytest.approx((d_start + 2.0) / abs(dec.track.disparity0)) and g_off > g
