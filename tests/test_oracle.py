@@ -191,8 +191,9 @@ def approach() -> oracle.OracleResult:
     per-pixel background (``background_one_led = false``, the receiver before issue 12's
     session 11), without list decoding (session 21, which delivers its packets even so) and
     without the symbol-by-symbol attempt (session 25; since session 27's survivors it
-    delivers them too) and without the sub-pixel phase attempt (session 33, which delivers
-    them too): the receiver fails (with the background, this scene decodes at SER 0)."""
+    delivers them too), without the sub-pixel phase attempt (session 33, which delivers
+    them too) and with one LED's growth from each block's starts (before session 33; from the
+    block's followed frames this scene decodes at SER 0): the receiver fails (with the background, this scene decodes at SER 0)."""
     from iscd.decode.comms import demod, listdecode, pixelphase
 
     cfg = chapter3_cfg(default_config(), 50.0, 8, 7, speed_mps=40 / 3.6, vibration_px=0.5, min_distance_m=25.0)
@@ -200,7 +201,7 @@ def approach() -> oracle.OracleResult:
         mp.setattr(listdecode, "LIST_DECODE", False)
         mp.setattr(demod, "SEQUENTIAL_RETRY", False)
         mp.setattr(pixelphase, "PHASE_RETRY", False)
-        return run_oracle(cfg.with_keys("tracking", background_one_led=False), 2)
+        return run_oracle(cfg.with_keys("tracking", background_one_led=False, growth_from_block=False), 2)
 
 
 def test_true_everything_is_not_worse_than_the_receiver_on_an_approach(approach: oracle.OracleResult) -> None:

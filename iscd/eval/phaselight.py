@@ -34,11 +34,13 @@ __all__ = ["phase_features", "take_out_phase", "run", "receiver_luminance", "mai
 
 
 def run(case_key: str, seed: int, model: str, *, source: str = "oracle", labels: str = "decisions",
-        window: int = 400, centre_noise_px: float = 0.0) -> dict[str, Any]:
+        window: int = 400, centre_noise_px: float = 0.0, tracking: dict[str, Any] | None = None
+        ) -> dict[str, Any]:
     """The experiment on one randomized one-LED motion scene.
 
     ``source``: ``oracle`` (the ``+true positions`` luminance, the true centres) or
-    ``receiver`` (the receiver's own luminance and followed centres).
+    ``receiver`` (the receiver's own luminance and followed centres). ``tracking``: ``[tracking]``
+    keys to set (e.g. ``growth_from_block=False``, the window of session 32's measurements).
 
     Returns
     -------
@@ -76,6 +78,8 @@ def run(case_key: str, seed: int, model: str, *, source: str = "oracle", labels:
     if not (window >= 16 and 0 <= centre_noise_px < math.inf):
         raise ValueError(f"need window >= 16 frames and a finite centre noise >= 0 px, got {window} and {centre_noise_px}")
     cfg, _ = motion_cfg(default_config(), case, seed, scene={"vibration_model": model}, randomize=True)
+    if tracking:
+        cfg = cfg.with_keys("tracking", **tracking)
     mode = ReceiverMode("diversity", "both")
     if source == "oracle":
         L = run_oracle(cfg, case.packets, mode=mode, genie=False).luminance["true positions"]  # (2, n, 1)
