@@ -91,6 +91,9 @@ class PacketResult:
     not reported, but list-decoded after the others (:class:`~iscd.decode.comms.packets.PacketAssembler`).
     On that attempt's own result: its survivors' own decisions, where its final pass changed
     some (:func:`_survivors_own`; list-decoded after it)"""
+    clock_fixed: bool = False
+    """one LED: delivered demodulated again with the clock its failed attempts ended on held
+    fixed (:class:`~iscd.decode.comms.packets.PacketAssembler`), after every other attempt failed"""
     phase_corrected: bool = False
     """one LED: delivered with the sub-pixel phase of its followed centres taken out of the
     luminance (:mod:`~iscd.decode.comms.pixelphase`), after every other attempt failed"""
@@ -121,6 +124,7 @@ class PacketResult:
                 "channel_tracked": self.channel in ("tracked", "anchored"),
                 **({"channel_anchored": True} if self.channel == "anchored" else {}),
                 **({"list_flips": int(self.list_flips)} if self.list_flips else {}),
+                **({"clock_fixed": True} if self.clock_fixed else {}),
                 **({"phase_corrected": True} if self.phase_corrected else {}),
                 "header_r2": float(self.header_r2), "training_rho": float(self.training_rho),
                 "contrast": float(self.contrast),
