@@ -272,7 +272,8 @@ class PacketAssembler:
         Raises
         ------
         ValueError
-            If ``t_s`` and ``frame_ids`` differ in length or a block has the wrong LED count.
+            If ``t_s`` and ``frame_ids`` differ in length, a block has the wrong LED count or
+            ``centres`` the wrong frame count.
         """
         ids = np.asarray(frame_ids, dtype=np.int64).reshape(-1)
         ts = np.asarray(t_s, dtype=np.float64).reshape(-1)
@@ -443,14 +444,7 @@ class PacketAssembler:
         if res is None or (self._n < self._held_need and not force):
             return
         self._held = None
-        tries = [res]
-        if self._n >= self._held_need or (force and self._flushing):
-            self.stats["anchored_tries"] += 1
-            alt = demodulate_anchored(self._L[:, :self._n], res, self.e, self.p_nom, self.cfg)
-            if isinstance(alt, PacketResult):
-                self.stats["anchored_delivered"] += int(alt.crc_ok)
-                tries.insert(0, alt)
-        good = tries[0] if tries[0].crc_ok else (self._list_decode(tries) if listdecode.LIST_DECODE else None)
+        tries, good = self._anchored_then_listed(res, self._L[:, :self._n], at_end=force and self._flushing)
         if good is None and FIXED_CLOCK_RETRY and self.N == 1:
             good = self._fixed_clock_attempt(res, tries[0])
         if good is None and pixelphase.PHASE_RETRY and self._X is not None:
@@ -460,6 +454,25 @@ class PacketAssembler:
             if not force:  # (waiting for the next packet still: lock on the delivered one)
                 self._accept(res)
         out.append(self._emit(res))
+
+    def _anchored_then_listed(self, first: PacketResult, L: np.ndarray, at_end: bool = False,
+                              counted: bool = True) -> tuple[list[PacketResult], PacketResult | None]:
+        """The attempts after a failed one, ``first``, demodulated from the luminance ``L``:
+        anchored on the next header when the frames after it are in (or ``at_end``: the end
+        of the stream), then CRC-aided list decoding. Returns the attempts (the anchored one
+        first) and the delivered one (None when none passed). ``counted``: in the
+        ``anchored_*`` stats (the held packet's own; not a later attempt's, which has its own)."""
+        tries = [first]
+        if self._n >= self._held_need or at_end:
+            if counted:
+                self.stats["anchored_tries"] += 1
+            alt = demodulate_anchored(L, first, self.e, self.p_nom, self.cfg)
+            if isinstance(alt, PacketResult):
+                if counted:
+                    self.stats["anchored_delivered"] += int(alt.crc_ok)
+                tries.insert(0, alt)
+        good = tries[0] if tries[0].crc_ok else (self._list_decode(tries) if listdecode.LIST_DECODE else None)
+        return tries, good
 
     def _fixed_clock_attempt(self, held: PacketResult, best: PacketResult) -> PacketResult | None:
         """A one-LED packet that every attempt failed, demodulated again with the clock its
@@ -496,7 +509,7 @@ class PacketAssembler:
         """A one-LED packet that every attempt failed, demodulated again with the sub-pixel
         phase of its followed centres taken out of its luminance
         (:func:`~iscd.decode.comms.pixelphase.phase_corrected`; each level's light in a frame
-        from ``best``'s decisions and clock, the header, training and what follows known),
+        from ``best``'s decisions and clock, the header and training known),
         then as :meth:`_release` does: the same prior as ``held`` had, anchored when the
         frames after it are in, list decoding. Only a CRC pass is returned (None otherwise):
         the correction can spoil a packet, so it runs only where nothing else delivered."""
@@ -516,12 +529,7 @@ class PacketAssembler:
                                       grid=self.grid, retry_unlocked=unlocked)
             if not isinstance(first, PacketResult):
                 return None
-            tries = [first]
-            if not first.crc_ok and self._n >= self._held_need:
-                alt = demodulate_anchored(Lc, first, self.e, self.p_nom, self.cfg)
-                if isinstance(alt, PacketResult):
-                    tries.insert(0, alt)
-            good = tries[0] if tries[0].crc_ok else (self._list_decode(tries) if listdecode.LIST_DECODE else None)
+            tries, good = ([first], first) if first.crc_ok else self._anchored_then_listed(first, Lc, counted=False)
             if good is not None:
                 self.stats["phase_delivered"] += 1
                 return replace(good, phase_corrected=True)
