@@ -15,6 +15,7 @@ from scipy.ndimage import gaussian_filter
 from iscd.decode.tracking.registered_background import (RegisteredBackground, measure_block,
                                                         measure_block_reference, window_half)
 from iscd.decode.tracking.stabilize import _stabilize_kernel, stabilize_into, stabilize_reference
+from scenes import following_errors, motion_scene
 
 H = W = 64
 
@@ -142,42 +143,12 @@ def test_the_shifts_only_kernel_matches_the_reference_and_leaves_the_map() -> No
 # ----------------------------------------------------------------------------- rendered scenes
 
 def _motion_cfg(key: str, seed: int, model: str, stabilized: bool):
-    from iscd.core.config import default_config
-    from iscd.eval.suites import MOTION_CASES, motion_cfg
-
-    case = next(c for c in MOTION_CASES if c.key == key)
-    cfg, note = motion_cfg(default_config(), case, seed, scene={"vibration_model": model}, randomize=True)
-    assert note.startswith("randomized")
-    return cfg.with_keys("tracking", stabilized_following=stabilized)
+    # the stereo hold (session 34) puts a camera that walks off back beside the other one;
+    # these tests measure the following itself, as when they were written
+    return motion_scene(key, seed, model, stabilized_following=stabilized, stereo_hold=False)
 
 
-def _following_errors(cfg, n: int) -> tuple[np.ndarray, np.ndarray]:
-    """(2, F) distance of the followed centres from the simulator's truth, px, over the frames
-    the receiver followed (per camera), and (F,) the share of each of those frames' exposure
-    the LED was on (truth)."""
-    from iscd.decode.stream import StreamDecoder
-    from iscd.eval.sweeps import ReceiverMode, _decoder_cfg
-    from iscd.sim.scene import Scene
-
-    sc = Scene(cfg)
-    truth = sc.truth(np.arange(n))
-    dec = StreamDecoder(_decoder_cfg(cfg, ReceiverMode("diversity", "both")))
-    L = np.empty((16, sc.height, sc.width), np.uint8)
-    R = np.empty_like(L)
-    err: list[list[float]] = [[], []]
-    on: list[float] = []
-    for s in range(0, n, 16):
-        ids = np.arange(s, min(s + 16, n))
-        for i, k in enumerate(ids):
-            sc.render_pair_into(int(k), L[i], R[i])
-        dec.push(ids, ids / sc.fps, L[:ids.size], R[:ids.size])
-        if dec.last_centres is not None and dec.last_centres[0].shape[0] == ids.size:
-            for c, (u, v) in enumerate(((truth.u_left, truth.v_left), (truth.u_right, truth.v_right))):
-                got = dec.last_centres[c][:, 0, :]
-                err[c].extend(np.hypot(got[:, 0] - np.ravel(u)[ids], got[:, 1] - np.ravel(v)[ids]))
-            on.extend(np.asarray(truth.on_fraction)[ids, 0])
-    dec.close()
-    return np.array(err), np.array(on)
+_following_errors = following_errors
 
 
 def test_a_dim_led_beside_a_texture_edge_is_followed_in_the_backgrounds_frame() -> None:

@@ -45,6 +45,7 @@ from iscd.decode.pipe import PipeDemodWorker as DemodWorker
 from iscd.decode.tracking.follow_kernel import follow_and_measure_compiled
 from iscd.decode.tracking.luminance import PixelBackground, area_sigma, follow_and_measure, grid_sample, patch_half
 from iscd.decode.tracking.registered_background import RING_PX, RegisteredBackground, ShiftLeader, window_half
+from iscd.decode.tracking.stereo_hold import StereoTrend, hold_block
 from iscd.decode.tracking.stabilize import stabilize_into
 from iscd.decode.tracking.partner import find_partner, reference_series
 from iscd.decode.tracking.detect import (GridFit, square_grid, detect_array, detect_auto, light_map, match_stereo, track_box,
@@ -92,6 +93,7 @@ class PipelineSettings:
     registered_background: bool = field(default=True, metadata={"doc": "with the per-pixel background and one LED: the luminance takes the background from a map held in the scene's frame, at the image's own whole-pixel shift measured each frame on a ring of background pixels (iscd.decode.tracking.registered_background): rig vibration moves the texture under the spot with it; false = the image-indexed least value as before"})
     shift_hint: bool = field(default=True, metadata={"doc": "with registered_background: one camera makes the other's image move (shift step) in a frame where its own ring matches the moved shift at least as well (a rigid rig's cameras move together; a defocused camera's blurred texture often cannot tell a 1 px move by itself); the camera whose ring tells the shifts apart more clearly leads (iscd.decode.tracking.registered_background.ShiftLeader)"})
     stabilized_following: bool = field(default=True, metadata={"doc": "with registered_background: the LED is followed in the background's own frame (the frames moved back by the image shifts predicted against the registered map, iscd.decode.tracking.stabilize), so the per-pixel background under the centroids holds the texture that vibration moves under the spot; false = followed in the image as before"})
+    stereo_hold: bool = field(default=True, metadata={"doc": "one LED over the registered background: a frame whose followed disparity (right minus left) leaves the trend of the last blocks by more than a pixel has the camera that walked off (onto a texture edge) put back beside the other's centre at the predicted disparity, counted in stereo_holds (iscd.decode.tracking.stereo_hold)"})
     path_settle_px: float = field(default=0.5, metadata={"lo": 0.05, "hi": 5.0, "doc": "no further following pass once the path is within this of where the last pass started, px"})
 
     def __post_init__(self) -> None:
@@ -384,6 +386,8 @@ class StreamDecoder:
         self._shift_sum = np.zeros((2, 2))
         self._shift_n = 0
         self._followed: list[np.ndarray | None] = [None, None]
+        self._stereo_trend = StereoTrend()
+        """one LED: the stereo hold's state carried from block to block (:meth:`_hold_to_stereo`)"""
         self._followed_disparity: float | None = None
         """one LED: the median over the last decoded block's frames of its followed right minus
         left x, px (:meth:`_growth`)"""
@@ -413,7 +417,7 @@ class StreamDecoder:
                                          "packets_ok": 0, "packets_bad": 0, "ranges": 0,
                                          "frames_decoded": 0, "assembler_resets": 0,
                                          "ranging_skipped": 0, "led_ranges_shed": 0,
-                                         "demod_worker_restarts": 0, "following_resets": 0,
+                                         "demod_worker_restarts": 0, "following_resets": 0, "stereo_holds": 0,
                                          "shape_mismatches": 0, "shape_retries": 0, "lookbacks_skipped": 0}
 
     def _set_shape(self, rows: int, cols: int) -> None:
@@ -426,6 +430,7 @@ class StreamDecoder:
             self._path_end = [None, None]
             self._followed = [None, None]
             self._followed_disparity = None
+            self._stereo_trend = StereoTrend()
         self.rows, self.cols = int(rows), int(cols)
         self._use = grid_sample(self.rows, self.cols)
         """the LEDs whose centroids steer the following (fixed by the array's shape)"""
@@ -932,6 +937,7 @@ class StreamDecoder:
         self._shift_n = 0
         self._followed = [None, None]
         self._followed_disparity = None
+        self._stereo_trend = StereoTrend()
         self._lit_light = None
         self._lum_floor = [None, None]
         self._path_end = [None, None]
@@ -1143,6 +1149,8 @@ class StreamDecoder:
             shifts = stab[2]
             c_l, c_r = c_l + shifts[0][:, None, :], c_r + shifts[1][:, None, :]
             self._stab_last = [shifts[0][-1].copy(), shifts[1][-1].copy()]
+        if self.rows * self.cols == 1 and registered and self.settings.stereo_hold:
+            c_l, c_r = self._hold_to_stereo(frame_ids, c_l, c_r, None if stab is None else stab[2])
         if registered:
             # the light above the background under the window in this frame: held in the
             # scene's frame at the image's own shift (rig vibration moves the texture too)
@@ -1169,6 +1177,36 @@ class StreamDecoder:
             self._followed_disparity = float(np.median(d)) if d.size else None
         self.last_centres = (c_l, c_r)
         return lum_l, lum_r
+
+    def _hold_to_stereo(self, frame_ids: np.ndarray, c_l: np.ndarray, c_r: np.ndarray,
+                        shifts: list[np.ndarray] | None) -> tuple[np.ndarray, np.ndarray]:
+        """One LED's followed centres held where one camera's following jumped off the stereo
+        disparity (:mod:`iscd.decode.tracking.stereo_hold`, ``[tracking] stereo_hold``): the
+        walked-off camera's frames are put back beside the other camera's centre at the
+        disparity before the jump (counted in ``stereo_holds``; the held camera's path end
+        too, so that the next block starts on the LED).
+
+        Parameters
+        ----------
+        frame_ids : ndarray
+            (F,) the block's frames.
+        c_l, c_r : ndarray
+            (F, 1, 2) followed centres, image px.
+        shifts : list of ndarray or None
+            Per camera (F, 2) the block's image shifts px (stabilized following), or None.
+
+        Returns
+        -------
+        c_l, c_r : ndarray
+            The centres, held where one camera jumped off.
+        """
+        still = [c[:, 0, :] - (shifts[k] if shifts is not None else 0.0) for k, c in enumerate((c_l, c_r))]
+        c_l, c_r, held, self._stereo_trend = hold_block(self._stereo_trend, frame_ids, c_l, c_r, still[0], still[1])
+        if held.any():
+            self.counters["stereo_holds"] += int(held.sum())
+            if held[-1] and self._stereo_trend.side >= 0 and self._path_end[self._stereo_trend.side] is not None:
+                self._path_end[self._stereo_trend.side] = (c_l, c_r)[self._stereo_trend.side][-1].copy()
+        return c_l, c_r
 
     def _shift_order(self) -> tuple[int, int]:
         """The cameras in the order their image shifts are found: with ``shift_hint`` the one
@@ -1469,6 +1507,7 @@ class StreamDecoder:
             self._shape_hint = None
         self._followed = [None, None]
         self._followed_disparity = None
+        self._stereo_trend = StereoTrend()
         self._lit_light = None
         self._backgrounds = None
         self._registered = None

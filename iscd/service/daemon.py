@@ -683,6 +683,7 @@ class _Run:
                "ranges": decoder.counters["ranges"], "ranging_skipped": decoder.counters["ranging_skipped"],
                "led_ranges_shed": decoder.counters["led_ranges_shed"], **self.overload.counters,
                "following_resets": decoder.counters.get("following_resets", 0),
+               "stereo_holds": decoder.counters.get("stereo_holds", 0),
                "tracking": decoder.track is not None,
                "latency_ms_p50": p50, "latency_ms_p99": p99,
                # pairs whose ranges went out before the rest of their block was in (range_part)
