@@ -67,10 +67,14 @@ class StereoTrend:
 def block_rate(blocks: tuple[tuple[float, float], ...]) -> float:
     """The disparity's rate from the last :data:`RATE_BLOCKS` blocks' medians, px/frame (0
     with fewer than two)."""
-    h = np.asarray(blocks[-RATE_BLOCKS:], dtype=np.float64)
-    if h.shape[0] < 2 or np.ptp(h[:, 0]) <= 0:
+    h = blocks[-RATE_BLOCKS:]
+    n = len(h)
+    if n < 2:
         return 0.0
-    return float(np.polyfit(h[:, 0], h[:, 1], 1)[0])
+    mf = sum(f for f, _ in h) / n
+    mx = sum(x for _, x in h) / n
+    sff = sum((f - mf) ** 2 for f, _ in h)
+    return sum((f - mf) * (x - mx) for f, x in h) / sff if sff > 0 else 0.0  # least squares
 
 
 def hold_block(trend: StereoTrend, frames: np.ndarray, c_l: np.ndarray, c_r: np.ndarray,
@@ -112,6 +116,21 @@ def hold_block(trend: StereoTrend, frames: np.ndarray, c_l: np.ndarray, c_r: np.
     still = (np.asarray(still_l, dtype=np.float64), np.asarray(still_r, dtype=np.float64))
     kept, run, side, rate = list(trend.kept), trend.run, trend.side, trend.rate
     last = None if trend.last is None else trend.last.copy()
+    if kept and last is not None and run == 0 and F and ok.all():
+        # the usual block, in one step: every kept and new disparity within half the
+        # tolerance of the reference line at the block's start, so every frame's median
+        # reference is too and no frame departs from it by more than the tolerance (the
+        # frame-by-frame loop below would hold none)
+        k = np.asarray(kept)
+        lx = k[:, 1] + rate * (ids[0] - k[:, 0])
+        x0, y0 = float(np.median(lx)), float(np.median(k[:, 2]))
+        half = 0.5 * tolerance_px
+        if np.abs(lx - x0).max() <= half and np.abs(k[:, 2] - y0).max() <= half \
+                and np.abs(dx - (x0 + rate * (ids - ids[0]))).max() <= half and np.abs(dy - y0).max() <= half:
+            new_kept = (kept + list(zip(ids.tolist(), dx.tolist(), dy.tolist())))[-REF_FRAMES:]
+            blocks = (trend.blocks + ((float(ids.mean()), float(np.median(dx))),))[-RATE_BLOCKS:]
+            return c_l, c_r, held, replace(trend, kept=tuple(new_kept), rate=block_rate(blocks), blocks=blocks,
+                                           last=np.stack([still[0][-1], still[1][-1]]), run=0, side=-1)
     out = [c_l, c_r]
     copied = [False, False]
     for f in range(F):
