@@ -149,3 +149,31 @@ def test_packets_lost_to_a_camera_that_walked_off_are_delivered(key: str, seed: 
     assert res.found == res.packets_sent == 2 and res.exact == 2 and res.symbol_errors == 0
     assert res.undetected == 0 and res.spurious_crc_ok == 0
     assert off.exact == 1 and off.symbol_errors > 0
+
+
+def test_the_shortcut_gives_what_the_frame_loop_gives() -> None:
+    """Random blocks -- quiet ones, noisy dim frames, jumps of either camera, NaN frames --
+    through the shortcut and through the frame-by-frame loop alone: the same centres, holds
+    and state, block after block."""
+    rng = np.random.default_rng(11)
+    for trial in range(40):
+        fast = slow = StereoTrend()
+        for b in range(6):
+            c_l, c_r, shift = _block(seed=1000 * trial + b, rate=-0.05)
+            c_r = c_r + np.array([-0.05 * 32 * b, 0.0])
+            noise = rng.choice([0.0, 0.2, 0.6], p=[0.5, 0.3, 0.2])
+            c_r = c_r + rng.normal(0, noise, c_r.shape) * (rng.random((32, 1, 1)) < 0.2)
+            if rng.random() < 0.3:
+                side, at = rng.integers(0, 2), rng.integers(0, 32)
+                (c_l if side == 0 else c_r)[at:, 0, 0] -= rng.choice([-1, 1]) * rng.uniform(1.5, 6.0)
+            if rng.random() < 0.1:
+                c_l[rng.integers(0, 32)] = np.nan
+            ids = np.arange(32 * b, 32 * b + 32)
+            sl, sr = c_l[:, 0] - shift, c_r[:, 0] - shift
+            a = hold_block(fast, ids, c_l, c_r, sl, sr)
+            z = hold_block(slow, ids, c_l, c_r, sl, sr, shortcut=False)
+            for u, v in zip(a[:3], z[:3]):
+                np.testing.assert_array_equal(u, v)
+            fast, slow = a[3], z[3]
+            assert fast == slow
+            np.testing.assert_allclose(fast.last, slow.last)

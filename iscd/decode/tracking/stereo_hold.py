@@ -79,7 +79,8 @@ def block_rate(blocks: tuple[tuple[float, float], ...]) -> float:
 
 def hold_block(trend: StereoTrend, frames: np.ndarray, c_l: np.ndarray, c_r: np.ndarray,
                still_l: np.ndarray, still_r: np.ndarray, *, tolerance_px: float = TOLERANCE_PX,
-               max_hold: int = MAX_HOLD_FRAMES) -> tuple[np.ndarray, np.ndarray, np.ndarray, StereoTrend]:
+               max_hold: int = MAX_HOLD_FRAMES, shortcut: bool = True
+               ) -> tuple[np.ndarray, np.ndarray, np.ndarray, StereoTrend]:
     """Hold one LED's centres where one camera's following jumped off the disparity.
 
     Parameters
@@ -97,6 +98,9 @@ def hold_block(trend: StereoTrend, frames: np.ndarray, c_l: np.ndarray, c_r: np.
         Largest jump kept, px (:data:`TOLERANCE_PX`).
     max_hold : int
         Longest hold, frames (:data:`MAX_HOLD_FRAMES`).
+    shortcut : bool
+        Check the usual block (nothing departs) in one vectorized step; False = frame by
+        frame throughout (the reference the tests hold the shortcut to; the same results).
 
     Returns
     -------
@@ -116,7 +120,7 @@ def hold_block(trend: StereoTrend, frames: np.ndarray, c_l: np.ndarray, c_r: np.
     still = (np.asarray(still_l, dtype=np.float64), np.asarray(still_r, dtype=np.float64))
     kept, run, side, rate = list(trend.kept), trend.run, trend.side, trend.rate
     last = None if trend.last is None else trend.last.copy()
-    if kept and last is not None and run == 0 and F and ok.all():
+    if shortcut and kept and last is not None and run == 0 and F and ok.all():
         # the usual block, in one step: every kept and new disparity within half the
         # tolerance of the reference line at the block's start, so every frame's median
         # reference is too and no frame departs from it by more than the tolerance (the
