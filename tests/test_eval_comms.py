@@ -20,12 +20,13 @@ from iscd.eval.suites import (APPROACH_SPEED_MPS, APPROACH_VIBRATION_PX, CH3_MOD
 from iscd.eval.sweeps import CommsResult, ReceiverMode, run_comms
 
 DIVERSITY = ReceiverMode("diversity", "both")  # the project's default receiver
-MATCHED_WINDOW = {"one_led_window_scale": 1.0, "growth_from_block": False}
-"""One LED's luminance window matched to its spot, as before session 30, and scaled by the
-growth measured from each block's starting positions, as before session 33: the scenes of the
-tests that name it were found with that window, and the defaults (1.5x; the growth from the
-last block's median disparity) move them off the failure each test is about (they decode them
-without the attempt under test, or lose other symbols)."""
+MATCHED_WINDOW = {"one_led_window_scale": 1.0, "growth_from_block": False, "stereo_hold": False}
+"""One LED's luminance window matched to its spot, as before session 30, scaled by the
+growth measured from each block's starting positions, as before session 33, and its centres
+not held to the stereo disparity, as before session 34: the scenes of the tests that name it
+were found with that following and window, and the defaults (1.5x; the growth from the last
+block's median disparity; the stereo hold) move them off the failure each test is about (they
+decode them without the attempt under test, or lose other symbols)."""
 
 @lru_cache(maxsize=None)
 def _one_led(distance_m: float, levels: int, packets: int) -> CommsResult:

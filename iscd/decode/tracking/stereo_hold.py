@@ -72,8 +72,19 @@ def _median(values: list[float]) -> float:
 
 
 def block_rate(blocks: tuple[tuple[float, float], ...]) -> float:
-    """The disparity's rate from the last :data:`RATE_BLOCKS` blocks' medians, px/frame (0
-    with fewer than two)."""
+    """The disparity's rate from the last blocks' medians: the least-squares slope.
+
+    Parameters
+    ----------
+    blocks : tuple of (frame, x)
+        Per block the mean frame of its kept frames and their median right minus left x,
+        px, oldest first; the last :data:`RATE_BLOCKS` are used.
+
+    Returns
+    -------
+    float
+        px/frame (0 with fewer than two blocks).
+    """
     h = blocks[-RATE_BLOCKS:]
     n = len(h)
     if n < 2:
