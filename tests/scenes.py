@@ -49,3 +49,19 @@ def following_errors(cfg, n: int, block: int = 16) -> tuple[np.ndarray, np.ndarr
             on.extend(np.asarray(truth.on_fraction)[ids, 0])
     dec.close()
     return np.array(err), np.array(on)
+
+
+def assert_delivered_only_with(cfg_with, cfg_without, what: str) -> None:
+    """Two packets of a randomized scene in the daemon's blocks of 16, decoded by the default
+    receiver with a setting (``cfg_with``) and without it: bit-exact with it (nothing
+    undetected, nothing spurious), and one of the two lost without it."""
+    from iscd.eval.sweeps import ReceiverMode, run_comms
+
+    mode = ReceiverMode("diversity", "both")
+    (res,) = run_comms(cfg_with, [mode], 2, block=16)
+    (off,) = run_comms(cfg_without, [mode], 2, block=16)
+    print(f"with {what}: exact {res.exact}/{res.packets_sent}, errors {res.symbol_errors}; "
+          f"without: exact {off.exact}, errors {off.symbol_errors}")
+    assert res.found == res.packets_sent == 2 and res.exact == 2 and res.symbol_errors == 0
+    assert res.undetected == 0 and res.spurious_crc_ok == 0
+    assert off.exact == 1 and off.symbol_errors > 0

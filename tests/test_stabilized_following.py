@@ -15,7 +15,7 @@ from scipy.ndimage import gaussian_filter
 from iscd.decode.tracking.registered_background import (RegisteredBackground, measure_block,
                                                         measure_block_reference, window_half)
 from iscd.decode.tracking.stabilize import _stabilize_kernel, stabilize_into, stabilize_reference
-from scenes import following_errors, motion_scene
+from scenes import assert_delivered_only_with, following_errors, motion_scene
 
 H = W = 64
 
@@ -206,16 +206,8 @@ def test_packets_lost_to_the_texture_under_a_dim_led_are_delivered(key: str, see
     frames over a high-contrast texture; 2103417577: the road bump above): with the
     following in the background's own frame both packets are bit-exact; followed in the
     image, one is lost."""
-    from iscd.eval.sweeps import ReceiverMode, run_comms
-
-    mode = ReceiverMode("diversity", "both")
-    (res,) = run_comms(_motion_cfg(key, seed, model, True), [mode], 2, block=16)
-    (off,) = run_comms(_motion_cfg(key, seed, model, False), [mode], 2, block=16)
-    print(f"stabilized: exact {res.exact}/{res.packets_sent}, errors {res.symbol_errors}; "
-          f"in the image: exact {off.exact}, errors {off.symbol_errors}")
-    assert res.found == res.packets_sent == 2 and res.exact == 2 and res.symbol_errors == 0
-    assert res.undetected == 0 and res.spurious_crc_ok == 0
-    assert off.exact == 1 and off.symbol_errors > 0
+    assert_delivered_only_with(_motion_cfg(key, seed, model, True), _motion_cfg(key, seed, model, False),
+                               "the stabilized following")
 
 
 def test_one_leds_live_path_compiles_nothing_after_the_warm_up() -> None:
