@@ -148,6 +148,7 @@ def test_the_shortcut_gives_what_the_frame_loop_gives() -> None:
     through the shortcut and through the frame-by-frame loop alone: the same centres, holds
     and state, block after block."""
     rng = np.random.default_rng(11)
+    quiet = holding = 0
     for trial in range(40):
         fast = slow = StereoTrend()
         for b in range(6):
@@ -169,3 +170,6 @@ def test_the_shortcut_gives_what_the_frame_loop_gives() -> None:
             fast, slow = a[3], z[3]
             assert fast == slow
             np.testing.assert_allclose(fast.last, slow.last)
+            quiet += int(b > 0 and not a[2].any())
+            holding += int(a[2].any())
+    assert quiet >= 40 and holding >= 20  # both kinds of block were compared

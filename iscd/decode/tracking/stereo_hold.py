@@ -29,8 +29,9 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 TOLERANCE_PX = 1.0
-"""A frame whose disparity (x) or vertical offset (y) is further than this from the last
-kept frame's, carried on at the recent rate, is a jump (or still away after one), px. The
+"""A frame whose disparity (x) or vertical offset (y) is further than this from the median
+of the last kept frames' (:data:`REF_FRAMES`, carried on at the recent rate) is a jump (or
+still away after one), px. The
 cameras' independent air jitter is ~0.05 px and the following's own scatter on lit frames
 0.01-0.3 px (docs/receiver.md); a walk onto a texture feature is pixels."""
 
