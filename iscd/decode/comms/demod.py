@@ -388,6 +388,31 @@ def clean_samples(L: np.ndarray, clock: SymbolClock, e: float, lev: np.ndarray, 
     return L[:, frames, :], lev[kr]
 
 
+def clean_index(n: int, clock: SymbolClock, e: float, S: int) -> tuple[np.ndarray, np.ndarray]:
+    """The clean frames of packet symbols 0 .. S-1 within a buffer of ``n`` frames and the
+    symbol of each (:func:`clean_samples` without the luminance), frame order.
+
+    Parameters
+    ----------
+    n : int
+        Frames in the buffer.
+    clock : SymbolClock
+        The packet's symbol clock, frames.
+    e : float
+        Exposure window length, frames.
+    S : int
+        Symbols.
+
+    Returns
+    -------
+    frames : ndarray of int64
+        Buffer rows.
+    k : ndarray of int64
+        Their symbols, 0 .. S-1.
+    """
+    return _clean_index(int(n), float(clock.u0), float(clock.p), float(e), 0, int(S))
+
+
 @njit(warm=lambda: (10, 0.3, 2.0, 1.0, 0, 3), error_model="numpy")
 def _clean_index(n: int, u0: float, p: float, e: float, k_first: int, S: int
                  ) -> tuple[np.ndarray, np.ndarray]:
@@ -1110,6 +1135,16 @@ def demodulate_packet(L: np.ndarray, u_guess: float, air: AirInterface, e: float
                 return alt
         return best
     return res
+
+
+def demodulate_with_channel(L: np.ndarray, air: AirInterface, e: float, p_nominal: float, clock: SymbolClock,
+                            cfg: ReceiverConfig, channel: ChannelOf) -> PacketResult | Rejection:
+    """One attempt at the clock ``clock`` (held fixed) with every channel estimate replaced by
+    ``channel(clock, a, b)`` for packet symbols [a, b) (its stretches a third of
+    ``cfg.channel_window_symbols``): the tracking pass and the final pass decide with it; no
+    fallback. The smoothed-channel attempt of a failed one-LED packet
+    (:mod:`~iscd.decode.comms.smoothing`) and the oracle's true channels read a packet so."""
+    return _demodulate(L, clock.u0, air, e, p_nominal, clock.p, 20e-6 * p_nominal, cfg, clock, channel)
 
 
 ANCHOR_RETRY = True

@@ -27,7 +27,7 @@ from iscd.core.airinterface_v2 import AirInterfaceV2, header_symbols
 from iscd.core.config import TransmitterConfig
 from iscd.core.jit import njit, register_warm
 from iscd.core.records import PacketRecord
-from iscd.decode.comms import demod, listdecode, pixelphase
+from iscd.decode.comms import demod, listdecode, pixelphase, smoothing
 from iscd.decode.comms.demod import (PacketResult, Rejection, after_levels, demodulate_anchored, demodulate_packet,
                                       known_levels)
 from iscd.decode.comms.settings import ReceiverConfig
@@ -39,6 +39,14 @@ FIXED_CLOCK_RETRY = True
 """A one-LED packet that every attempt failed is demodulated once more with the clock its
 attempts ended on held fixed (:meth:`PacketAssembler._fixed_clock_attempt`), before the
 sub-pixel phase attempt."""
+
+SMOOTH_RETRY = True
+"""A one-LED packet that every attempt failed (the sub-pixel phase attempt included) is
+demodulated once more with its channel smoothed over the whole packet
+(:meth:`PacketAssembler._smoothed_attempt`)."""
+
+SMOOTH_ROUNDS = 3
+"""Rounds of the smoothed attempt: each labels the next with its decisions."""
 
 
 @njit(warm=lambda: (np.arange(3), np.zeros(3), 0), error_model="numpy")
@@ -167,7 +175,8 @@ class PacketAssembler:
         self.stats = {"frames_in": 0, "frames_missing": 0, "frames_rejected": 0,
                       "packets_ok": 0, "packets_bad": 0, "false_headers": 0, "resyncs": 0,
                       "anchored_tries": 0, "anchored_delivered": 0, "list_tries": 0, "list_delivered": 0,
-                      "clock_tries": 0, "clock_delivered": 0, "phase_tries": 0, "phase_delivered": 0}
+                      "clock_tries": 0, "clock_delivered": 0, "phase_tries": 0, "phase_delivered": 0,
+                      "smooth_tries": 0, "smooth_delivered": 0}
 
     # ---- buffer ----------------------------------------------------------------------
     def _reserve(self, extra: int) -> None:
@@ -449,6 +458,8 @@ class PacketAssembler:
             good = self._fixed_clock_attempt(res, tries[0])
         if good is None and pixelphase.PHASE_RETRY and self._X is not None:
             good = self._phase_attempt(res, tries[0])
+        if good is None and SMOOTH_RETRY and self.N == 1:
+            good = self._smoothed_attempt(tries[0])
         if good is not None:
             res = good
             if not force:  # (waiting for the next packet still: lock on the delivered one)
@@ -537,6 +548,55 @@ class PacketAssembler:
             if best.levels.shape != (air.data_symbols, 1) or not np.isfinite(best.p):
                 return None
         return None
+
+    def _smoothed_attempt(self, best: PacketResult) -> PacketResult | None:
+        """A one-LED packet that every attempt failed, demodulated again with its channel
+        smoothed over the whole packet (:mod:`~iscd.decode.comms.smoothing`: every symbol's
+        level centroids at once, a random walk given every clean frame, the data weighed by
+        their levels' likelihoods), labelled by ``best``'s decisions at ``best``'s clock (held
+        fixed) and by the known symbols -- the header and training, and the idle symbols and
+        the next header and training after the packet when their frames are in. Decided
+        again, the decisions label the next round (:data:`SMOOTH_ROUNDS` at most, until they
+        no longer change); the last round is list-decoded. Only a CRC pass is returned."""
+        air = best.air
+        if not isinstance(air, AirInterface) or isinstance(air, AirInterfaceV2) \
+                or best.levels.shape != (air.data_symbols, 1) or not (np.isfinite(best.p) and np.isfinite(best.u0)):
+            return None
+        L = self._L[:, :self._n]
+        clock = SymbolClock(best.u0, best.p)
+        P, D = air.packet_symbols, air.data_offset
+        after = after_levels(air)[:, 0]
+        known_lev = np.concatenate([known_levels(air)[:, 0], np.zeros(air.data_symbols, np.int64), after])
+        S = P + after.size
+        if clock.boundary(S) + 1 > self._n:  # the frames after the packet are not in
+            S = P
+        frames, k = demod.clean_index(L.shape[1], clock, self.e, S)
+        if frames.size == 0:
+            return None
+        known = np.ones(S, dtype=bool)
+        known[D:P] = False
+        cfg = replace(self.cfg, channel_window_symbols=smoothing.STRETCH_WINDOW)
+        r = best
+        for _ in range(SMOOTH_ROUNDS):
+            lab = known_lev[:S].copy()
+            lab[D:P] = r.levels[:, 0].astype(np.int64) - 1
+            mu, var = smoothing.em_models(L[:, frames, 0], k, lab[k], known, S, air.levels, self.cfg.var_floor_dn)
+            self.stats["smooth_tries"] += 1
+            alt = demod.demodulate_with_channel(L, air, self.e, self.p_nom, clock, cfg,
+                                                smoothing.channel_of(mu, var, self.cfg.noise_model, self.cfg.t_nu))
+            if not isinstance(alt, PacketResult):
+                return None
+            if alt.crc_ok:
+                self.stats["smooth_delivered"] += 1
+                return alt
+            done = bool((alt.levels == r.levels).all())
+            r = alt
+            if done:
+                break
+        got = self._list_decode([r]) if listdecode.LIST_DECODE else None
+        if got is not None:
+            self.stats["smooth_delivered"] += 1
+        return got
 
     def _list_decode(self, tries: list[PacketResult]) -> PacketResult | None:
         """The last resort for a held packet that every attempt failed: CRC-aided list

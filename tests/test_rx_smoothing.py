@@ -1,0 +1,179 @@
+"""The channel smoothed over a whole packet (iscd.decode.comms.smoothing): the banded solve
+against the dense least-squares problem it stands for, the noise it estimates, centroids that
+follow a squeezing channel, and the expectation-maximization rounds against biased labels."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from iscd.decode.comms.sequential import KAPPA, RHO
+from iscd.decode.comms.smoothing import (channel_of, em_models, noise_variance, smooth_centroids, smoothed_models,
+                                         step_covariance)
+
+M = 8
+
+
+def _squeezing(seed: int, S: int = 600) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Two cameras, one LED; clean frames 0-2 per symbol; the light per level changes along the
+    packet as a clipping spot's does on an approach: camera 0's upper levels fall by up to a
+    quarter while levels 1-2 rise 8 %, camera 1's levels 4-7 step up by 6 DN within forty
+    symbols at a random symbol. Returns (y (2, n), k (n,), true levels (S,), true centroids
+    (2, S, M), noise RMS (2,))."""
+    rng = np.random.default_rng(seed)
+    s = np.arange(M, dtype=np.float64)
+    base = np.stack([1.0 + 70.0 * (1 - np.exp(-s / 2.5)) / (1 - np.exp(-(M - 1) / 2.5)),
+                     1.0 + 45.0 * (1 - np.exp(-s / 3.0)) / (1 - np.exp(-(M - 1) / 3.0))])
+    t = np.arange(S, dtype=np.float64)[:, None] / S
+    frac = s / (M - 1)
+    cam0 = base[0] * (1 - 0.25 * t * np.clip((frac - 0.35) / 0.65, 0, 1) ** 1.5 + 0.08 * t * (frac <= 0.3))
+    k_step = int(rng.integers(150, 450))
+    ramp = np.clip((np.arange(S) - k_step) / 40.0, 0.0, 1.0)[:, None]
+    cam1 = base[1] + 6.0 * ramp * (s >= 3)
+    truth = rng.integers(0, M, S)
+    reps = rng.choice([0, 1, 1, 1, 2, 2], S)
+    k = np.repeat(np.arange(S), reps).astype(np.int64)
+    mu = np.stack([cam0, cam1])  # (2, S, M)
+    sd = np.array([0.7, 0.5])
+    y = mu[:, k, truth[k]] + rng.normal(size=(2, k.size)) * sd[:, None]
+    return y, k, truth, mu, sd
+
+
+def _dense_minimum(y: np.ndarray, k: np.ndarray, gam: np.ndarray, S: int, r: np.ndarray, Q: np.ndarray,
+                   prior_w: float) -> np.ndarray:
+    """The least-squares problem of the module docstring written out densely (numpy reference)."""
+    n_un = S * M
+    H = np.zeros((n_un, n_un))
+    b = np.zeros(n_un)
+    A = np.linalg.inv(Q)
+    for blk in range(1, S):
+        i, j = (blk - 1) * M, blk * M
+        H[i:i + M, i:i + M] += A
+        H[j:j + M, j:j + M] += A
+        H[i:i + M, j:j + M] -= A
+        H[j:j + M, i:i + M] -= A
+    wsum = gam.sum(axis=0)
+    mean = (gam * y[:, None]).sum(axis=0) / wsum
+    H += prior_w * np.eye(n_un)
+    b += prior_w * np.tile(mean, S)
+    for yj, kj, g in zip(y, k, gam):
+        for s in range(M):
+            H[kj * M + s, kj * M + s] += g[s] / r[s]
+            b[kj * M + s] += g[s] * yj / r[s]
+    return np.linalg.solve(H, b).reshape(S, M)
+
+
+@pytest.mark.parametrize("soft", [False, True])
+def test_the_banded_solve_is_the_least_squares_minimum(soft: bool) -> None:
+    """Hard labels and soft level weights alike: the banded Cholesky solve equals the dense
+    solve of the same problem to 1e-8 DN (both in float64)."""
+    from iscd.decode.comms.smoothing import PRIOR_WEIGHT
+
+    rng = np.random.default_rng(5)
+    S = 30
+    y, k, truth, _, _ = _squeezing(5, S)
+    lab = truth[k]
+    gam = rng.dirichlet(np.ones(M), size=k.size) if soft else np.eye(M)[lab]
+    r = rng.uniform(0.2, 1.5, M)
+    Q = step_covariance(60.0, M)
+    got = smooth_centroids(y[0], k, gam if soft else lab, S, M, r, Q)
+    want = _dense_minimum(y[0], k, gam, S, r, Q, PRIOR_WEIGHT)
+    np.testing.assert_allclose(got, want, atol=1e-8)
+
+
+def test_the_noise_comes_from_successive_symbols_of_a_level() -> None:
+    """The noise RMS estimated per level (about 60 pairs of successive frames each) is within
+    15 % of the drawn one in the median over the levels and within 45 % at every level,
+    although the levels' light moves by up to a quarter along the packet."""
+    y, k, truth, _, sd = _squeezing(3)
+    for c in (0, 1):
+        rms = np.sqrt(noise_variance(y[c], k, truth[k], M, 0.1))
+        assert np.median(rms) == pytest.approx(sd[c], rel=0.15)
+        np.testing.assert_allclose(rms, sd[c], rtol=0.45)
+    # the pairs are successive symbols: a symbol's two frames (here equal) are not a pair
+    y2, k2 = np.repeat(y[:, ::2], 2, axis=1), np.repeat(k[::2], 2)
+    rms2 = np.sqrt(noise_variance(y2[0], k2, truth[k2], M, 0.01))
+    assert np.median(rms2) > 0.5 * sd[0]
+    # a level sent once: the others' median, and the floor holds
+    lab = truth[k].copy()
+    only = np.flatnonzero(lab == 7)
+    lab[only[1:]] = 6
+    r = noise_variance(y[0], k, lab, M, 0.1)
+    assert np.isfinite(r).all() and r[7] == pytest.approx(np.median(r[:7]), rel=0.5)
+    assert (noise_variance(np.zeros(y.shape[1]), k, truth[k], M, 0.3) == pytest.approx(0.09))
+
+
+@pytest.mark.parametrize("seed", [21, 22, 23])
+def test_with_the_true_levels_the_centroids_follow_the_squeeze(seed: int) -> None:
+    """With the true labels the smoothed centroids stay within 0.35 DN RMS of the true ones
+    over the packet, and at the symbol where they are worst within 0.7 DN: at most 0.6 of
+    what the receiver's 96-symbol windows (each symbol the mean of its level's frames within
+    48 symbols each side) leave there -- camera 1's step and camera 0's fall are where the
+    windows lag (over the whole packet both are at their noise, 0.26-0.31 DN)."""
+    y, k, truth, mu, _ = _squeezing(seed)
+    S = truth.size
+    got, var = smoothed_models(y, k, truth[k], S, M, 0.3)
+    err = np.sqrt(np.mean((got - mu) ** 2))
+    worst = np.sqrt(np.mean((got - mu) ** 2, axis=(0, 2))).max()
+    win = np.empty_like(mu)
+    for c in (0, 1):
+        for kk in range(S):
+            sel = np.abs(k - kk) <= 48
+            for s in range(M):
+                v = y[c, sel & (truth[k] == s)]
+                win[c, kk, s] = v.mean() if v.size else np.nan
+    worst_win = np.sqrt(np.nanmean((win - mu) ** 2, axis=(0, 2))).max()
+    print(f"seed {seed}: smoothed {err:.3f} DN RMS, worst symbol {worst:.2f}; 96-symbol windows {worst_win:.2f}")
+    assert err < 0.35
+    assert worst < 0.7
+    assert worst < 0.6 * worst_win
+
+
+@pytest.mark.parametrize("seed", [31, 32, 33])
+def test_the_expectation_rounds_undo_the_bias_of_slipped_labels(seed: int) -> None:
+    """Labels as decision feedback leaves them where the top levels squeeze: a third of the
+    level-7 symbols of the packet's last half labelled 6. Hard labels pull level 6's centroid
+    up and leave level 7 to its brightest frames; the expectation-maximization rounds weigh
+    each frame by its levels' likelihoods and bring both back: their error at levels 6-7 is
+    at most three quarters of the hard labels' (0.48-0.62 of it when written)."""
+    y, k, truth, mu, _ = _squeezing(seed)
+    S = truth.size
+    rng = np.random.default_rng(seed)
+    lab_sym = truth.copy()
+    late7 = np.flatnonzero((truth == 7) & (np.arange(S) >= S // 2))
+    lab_sym[rng.choice(late7, late7.size // 3, replace=False)] = 6
+    known = np.zeros(S, dtype=bool)
+    known[:40] = True
+    hard, _ = smoothed_models(y, k, lab_sym[k], S, M, 0.3)
+    em, _ = em_models(y, k, lab_sym[k], known, S, M, 0.3)
+    half = slice(S // 2, S)
+    e_hard = np.sqrt(np.mean((hard[:, half, 6:] - mu[:, half, 6:]) ** 2))
+    e_em = np.sqrt(np.mean((em[:, half, 6:] - mu[:, half, 6:]) ** 2))
+    print(f"seed {seed}: levels 6-7 error hard {e_hard:.3f} DN, EM {e_em:.3f} DN")
+    assert e_em < 0.75 * e_hard
+
+
+def test_the_channel_of_a_stretch_is_the_mean_of_its_symbols() -> None:
+    mu = np.arange(2 * 10 * M, dtype=np.float64).reshape(2, 10, M)
+    var = np.ones((2, M))
+    ch = channel_of(mu, var, "t", 8.0)
+    m = ch(None, 2, 5)
+    assert m.mu.shape == (2, 1, M) and m.kind == "t" and m.nu == 8.0
+    np.testing.assert_allclose(m.mu[:, 0], mu[:, 2:5].mean(axis=1))
+    np.testing.assert_allclose(ch(None, 12, 20).mu[:, 0], mu[:, 9])  # beyond the end: the last symbol
+
+
+def test_a_camera_without_light_does_not_count() -> None:
+    y, k, truth, _, _ = _squeezing(1, 100)
+    y[1] = np.nan
+    mu, var = smoothed_models(y, k, truth[k], 100, M, 0.3)
+    assert (var[1] >= 1e11).all() and np.isfinite(mu[0]).all()
+    mu2, var2 = em_models(y, k, truth[k], np.zeros(100, bool), 100, M, 0.3)
+    assert (var2[1] >= 1e11).all() and np.isfinite(mu2[0]).all()
+
+
+def test_the_step_covariance_is_the_sequential_filters() -> None:
+    Q = step_covariance(50.0, M)
+    assert Q[0, 0] == pytest.approx((KAPPA * 50.0) ** 2)
+    assert Q[0, 3] == pytest.approx((KAPPA * 50.0) ** 2 * RHO ** 3)
+    np.testing.assert_allclose(Q, Q.T)
