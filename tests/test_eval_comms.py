@@ -368,17 +368,20 @@ def _with_and_without(flag: str, key: str, seed: int, vibration: str, mode: Rece
     """A randomized motion scene (2 packets) decoded as it is and with the receiver's
     ``iscd.decode.comms.demod.<flag>`` attempt off (``module.FLAG``: that module's in
     ``iscd.decode.comms``). For an attempt before the last resort, CRC-aided list decoding
-    (``listdecode.LIST_DECODE``) is off in both runs, so that the attempt's own effect shows.
+    (``listdecode.LIST_DECODE``) is off in both runs, so that the attempt's own effect shows;
+    so is the smoothed-channel attempt that comes after all of them (``packets.SMOOTH_RETRY``,
+    session 35: it delivers 149046880's second packet without the symbol-by-symbol attempt).
     ``tracking``: ``[tracking]`` keys to decode with (the receiver as it was when a scene
     was found, where a later change of the following moved it off the failure)."""
     import importlib
 
-    from iscd.decode.comms import listdecode
+    from iscd.decode.comms import listdecode, packets
 
     mod_name, _, flag = flag.rpartition(".")
     demod = importlib.import_module(f"iscd.decode.comms.{mod_name or 'demod'}")
     if demod is not listdecode:
         monkeypatch.setattr(listdecode, "LIST_DECODE", False)
+    monkeypatch.setattr(packets, "SMOOTH_RETRY", False)
     from iscd.eval.suites import MOTION_CASES, motion_cfg
 
     case = next(c for c in MOTION_CASES if c.key == key)

@@ -97,6 +97,9 @@ class PacketResult:
     phase_corrected: bool = False
     """one LED: delivered with the sub-pixel phase of its followed centres taken out of the
     luminance (:mod:`~iscd.decode.comms.pixelphase`), after every other attempt failed"""
+    channel_smoothed: bool = False
+    """one LED: delivered with its channel smoothed over the whole packet from a failed
+    attempt's decisions (:mod:`~iscd.decode.comms.smoothing`), after every other attempt failed"""
     list_flips: int = 0
     """symbols that CRC-aided list decoding (:mod:`~iscd.decode.comms.listdecode`) changed from
     this attempt's decisions for the CRC to pass (0: as decided)"""
@@ -126,6 +129,7 @@ class PacketResult:
                 **({"list_flips": int(self.list_flips)} if self.list_flips else {}),
                 **({"clock_fixed": True} if self.clock_fixed else {}),
                 **({"phase_corrected": True} if self.phase_corrected else {}),
+                **({"channel_smoothed": True} if self.channel_smoothed else {}),
                 "header_r2": float(self.header_r2), "training_rho": float(self.training_rho),
                 "contrast": float(self.contrast),
                 **({"reason": self.reason} if not self.crc_ok and self.reason else {})}
@@ -1139,11 +1143,35 @@ def demodulate_packet(L: np.ndarray, u_guess: float, air: AirInterface, e: float
 
 def demodulate_with_channel(L: np.ndarray, air: AirInterface, e: float, p_nominal: float, clock: SymbolClock,
                             cfg: ReceiverConfig, channel: ChannelOf) -> PacketResult | Rejection:
-    """One attempt at the clock ``clock`` (held fixed) with every channel estimate replaced by
-    ``channel(clock, a, b)`` for packet symbols [a, b) (its stretches a third of
-    ``cfg.channel_window_symbols``): the tracking pass and the final pass decide with it; no
-    fallback. The smoothed-channel attempt of a failed one-LED packet
-    (:mod:`~iscd.decode.comms.smoothing`) and the oracle's true channels read a packet so."""
+    """One attempt at a clock held fixed with every channel estimate given.
+
+    The tracking pass and the final pass decide with ``channel(clock, a, b)`` for packet
+    symbols [a, b) (stretches a third of ``cfg.channel_window_symbols``); no fallback. The
+    smoothed-channel attempt of a failed one-LED packet (:mod:`~iscd.decode.comms.smoothing`)
+    reads a packet so.
+
+    Parameters
+    ----------
+    L : ndarray
+        (C, n, N) luminance of the selected cameras, DN (NaN = missing), covering the packet.
+    air : AirInterface
+        The packet's geometry (v1).
+    e : float
+        Exposure window length, frames.
+    p_nominal : float
+        Nominal symbol period, frames.
+    clock : SymbolClock
+        The packet's clock (header start ``u0`` in buffer frames, period ``p``), held fixed.
+    cfg : ReceiverConfig
+        Receiver settings.
+    channel : callable
+        ``channel(clock, a, b) -> ChannelModel``.
+
+    Returns
+    -------
+    PacketResult or Rejection
+        As :func:`demodulate_packet`.
+    """
     return _demodulate(L, clock.u0, air, e, p_nominal, clock.p, 20e-6 * p_nominal, cfg, clock, channel)
 
 

@@ -588,7 +588,7 @@ class PacketAssembler:
                 return None
             if alt.crc_ok:
                 self.stats["smooth_delivered"] += 1
-                return alt
+                return replace(alt, channel_smoothed=True)
             done = bool((alt.levels == r.levels).all())
             r = alt
             if done:
@@ -596,7 +596,8 @@ class PacketAssembler:
         got = self._list_decode([r]) if listdecode.LIST_DECODE else None
         if got is not None:
             self.stats["smooth_delivered"] += 1
-        return got
+            return replace(got, channel_smoothed=True)
+        return None
 
     def _list_decode(self, tries: list[PacketResult]) -> PacketResult | None:
         """The last resort for a held packet that every attempt failed: CRC-aided list

@@ -64,6 +64,9 @@ def noise_variance(y: np.ndarray, k: np.ndarray, lab: np.ndarray, M: int, floor_
     ----------
     y : numpy.ndarray
         (n,) clean-frame luminance of one camera, DN, in time order (NaN = missing).
+    k : numpy.ndarray
+        (n,) the symbol of each frame (two frames of one symbol are not a pair: they share
+        its slow errors).
     lab : numpy.ndarray
         (n,) their 0-based levels.
     M : int
@@ -74,9 +77,9 @@ def noise_variance(y: np.ndarray, k: np.ndarray, lab: np.ndarray, M: int, floor_
     Returns
     -------
     numpy.ndarray
-        (M,) variances, DN^2: half the median squared difference of successive frames of a
-        level over the median of chi-square with one degree of freedom (0.455); a level with
-        fewer than three frames takes the median of the others.
+        (M,) variances, DN^2: half the median squared difference of a level's frames in
+        successive symbols of that level, over the median of chi-square with one degree of
+        freedom (0.455); a level with fewer than three pairs takes the median of the others.
     """
     out = np.full(M, np.nan)
     ok = np.isfinite(y)
@@ -163,7 +166,24 @@ def smooth_centroids(y: np.ndarray, k: np.ndarray, lab: np.ndarray, S: int, M: i
 
 
 def step_covariance(span_dn: float, M: int, kappa: float = KAPPA, rho: float = RHO) -> np.ndarray:
-    """``Q[s, t] = (kappa span)^2 rho^|s - t|``, DN^2 per symbol (:mod:`~iscd.decode.comms.sequential`)."""
+    """The random walk's step: ``Q[s, t] = (kappa span)^2 rho^|s - t|`` (:mod:`~iscd.decode.comms.sequential`).
+
+    Parameters
+    ----------
+    span_dn : float
+        The camera's level-M minus level-1 light, DN (at least 1 is used).
+    M : int
+        Levels.
+    kappa : float
+        RMS step per symbol, share of the span.
+    rho : float
+        Correlation of neighbouring levels' steps.
+
+    Returns
+    -------
+    numpy.ndarray
+        (M, M) covariance, DN^2 per symbol.
+    """
     d = np.abs(np.subtract.outer(np.arange(M), np.arange(M)))
     return (kappa * max(span_dn, 1.0)) ** 2 * rho ** d
 
@@ -230,6 +250,12 @@ def channel_of(mu: np.ndarray, var: np.ndarray, kind: str, nu: float
         The decision's noise model (``"gauss"`` or ``"t"``).
     nu : float
         Student-t degrees of freedom.
+
+    Returns
+    -------
+    callable
+        ``channel(clock, a, b) -> ChannelModel`` (``clock`` unused), (C, 1, M) centroids and
+        variances; symbols beyond the smoothed ones take the last.
     """
     S = mu.shape[1]
 
@@ -244,14 +270,42 @@ def channel_of(mu: np.ndarray, var: np.ndarray, kind: str, nu: float
 def em_models(y: np.ndarray, k: np.ndarray, lab: np.ndarray, known: np.ndarray, S: int, M: int,
               floor_dn: float, iterations: int = 5, kappa: float = KAPPA, rho: float = RHO
               ) -> tuple[np.ndarray, np.ndarray]:
-    """As :func:`smoothed_models`, then ``iterations`` rounds of expectation-maximization with
-    each data symbol's level uncertain: its posterior over the levels (uniform prior; all its
-    clean frames of every camera, Gaussian with the smoothed centroids and the noise) weighs
-    every level's centroid in the next smoothing. Hard labels bias a squeezed pair of levels
-    apart (a level-8 symbol decided 7 pulls 7 up and leaves 8 to its brightest frames, which
-    decides the next one 7 again); the posterior does not.
+    """As :func:`smoothed_models`, then rounds of expectation-maximization with each data
+    symbol's level uncertain.
 
-    ``known`` (S,) bool: symbols whose label is known (header, training), kept hard."""
+    Each round, a data symbol's posterior over the levels (uniform prior; all its clean frames
+    of every camera, Gaussian with the smoothed centroids and the noise) weighs its frames in
+    every level's centroid of the next smoothing. Hard labels bias a squeezed pair of levels
+    (a level-8 symbol decided 7 pulls 7 up and leaves 8 to its brightest frames, which decides
+    the next one 7 again); the posterior does not. The noise stays the first fit's.
+
+    Parameters
+    ----------
+    y : numpy.ndarray
+        (C, n) clean-frame luminance per camera, DN, time order (NaN = missing).
+    k : numpy.ndarray
+        (n,) the symbol of each frame, 0 .. S-1.
+    lab : numpy.ndarray
+        (n,) its 0-based level: known, or a decision (the first smoothing's labels).
+    known : numpy.ndarray of bool
+        (S,) symbols whose level is known (header, training, the symbols after the packet):
+        kept hard.
+    S, M : int
+        Symbols, levels.
+    floor_dn : float
+        Smallest noise RMS, DN.
+    iterations : int
+        Rounds.
+    kappa, rho : float
+        The random walk (:func:`step_covariance`).
+
+    Returns
+    -------
+    mu : numpy.ndarray
+        (C, S, M) centroids, DN.
+    var : numpy.ndarray
+        (C, M) noise variances, DN^2.
+    """
     mu, var = smoothed_models(y, k, lab, S, M, floor_dn, kappa, rho)
     C = y.shape[0]
     spans = np.maximum(mu[:, :, -1].mean(axis=1) - mu[:, :, 0].mean(axis=1), 1.0)
@@ -268,7 +322,7 @@ def em_models(y: np.ndarray, k: np.ndarray, lab: np.ndarray, known: np.ndarray, 
         post = np.exp(ll)
         post /= post.sum(axis=1, keepdims=True)
         ks = np.flatnonzero(known)
-        post[ks] = np.eye(M)[np.asarray(lab_sym_of(k, lab, S))[ks]]
+        post[ks] = np.eye(M)[_labels_per_symbol(k, lab, S)[ks]]
         g = post[k]
         for c in range(C):
             if var[c, 0] >= 1e11:
@@ -277,7 +331,7 @@ def em_models(y: np.ndarray, k: np.ndarray, lab: np.ndarray, known: np.ndarray, 
     return mu, var
 
 
-def lab_sym_of(k: np.ndarray, lab: np.ndarray, S: int) -> np.ndarray:
+def _labels_per_symbol(k: np.ndarray, lab: np.ndarray, S: int) -> np.ndarray:
     """Per symbol the label of its frames (0 where a symbol has none)."""
     out = np.zeros(S, dtype=np.int64)
     out[np.asarray(k, dtype=np.int64)] = np.asarray(lab, dtype=np.int64)
