@@ -54,7 +54,8 @@ def following_errors(cfg, n: int, block: int = 16) -> tuple[np.ndarray, np.ndarr
 def assert_delivered_only_with(cfg_with, cfg_without, what: str) -> None:
     """Two packets of a randomized scene in the daemon's blocks of 16, decoded by the default
     receiver with a setting (``cfg_with``) and without it: bit-exact with it (nothing
-    undetected, nothing spurious), and one of the two lost without it."""
+    undetected, nothing spurious), and at least one of the two lost without it (62001's
+    2103417577 under bumps loses both since session 34's receiver)."""
     from iscd.eval.sweeps import ReceiverMode, run_comms
 
     mode = ReceiverMode("diversity", "both")
@@ -64,4 +65,4 @@ def assert_delivered_only_with(cfg_with, cfg_without, what: str) -> None:
           f"without: exact {off.exact}, errors {off.symbol_errors}")
     assert res.found == res.packets_sent == 2 and res.exact == 2 and res.symbol_errors == 0
     assert res.undetected == 0 and res.spurious_crc_ok == 0
-    assert off.exact == 1 and off.symbol_errors > 0
+    assert off.exact <= 1 and off.symbol_errors > 0

@@ -291,8 +291,7 @@ def test_one_leds_background_is_taken_at_the_images_own_shift() -> None:
 
 @pytest.mark.parametrize("key, seed, model, short", [
     ("1led-hdr-100kmh-0.5px", 1410139778, "smooth", 64),
-    pytest.param("1led-hdr-100kmh-0.5px", 1153262362, "smooth", 128, marks=pytest.mark.slow),
-    pytest.param("1led-hdr-40kmh-0.5px", 1375409207, "engine", 128, marks=pytest.mark.slow)])
+    pytest.param("1led-hdr-100kmh-0.5px", 1153262362, "smooth", 128, marks=pytest.mark.slow)])
 def test_a_header_during_failed_first_attempts_is_decoded_once_the_led_is_found(key: str, seed: int, model: str,
                                                                                short: int) -> None:
     """Regression scenes (issue 12; randomized physics, each found in a seed set nobody had
@@ -303,7 +302,9 @@ def test_a_header_during_failed_first_attempts_is_decoded_once_the_led_is_found(
     engine vibration): found by the third. The decoder keeps the last acquire_lookback_frames
     (default 256: four attempts) while it looks and decodes from the first of them: both
     packets. Keeping ``short`` frames (64: the finding attempt's own, before session 17; 128:
-    sessions 17-18) loses the first."""
+    sessions 17-18) loses the first. (1375409207 was a third scene; the receiver at the end of
+    session 34, bf05507, finds that LED at its first attempt, so it no longer tests the frames
+    kept.)"""
     import numpy as np
 
     from iscd.core.airinterface_v2 import from_config as air_from_config
