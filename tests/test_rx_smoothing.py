@@ -253,6 +253,27 @@ def test_the_assembler_delivers_squeezing_packets_the_other_attempts_lost(monkey
     assert gained >= 1, gained
 
 
+def test_the_symbols_after_a_packet_count_only_when_they_show_the_next_header() -> None:
+    """The smoothed attempt takes the idle symbols and the next header and training after a
+    packet as known only when some camera's frames there rank with those levels (rho >= 0.9,
+    as a training must): not where the transmitter sends something else."""
+    from iscd.core.airinterface import AirInterface
+    from iscd.core.config import default_config
+    from iscd.decode.comms.demod import after_levels
+    from iscd.decode.comms.packets import _levels_follow
+
+    air = AirInterface.from_config(replace(default_config().transmitter, rows=1, cols=1))
+    lev = np.repeat(after_levels(air)[:, 0], 2)  # two clean frames a symbol
+    rng = np.random.default_rng(4)
+    light = 1.0 + 60.0 * (1 - np.exp(-lev / 2.5)) / (1 - np.exp(-(M - 1) / 2.5))  # squeezed, still monotone
+    y = np.stack([light + rng.normal(0, 0.8, lev.size), np.full(lev.size, np.nan)])
+    assert _levels_follow(y, lev)
+    assert _levels_follow(y[::-1], lev)  # either camera
+    other = rng.integers(0, M, lev.size)  # random data instead of a header
+    assert not _levels_follow(np.stack([light[np.argsort(rng.random(lev.size))], 1.0 + 8.0 * other]), lev)
+    assert not _levels_follow(np.full((2, lev.size), np.nan), lev)
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("key, seed, model", [
     ("1led-100kmh-0.3px", 1657517190, "bumps"),    # set 91001: the second packet, 64 -> 27 m

@@ -21,6 +21,7 @@ from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
+from scipy.stats import rankdata
 
 from iscd.core.airinterface import HEADER_SYMBOLS, AirInterface
 from iscd.core.airinterface_v2 import AirInterfaceV2, header_symbols
@@ -47,6 +48,17 @@ demodulated once more with its channel smoothed over the whole packet
 
 SMOOTH_ROUNDS = 3
 """Rounds of the smoothed attempt: each labels the next with its decisions."""
+
+
+def _levels_follow(y: np.ndarray, lev: np.ndarray, rho_min: float = 0.9) -> bool:
+    """Whether clean frames (C, n) DN show the known levels ``lev`` (n,): the rank correlation
+    of some camera's frames with them at least ``rho_min`` (as a packet's training must)."""
+    for yc in y:
+        ok = np.isfinite(yc)
+        if ok.sum() >= 8 and np.ptp(lev[ok]) > 0:
+            if np.corrcoef(rankdata(yc[ok]), rankdata(lev[ok]))[0, 1] >= rho_min:
+                return True
+    return False
 
 
 @njit(warm=lambda: (np.arange(3), np.zeros(3), 0), error_model="numpy")
@@ -571,6 +583,10 @@ class PacketAssembler:
         if clock.boundary(S) + 1 > self._n:  # the frames after the packet are not in
             S = P
         frames, k = demod.clean_index(L.shape[1], clock, self.e, S)
+        if S > P and not _levels_follow(L[:, frames[k >= P], 0], known_lev[k[k >= P]]):
+            # no packet like it follows (the transmitter stopped, or sends something else)
+            S = P
+            frames, k = frames[k < P], k[k < P]
         if frames.size == 0:
             return None
         known = np.ones(S, dtype=bool)
