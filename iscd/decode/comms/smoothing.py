@@ -105,7 +105,8 @@ def smooth_centroids(y: np.ndarray, k: np.ndarray, lab: np.ndarray, S: int, M: i
     k : numpy.ndarray
         (n,) the symbol of each frame, 0 .. S-1.
     lab : numpy.ndarray
-        (n,) its 0-based level.
+        (n,) its 0-based level, or (n, M) its weight at each level (soft labels, rows
+        summing to 1: each frame then counts for every level in proportion).
     S : int
         Symbols.
     M : int
