@@ -278,7 +278,12 @@ def em_models(y: np.ndarray, k: np.ndarray, lab: np.ndarray, known: np.ndarray, 
     of every camera, Gaussian with the smoothed centroids and the noise) weighs its frames in
     every level's centroid of the next smoothing. Hard labels bias a squeezed pair of levels
     (a level-8 symbol decided 7 pulls 7 up and leaves 8 to its brightest frames, which decides
-    the next one 7 again); the posterior does not. The noise stays the first fit's.
+    the next one 7 again); the posterior does not. The noise stays the first fit's. Two
+    differences from the first fit, left as measured: the rounds take every frame again (the
+    first fit's frames more than :data:`OUTLIER_SIGMAS` off are not left out, so a glitch in a
+    known symbol pulls its level's centroid), and their random walk's span is that of the
+    first fit's centroids (level M minus level 1, averaged over the packet), not the medians
+    of the level-1 and level-M frames.
 
     Parameters
     ----------
