@@ -10,14 +10,17 @@ from typing import Any
 import numpy as np
 
 
-def motion_scene(key: str, seed: int, model: str, **tracking: Any):
+def motion_scene(key: str, seed: int, model: str, background_motion: str = "whole", **tracking: Any):
     """The config of randomized scene ``seed`` of motion case ``key`` under vibration model
-    ``model``, with ``[tracking]`` keys set as given."""
+    ``model``, with ``[tracking]`` keys set as given. ``background_motion``: the scene's
+    background moves by ``whole`` pixels (as every randomized scene did before session 36,
+    when the scenes these tests pin were found) or by the exact ``subpixel`` shift."""
     from iscd.core.config import default_config
     from iscd.eval.suites import MOTION_CASES, motion_cfg
 
     case = next(c for c in MOTION_CASES if c.key == key)
-    cfg, note = motion_cfg(default_config(), case, seed, scene={"vibration_model": model}, randomize=True)
+    cfg, note = motion_cfg(default_config(), case, seed,
+                           scene={"vibration_model": model, "background_motion": background_motion}, randomize=True)
     assert note.startswith("randomized")
     return cfg.with_keys("tracking", **tracking) if tracking else cfg
 

@@ -23,7 +23,7 @@ from iscd.sim.scene import Scene
 
 def _frames(case_key: str, seed: int, n: int = 64) -> tuple:
     case = next(c for c in MOTION_CASES if c.key == case_key)
-    cfg, note = motion_cfg(default_config(), case, seed, randomize=True)
+    cfg, note = motion_cfg(default_config(), case, seed, scene={"background_motion": "whole"}, randomize=True)
     assert note.startswith("randomized"), note
     sc = Scene(cfg)
     L = np.empty((n, sc.height, sc.width), np.uint8)

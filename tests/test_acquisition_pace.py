@@ -74,7 +74,7 @@ def randomized_first_frames(key: str, seed: int, model: str | None = None, n: in
     vibration ``model``, or the case's own), its first ``n`` stereo frames (n, H, W) uint8
     and their truth."""
     case = next(c for c in MOTION_CASES if c.key == key)
-    cfg, note = motion_cfg(default_config(), case, seed, scene=None if model is None else {"vibration_model": model},
+    cfg, note = motion_cfg(default_config(), case, seed, scene={"background_motion": "whole"} if model is None else {"vibration_model": model, "background_motion": "whole"},
                            randomize=True)
     assert note.startswith("randomized"), note  # the randomizer is part of the simulator
     sc = Scene(cfg)

@@ -22,7 +22,7 @@ from iscd.eval.sweeps import ReceiverMode, run_comms
 
 def test_the_second_packet_is_delivered_with_its_clock_held(monkeypatch: pytest.MonkeyPatch) -> None:
     case = next(c for c in MOTION_CASES if c.key == "1led-100kmh-0.3px")
-    cfg, _ = motion_cfg(default_config(), case, 288314013, scene={"vibration_model": "smooth"}, randomize=True)
+    cfg, _ = motion_cfg(default_config(), case, 288314013, scene={"vibration_model": "smooth", "background_motion": "whole"}, randomize=True)
     mode = ReceiverMode("diversity", "both")
     res = run_comms(cfg, [mode], packets=case.packets)[0]
     assert res.packets_sent == 2 and res.exact == 2 and res.symbol_errors == 0, res.as_dict()

@@ -21,7 +21,7 @@ def traced(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, object]:
     """One LED closing at 40 km/h under 0.5 px of engine vibration, randomized physics,
     short packets (``quick``); the oracle writes its trace."""
     case = next(c for c in MOTION_CASES if c.key == "1led-40kmh-0.5px")
-    cfg, _ = motion_cfg(default_config(), case, 4242, quick=True, scene={"vibration_model": "engine"},
+    cfg, _ = motion_cfg(default_config(), case, 4242, quick=True, scene={"vibration_model": "engine", "background_motion": "whole"},
                         randomize=True)
     path = tmp_path_factory.mktemp("traces") / "scene.npz"
     res = run_oracle(cfg, case.packets, mode=ReceiverMode("diversity", "both"), block=16, genie=False,

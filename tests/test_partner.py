@@ -128,7 +128,7 @@ def test_rendered_far_led_that_the_f8_camera_alone_misses() -> None:
     camera's own detection finds nothing; the guided search finds the LED within 0.8 px of
     the true centre (the f/4 camera's own fit is within 0.3 px of its truth)."""
     case = {c.key: c for c in MOTION_CASES}["1led-hdr-100kmh-0.3px"]
-    cfg, _ = motion_cfg(default_config(), case, 1003, randomize=True)
+    cfg, _ = motion_cfg(default_config(), case, 1003, scene={"background_motion": "whole"}, randomize=True)
     scene = Scene(cfg)
     ids = np.arange(640, 704)
     L = np.empty((ids.size, scene.height, scene.width), np.uint8)

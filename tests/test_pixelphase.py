@@ -219,7 +219,7 @@ def test_a_rendered_approach_the_receiver_lost_is_delivered(monkeypatch: pytest.
     from iscd.eval.sweeps import ReceiverMode, run_comms
 
     case = next(c for c in MOTION_CASES if c.key == "1led-40kmh-0.5px")
-    cfg, _ = motion_cfg(default_config(), case, 134326035, scene={"vibration_model": "smooth"}, randomize=True)
+    cfg, _ = motion_cfg(default_config(), case, 134326035, scene={"vibration_model": "smooth", "background_motion": "whole"}, randomize=True)
     res = run_comms(cfg, [ReceiverMode("diversity", "both")], packets=case.packets)[0]
     assert res.packets_sent == 2 and res.exact >= 1 and res.spurious_crc_ok == 0, res.as_dict()
     monkeypatch.setattr(pixelphase, "PHASE_RETRY", False)

@@ -54,7 +54,7 @@ def test_closing_array_keeps_its_edges() -> None:
     from iscd.sim.scene import Scene
 
     case = MotionCase("8x8-close", 64, 40.0, 32.0, 25.0, 0.3)
-    cfg, _ = motion_cfg(default_config(), case, 1003, randomize=True)
+    cfg, _ = motion_cfg(default_config(), case, 1003, scene={"background_motion": "whole"}, randomize=True)
     scene = Scene(cfg)
     n = 940
     truth = scene.truth(np.arange(n))

@@ -130,7 +130,8 @@ def test_the_shifts_only_kernel_matches_the_reference_and_leaves_the_map() -> No
         lum = np.full((16, 1), -5.0)
         shifts = np.zeros((16, 2), np.int64)
         fn(frames[32:], np.ascontiguousarray(centres[32:]), 1.0, window_half(1.0), 3, b, st, bg.block + 1,
-           0.25, 8, shift, level, lum, shifts, np.zeros((0, 2), np.int64), np.full(16, np.nan), False)
+           0.25, 8, shift, level, lum, shifts, np.zeros((0, 2), np.int64), np.full(16, np.nan), False,
+           False, np.zeros((16, 2)))
         np.testing.assert_array_equal(b, bg.bg)
         np.testing.assert_array_equal(st, bg.stamp)
         assert (lum == -5.0).all()  # not written

@@ -301,6 +301,10 @@ class SceneConfig:
     engine_hz: float = _f(30.0, lo=1, hi=200, doc="engine: mean fundamental frequency, Hz")
     engine_wander_hz: float = _f(3.0, lo=0, doc="engine: peak slow wander of the fundamental, Hz")
     engine_harmonic: float = _f(0.4, lo=0, hi=2, doc="engine: 2nd harmonic amplitude / fundamental")
+    background_motion: str = _f("whole", choices=("whole", "subpixel"),
+                                doc="how vibration moves the background: by the rounded shift "
+                                "(whole pixels, as before) or by the exact one (the residual "
+                                "bilinear, as a real rig's image moves)")
     jitter_px: float = _f(0.0, lo=0, doc="air jitter, independent RMS shift per camera, px")
     led_drift_ppm: float = _f(100.0, doc="LED clock rate error against the cameras, ppm")
     led_phase_s: float = _f(-1.0, doc="LED symbol clock offset at t = 0, s; < 0 = random")

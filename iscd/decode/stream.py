@@ -91,6 +91,7 @@ class PipelineSettings:
     shapes: str = field(default="auto", metadata={"doc": "with max_transmitters > 1, which transmitters to look for: \"auto\" (any shape, each inferred; v1 packets read with [transmitter]'s M, K, F), \"config\" (only [transmitter]'s rows x cols), or a list such as \"8x8, 1x1\""})
     search_every_frames: int = field(default=256, metadata={"lo": 8, "hi": 100000, "doc": "with max_transmitters > 1 and a transmitter tracked: look for another one every this many frames (each look reads acquire_frames whole frames)"})
     registered_background: bool = field(default=True, metadata={"doc": "with the per-pixel background and one LED: the luminance takes the background from a map held in the scene's frame, at the image's own whole-pixel shift measured each frame on a ring of background pixels (iscd.decode.tracking.registered_background): rig vibration moves the texture under the spot with it; false = the image-indexed least value as before"})
+    registered_subpixel: bool = field(default=True, metadata={"doc": "with registered_background: also each frame's residual image shift beyond the whole pixels (a least-squares fit of the ring's light against the map's gradient) and the background under the window moved on by it to first order (a real rig's image moves continuously, not by whole pixels); false = whole pixels only (before session 36)"})
     shift_hint: bool = field(default=True, metadata={"doc": "with registered_background: one camera makes the other's image move (shift step) in a frame where its own ring matches the moved shift at least as well (a rigid rig's cameras move together; a defocused camera's blurred texture often cannot tell a 1 px move by itself); the camera whose ring tells the shifts apart more clearly leads (iscd.decode.tracking.registered_background.ShiftLeader)"})
     stabilized_following: bool = field(default=True, metadata={"doc": "with registered_background: the LED is followed in the background's own frame (the frames moved back by the image shifts predicted against the registered map, iscd.decode.tracking.stabilize), so the per-pixel background under the centroids holds the texture that vibration moves under the spot; false = followed in the image as before"})
     stereo_hold: bool = field(default=True, metadata={"doc": "one LED over the registered background: a frame whose followed disparity (right minus left) jumps by more than a pixel from the median of the last kept frames (carried on at the last blocks' rate) has the camera that walked off (onto a texture edge) put back beside the other's centre at that disparity, until it comes back or for 64 frames at most; a disparity that drifts is never held against; counted in stereo_holds (iscd.decode.tracking.stereo_hold)"})
@@ -1116,8 +1117,9 @@ class StreamDecoder:
         backgrounds = self._backgrounds
         if registered and self._registered is None:
             rise = self.settings.background_rise_dn
-            self._registered = [RegisteredBackground(left.shape[1:], rise),
-                                RegisteredBackground(right.shape[1:], rise)]
+            sub = self.settings.registered_subpixel
+            self._registered = [RegisteredBackground(left.shape[1:], rise, subpixel=sub),
+                                RegisteredBackground(right.shape[1:], rise, subpixel=sub)]
             self._shift_leader = ShiftLeader()
             self._stab_last = None
         # one LED over a registered background: followed in the background's own frame

@@ -456,10 +456,14 @@ def above_background(frames: np.ndarray, bg: np.ndarray) -> np.ndarray:
     return frames.astype(np.float32) - b[None]
 
 
-def above_registered(frames: np.ndarray, bg: np.ndarray, shifts: np.ndarray, margin: int) -> np.ndarray:
+def above_registered(frames: np.ndarray, bg: np.ndarray, shifts: np.ndarray, margin: int,
+                     residual: np.ndarray | None = None) -> np.ndarray:
     """The light above a background map held in the scene's frame
     (:class:`~iscd.decode.tracking.registered_background.RegisteredBackground`), read at each
-    frame's image shift: ``frames[f, y, x] - bg[y - sy + margin, x - sx + margin]``.
+    frame's image shift: ``frames[f, y, x] - bg[y - sy + margin, x - sx + margin]``; with
+    ``residual``, the map moved on by each frame's residual shift r to first order, ``bg -
+    grad(bg) . r`` (the central differences where the point and its four neighbours are seen,
+    else 0: :func:`~iscd.decode.tracking.registered_background.map_gradient`).
 
     Parameters
     ----------
@@ -471,6 +475,9 @@ def above_registered(frames: np.ndarray, bg: np.ndarray, shifts: np.ndarray, mar
         (F, 2) int image shift (x, y) of each frame, px.
     margin : int
         The map's margin, px.
+    residual : numpy.ndarray, optional
+        (F, 2) residual shift (x, y) of each frame beyond the whole pixels, px
+        (:attr:`~iscd.decode.tracking.registered_background.RegisteredBackground.residual`).
 
     Returns
     -------
@@ -480,9 +487,26 @@ def above_registered(frames: np.ndarray, bg: np.ndarray, shifts: np.ndarray, mar
     F, H, W = frames.shape
     b = np.where(np.isfinite(bg), bg, 0.0).astype(np.float32)
     out = frames.astype(np.float32)
+    gx = gy = None
+    if residual is not None and np.any(np.asarray(residual) != 0):
+        fin = np.isfinite(bg)
+        ok = np.zeros(bg.shape, bool)
+        ok[1:-1, 1:-1] = (fin[1:-1, 1:-1] & fin[1:-1, :-2] & fin[1:-1, 2:] & fin[:-2, 1:-1] & fin[2:, 1:-1])
+        b64 = np.where(fin, bg, 0.0).astype(np.float64)
+        gx = np.zeros(bg.shape)
+        gy = np.zeros(bg.shape)
+        gx[1:-1, 1:-1] = 0.5 * (b64[1:-1, 2:] - b64[1:-1, :-2])
+        gy[1:-1, 1:-1] = 0.5 * (b64[2:, 1:-1] - b64[:-2, 1:-1])
+        gx[~ok] = 0.0
+        gy[~ok] = 0.0
     for f in range(F):
         sx, sy = int(shifts[f][0]), int(shifts[f][1])
-        out[f] -= b[margin - sy:margin - sy + H, margin - sx:margin - sx + W]
+        win = (slice(margin - sy, margin - sy + H), slice(margin - sx, margin - sx + W))
+        out[f] -= b[win]
+        if gx is not None and gy is not None:
+            rx, ry = float(residual[f][0]), float(residual[f][1])  # type: ignore[index]
+            if rx or ry:
+                out[f] += (gx[win] * rx + gy[win] * ry).astype(np.float32)
     return out
 
 
@@ -530,7 +554,7 @@ class _RecordingDecoder(StreamDecoder):
         imgs = (left, right)
         if self._registered is not None and self.image_shifts[0] is not None and self.image_shifts[1] is not None:
             # one LED: the light above the map held in the scene's frame, at each frame's shift
-            imgs = tuple(above_registered(img, r.bg, sh, MAX_SHIFT_PX)
+            imgs = tuple(above_registered(img, r.bg, sh, MAX_SHIFT_PX, r.residual if r.subpixel else None)
                          for img, r, sh in zip(imgs, self._registered, self.image_shifts))
         elif self.background_on and self._backgrounds is not None:
             imgs = tuple(above_background(img, b.bg) for img, b in zip(imgs, self._backgrounds))

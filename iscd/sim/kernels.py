@@ -93,6 +93,178 @@ def copy_frame_ref(out: np.ndarray, src: np.ndarray, oy: int, ox: int) -> None:
     np.copyto(out, src[oy:oy + H, ox:ox + W])
 
 
+# ---------------------------------------------------------------- subpixel background motion
+
+
+def _warm_residual() -> tuple:
+    return (np.zeros((4, 4), np.uint8), np.ones((6, 6), np.float32), np.ones((6, 6), np.float32),
+            1, 1, 0.25, -0.25, 255.0)
+
+
+def bilinear_weights(ry: float, rx: float) -> tuple[int, int, float, float]:
+    """Where the background shows through a residual image shift (ry, rx) px: image pixel
+    p shows the scene at padded position q - r (q the whole-pixel position), between rows
+    q + dy and q + dy + 1 (bilinear weights 1 - fy, fy), columns likewise.
+
+    Parameters
+    ----------
+    ry, rx : float
+        Residual shift (y, x), px, within [-1, 1].
+
+    Returns
+    -------
+    dy, dx : int
+        Offsets of the first row and column, px ({-1, 0} for |r| < 1).
+    fy, fx : float
+        Weights of the second row and column, 0 <= f < 1.
+    """
+    ty, tx = -float(ry), -float(rx)
+    dy, dx = int(np.floor(ty)), int(np.floor(tx))
+    return dy, dx, ty - dy, tx - dx
+
+
+@njit(warm=_warm_residual)
+def add_residual_shift(out: np.ndarray, bg: np.ndarray, prnu: np.ndarray, oy: int, ox: int,
+                       ry: float, rx: float, top: float) -> None:
+    """Move the whole-pixel background frame in ``out`` (H, W uint8, the bank frame at
+    padded origin (oy, ox)) on by the residual (ry, rx) px of the rig's shift: every pixel
+    gets the change of its photo-signal, ``prnu[q] (bg(q - r) - bg(q))`` DN (``bg`` the
+    padded noise-free background, float32, bilinear between its pixels; indices clamped at
+    the padded edge), rounded, clipped to 0 .. ``top``. The bank frame's noise stays as it
+    was (its variance that of the whole-pixel signal: the change is small next to it).
+
+    Parameters
+    ----------
+    out : ndarray of uint8 or uint16
+        (H, W) frame, DN, changed in place.
+    bg, prnu : ndarray of float32
+        (Hp, Wp) padded noise-free background (DN) and PRNU gain.
+    oy, ox : int
+        Padded origin of image pixel (0, 0), px.
+    ry, rx : float
+        Residual shift (y, x), px.
+    top : float
+        Top grey level, DN.
+    """
+    H, W = out.shape
+    Hp, Wp = bg.shape
+    ty, tx = -ry, -rx
+    dy, dx = int(np.floor(ty)), int(np.floor(tx))
+    fy, fx = ty - dy, tx - dx
+    w00 = (1.0 - fy) * (1.0 - fx)
+    w01 = (1.0 - fy) * fx
+    w10 = fy * (1.0 - fx)
+    w11 = fy * fx
+    # columns whose neighbours need no clamping: [xa, xb) (the rest, at most two, clamped)
+    xa = min(max(-(ox + dx), 0), W)
+    xb = max(min(Wp - 1 - dx - ox, W), xa)
+    for y in range(H):
+        q = oy + y
+        y0 = min(max(q + dy, 0), Hp - 1)
+        y1 = min(max(q + dy + 1, 0), Hp - 1)
+        r0 = bg[y0]
+        r1 = bg[y1]
+        rq = bg[q]
+        pq = prnu[q]
+        o = out[y]
+        for x in range(xa):
+            _residual_px(o, x, r0, r1, rq, pq, ox + x, min(max(ox + x + dx, 0), Wp - 1),
+                         min(max(ox + x + dx + 1, 0), Wp - 1), w00, w01, w10, w11, top)
+        # the interior: row views with indices provably >= 0 (the loop vectorizes)
+        a0 = r0[ox + dx + xa:ox + dx + xb]
+        a1 = r0[ox + dx + 1 + xa:ox + dx + 1 + xb]
+        b0 = r1[ox + dx + xa:ox + dx + xb]
+        b1 = r1[ox + dx + 1 + xa:ox + dx + 1 + xb]
+        qq = rq[ox + xa:ox + xb]
+        pp = pq[ox + xa:ox + xb]
+        oo = o[xa:xb]
+        for k in range(xb - xa):
+            s = w00 * a0[k] + w01 * a1[k] + w10 * b0[k] + w11 * b1[k]
+            v = float(oo[k]) + np.floor(pp[k] * (s - qq[k]) + 0.5)
+            oo[k] = min(max(v, 0.0), top)  # an integer value: the cast is exact
+        for x in range(xb, W):
+            _residual_px(o, x, r0, r1, rq, pq, ox + x, min(max(ox + x + dx, 0), Wp - 1),
+                         min(max(ox + x + dx + 1, 0), Wp - 1), w00, w01, w10, w11, top)
+
+
+@njit
+def _residual_px(o: np.ndarray, x: int, r0: np.ndarray, r1: np.ndarray, rq: np.ndarray,
+                 pq: np.ndarray, c: int, x0: int, x1: int, w00: float, w01: float, w10: float,
+                 w11: float, top: float) -> None:
+    """One pixel of :func:`add_residual_shift` with its neighbours' columns given."""
+    s = w00 * r0[x0] + w01 * r0[x1] + w10 * r1[x0] + w11 * r1[x1]
+    v = float(o[x]) + np.floor(pq[c] * (s - rq[c]) + 0.5)
+    o[x] = min(max(v, 0.0), top)
+
+
+def add_residual_shift_ref(out: np.ndarray, bg: np.ndarray, prnu: np.ndarray, oy: int, ox: int,
+                           ry: float, rx: float, top: float) -> None:
+    """Reference of :func:`add_residual_shift` (numpy, the same arithmetic).
+
+    Parameters
+    ----------
+    out : ndarray of uint8 or uint16
+        (H, W) frame, DN, changed in place.
+    bg, prnu : ndarray of float32
+        (Hp, Wp) padded noise-free background (DN) and PRNU gain.
+    oy, ox : int
+        Padded origin of image pixel (0, 0), px.
+    ry, rx : float
+        Residual shift (y, x), px.
+    top : float
+        Top grey level, DN.
+    """
+    H, W = out.shape
+    Hp, Wp = bg.shape
+    dy, dx, fy, fx = bilinear_weights(ry, rx)
+    ys = np.arange(oy, oy + H)
+    xs = np.arange(ox, ox + W)
+    y0 = np.clip(ys + dy, 0, Hp - 1)[:, None]
+    y1 = np.clip(ys + dy + 1, 0, Hp - 1)[:, None]
+    x0 = np.clip(xs + dx, 0, Wp - 1)[None, :]
+    x1 = np.clip(xs + dx + 1, 0, Wp - 1)[None, :]
+    b = bg.astype(np.float64)
+    s = ((1 - fy) * (1 - fx) * b[y0, x0] + (1 - fy) * fx * b[y0, x1]
+         + fy * (1 - fx) * b[y1, x0] + fy * fx * b[y1, x1])
+    q = b[oy:oy + H, ox:ox + W]
+    d = np.floor(prnu[oy:oy + H, ox:ox + W].astype(np.float64) * (s - q) + 0.5)
+    out[...] = np.clip(out.astype(np.float64) + d, 0.0, top).astype(out.dtype)
+
+
+def shifted_window(bg: np.ndarray, y: int, x: int, h: int, w: int, ry: float, rx: float) -> np.ndarray:
+    """The noise-free background a render window shows under a residual shift (as
+    :func:`add_residual_shift`: bilinear, indices clamped at the padded edge).
+
+    Parameters
+    ----------
+    bg : ndarray of float32
+        (Hp, Wp) padded noise-free background, DN.
+    y, x : int
+        Padded position of the window's first pixel, px.
+    h, w : int
+        Window size, px.
+    ry, rx : float
+        Residual shift (y, x), px.
+
+    Returns
+    -------
+    ndarray of float32
+        (h, w) background, DN.
+    """
+    Hp, Wp = bg.shape
+    dy, dx, fy, fx = bilinear_weights(ry, rx)
+    ys = np.arange(y, y + h)
+    xs = np.arange(x, x + w)
+    y0 = np.clip(ys + dy, 0, Hp - 1)[:, None]
+    y1 = np.clip(ys + dy + 1, 0, Hp - 1)[:, None]
+    x0 = np.clip(xs + dx, 0, Wp - 1)[None, :]
+    x1 = np.clip(xs + dx + 1, 0, Wp - 1)[None, :]
+    b = bg.astype(np.float64)
+    s = ((1 - fy) * (1 - fx) * b[y0, x0] + (1 - fy) * fx * b[y0, x1]
+         + fy * (1 - fx) * b[y1, x0] + fy * fx * b[y1, x1])
+    return np.ascontiguousarray(s, dtype=np.float32)
+
+
 # ---------------------------------------------------------------- light of the sources
 
 
@@ -471,6 +643,7 @@ def warm() -> None:
     """Compile (or load from the cache) the kernels of this module, with the argument types
     the scene passes (call before a real-time clock starts)."""
     copy_frame(*_warm_copy())
+    add_residual_shift(*_warm_residual())
     add_sources(*_warm_sources())
     expose_window(*_warm_expose())
     render_window(*_warm_window())

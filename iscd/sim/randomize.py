@@ -5,7 +5,8 @@
 
 :func:`randomized` is a pure function of (cfg, seed, motion): it draws the vibration model
 and its parameters, the PSF model and width, glare kind and fraction, the diffuser profile,
-blooming, the right camera's defocus, the noise levels, the background, the exposure and
+blooming, the right camera's defocus, the noise levels, the background and how vibration
+moves it (whole pixels or the exact shift, :data:`P_SUBPIXEL_BACKGROUND`), the exposure and
 LED brightness, the LED clock phase and drift, the LED size and a small lateral offset and
 speed, and returns an explicit :class:`~iscd.core.config.Config` with those values (and
 ``scene.randomized_seed = seed``), so the truth's meta (its ``config``) records what was
@@ -73,6 +74,14 @@ CHOICES: dict[str, tuple[tuple[str, ...], tuple[float, ...]]] = {
 }
 """Discrete draws: (choices, probabilities)."""
 
+P_SUBPIXEL_BACKGROUND = 0.5
+"""Probability that vibration moves the background by the exact shift
+(``scene.background_motion = "subpixel"``, as a real rig's image moves) rather than by whole
+pixels (the renderer's cheaper approximation, the only one before session 36). Drawn from
+its own stream (:data:`BACKGROUND_STREAM`), so every other draw of a seed is what it was."""
+BACKGROUND_STREAM = 0xB6C3
+"""The second key of the background motion's generator ``default_rng([seed, key])``."""
+
 P_UNIFORM_DIFFUSER = 0.4
 """Probability of a uniform disk (diffuser_falloff = 0)."""
 P_NO_BLOOMING = 0.4
@@ -109,6 +118,8 @@ def randomized(cfg: Config, seed: int, *, motion: dict[str, Any] | None = None) 
     sensor = _draw_sensor(rng)
     camera, transmitter = _draw_exposure(rng, base)
     scene.update(_draw_lateral(rng, base, transmitter["led_diameter_m"]))
+    sub = np.random.default_rng([seed & 0xFFFFFFFF, BACKGROUND_STREAM]).uniform() < P_SUBPIXEL_BACKGROUND
+    scene["background_motion"] = "subpixel" if sub else "whole"
     scene = {k: v for k, v in scene.items() if k not in motion}
     scene.update(motion)
     scene["randomized_seed"] = int(seed)
@@ -140,6 +151,7 @@ def drawn(cfg: Config) -> dict[str, Any]:
         sec, key = k.split(".", 1)
         out[k] = getattr(getattr(cfg, sec), key)
     out["scene.led_phase_s"] = cfg.scene.led_phase_s
+    out["scene.background_motion"] = cfg.scene.background_motion
     out["transmitter.radiance_dn"] = cfg.transmitter.radiance_dn
     out["effective_radiance_dn"] = cfg.transmitter.radiance_dn * cfg.camera.exposure_s / 1e-3
     out["scene.randomized_seed"] = cfg.scene.randomized_seed

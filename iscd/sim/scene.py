@@ -164,7 +164,7 @@ class _GroupPlan:
     Y0: int = 0
     ax: int = 0  # canvas px of the read-out window
     ay: int = 0
-    bg_at: tuple[int, int] | None = None  # (oy, ox) that bg and prnu were copied at
+    bg_at: tuple | None = None  # (oy, ox, residual shift) that bg and prnu were copied at
     # the read-out window's background (DN) and PRNU, contiguous (cache-friendly)
     bg: np.ndarray = field(default_factory=lambda: np.zeros((0, 0), np.float32))
     prnu: np.ndarray = field(default_factory=lambda: np.zeros((0, 0), np.float32))
@@ -266,6 +266,7 @@ class Scene:
                                                   sm.max_dn)
         self.vibration = make_vibration(sc, self.seed)
         self.margin = vibration_margin(sc)
+        self.subpixel_background = sc.background_motion == "subpixel"
         self.tables = TableCache()
         self.led_radius_fn = lambda z: self.geometry.focal_px * tx.led_diameter_m / (2.0 * z)
         scale = self.exposure_s / REF_EXPOSURE_S
@@ -592,12 +593,29 @@ class Scene:
         sy = min(max(int(round(vy)), -m), m)
         return m - sy, m - sx
 
+    def _residual(self, st: dict[str, np.ndarray], i: int) -> tuple[float, float] | None:
+        """(ry, rx) px: what :meth:`_origin`'s whole pixels leave of the rig's shift in frame
+        row ``i`` (within [-1, 1]: a shift beyond the margin is clamped), when
+        ``scene.background_motion`` is ``subpixel``; else None (the background moves by
+        whole pixels)."""
+        if not self.subpixel_background or not self.margin:
+            return None
+        oy, ox = self._origin(st, i)
+        vx, vy = st["vib"][i]
+        m = self.margin
+        ry = min(max(float(vy) - (m - oy), -1.0), 1.0)
+        rx = min(max(float(vx) - (m - ox), -1.0), 1.0)
+        return ry, rx
+
     def _render_camera_compiled(self, c: _Camera, n: int, st: dict[str, np.ndarray], i: int,
                                 out: np.ndarray) -> None:
         """Camera ``c``'s frame ``n`` (chunk state ``st``, row ``i``) into ``out``: the bank
         frame, then every render window through :mod:`iscd.sim.kernels`."""
         oy, ox = self._origin(st, i) if self.margin else (0, 0)
         kernels.copy_frame(out, c.bank[st["bank"][i, c.idx]], oy, ox)
+        res = self._residual(st, i)
+        if res is not None:
+            kernels.add_residual_shift(out, c.bg, c.prnu, oy, ox, res[0], res[1], float(self.sensor.max_dn))
         seed = self._noise_base + (n * 2 + c.idx) * 8
         noise = self.noise
         for gi, g in enumerate(self._plan(c, st, i)):
@@ -613,17 +631,26 @@ class Scene:
             if noise:  # the draws of SensorModel.expose (same seed, same stream)
                 cv2.setRNGSeed(_window_seed(seed, gi) & 0x7FFFFFFF)
                 cv2.randn(g.z, 0.0, 1.0)
-            if g.bg_at != (oy, ox):  # contiguous copies of the window's background and PRNU
+            if g.bg_at != (oy, ox, res):  # contiguous copies of the window's background and PRNU
                 h, w = g.z.shape
-                g.bg = np.ascontiguousarray(c.bg[oy + g.Y0:oy + g.Y0 + h, ox + g.X0:ox + g.X0 + w])
+                g.bg = self._window_background(c, oy + g.Y0, ox + g.X0, h, w, res)
                 g.prnu = np.ascontiguousarray(c.prnu[oy + g.Y0:oy + g.Y0 + h,
                                                      ox + g.X0:ox + g.X0 + w])
-                g.bg_at = (oy, ox)
+                g.bg_at = (oy, ox, res)
             sp = g.sets[-1]
             kernels.render_window(out, g.Y0, g.X0, g.acc, g.ay, g.ax, not g.head, sp.kern,
                                   sp.ix, sp.iy, st[sp.key][i, sp.cols], sp.c_amp, sp.c_core,
                                   sp.c_flux, sp.gy, sp.gxt, sp.grid_q, g.bg, g.prnu, 0, 0, g.z,
                                   noise, self._sensor32)
+
+    @staticmethod
+    def _window_background(c: _Camera, y: int, x: int, h: int, w: int,
+                           res: tuple[float, float] | None) -> np.ndarray:
+        """The (h, w) float32 noise-free background of a render window from padded (y, x),
+        moved on by the residual shift ``res`` (None: as it is)."""
+        if res is None:
+            return np.ascontiguousarray(c.bg[y:y + h, x:x + w])
+        return kernels.shifted_window(c.bg, y, x, h, w, res[0], res[1])
 
     def _window_bloom(self, c: _Camera, g: _GroupPlan, st: dict[str, np.ndarray], i: int,
                       oy: int, ox: int, seed: int, out: np.ndarray) -> None:
@@ -638,7 +665,7 @@ class Scene:
             cv2.setRNGSeed(seed & 0x7FFFFFFF)
             cv2.randn(g.z, 0.0, 1.0)
         h, w = g.z.shape
-        bg = np.ascontiguousarray(c.bg[oy + g.Y0:oy + g.Y0 + h, ox + g.X0:ox + g.X0 + w])
+        bg = self._window_background(c, oy + g.Y0, ox + g.X0, h, w, self._residual(st, i))
         prnu = np.ascontiguousarray(c.prnu[oy + g.Y0:oy + g.Y0 + h, ox + g.X0:ox + g.X0 + w])
         kernels.expose_window(out, g.Y0, g.X0, g.acc, g.ay, g.ax, bg, prnu, 0, 0, g.z,
                               self.noise, self._sensor32)
@@ -722,6 +749,9 @@ class Scene:
             np.copyto(out, bank[k, oy:oy + H, ox:ox + W])
         else:
             np.copyto(out, bank[k])
+        res = self._residual(st, i)
+        if res is not None:
+            kernels.add_residual_shift_ref(out, c.bg, c.prnu, oy, ox, res[0], res[1], float(self.sensor.max_dn))
         sources: list[_Source] = []
         for t, u, v, radius in self._poses(c, st, i):
             amp = st["on_fraction" + t.suffix][i] * (t.tx.radiance_dn * c.gain)  # type: ignore[attr-defined]
@@ -748,7 +778,7 @@ class Scene:
                 kernels.bloom_columns_ref(acc, self.bloom_cap, self.bloom_spill,
                                           self.bloom_coef)
             sig = np.add(acc[Y0 - y0:Y1 - y0, X0 - x0:X1 - x0],
-                         c.bg[oy + Y0:oy + Y1, ox + X0:ox + X1], dtype=np.float32)
+                         self._window_background(c, oy + Y0, ox + X0, Y1 - Y0, X1 - X0, res), dtype=np.float32)
             self.sensor.expose(sig, c.prnu[oy + Y0:oy + Y1, ox + X0:ox + X1],
                                _window_seed(seed, gi) if self.noise else None,
                                out[Y0:Y1, X0:X1])

@@ -75,6 +75,18 @@ SEARCH_EVERY = 8
 """... and every this many frames the other shifts are tried anyway (a level taken while
 the map was still being built at a wrong shift is then corrected)."""
 
+MAX_RESIDUAL_PX = 0.75
+"""Largest residual (subpixel) shift taken, px: a whole-pixel shift leaves at most 0.5 (more
+is a poor fit: the ring's texture too flat or its light not the background's)."""
+
+MIN_RESIDUAL_PIXELS = 8
+"""Least ring pixels (with their map neighbours seen) the residual shift is fitted on."""
+
+MIN_RESIDUAL_DET = 1.0
+"""Least determinant of the ring gradients' covariance per pixel squared ((DN/px)^4): the
+ring's texture must have a gradient of ~1 DN/px in both directions for a residual shift to
+be fitted (flat: none, and none needed -- the light moves with it by as little)."""
+
 MIN_SEEN = 0.6
 """Share of the ring's pixels the map must already hold for a shift to be judged."""
 
@@ -116,7 +128,7 @@ class RegisteredBackground:
         Upward relaxation per block that touches a point, DN.
     """
 
-    def __init__(self, shape: tuple[int, int], rise_dn: float = 0.25) -> None:
+    def __init__(self, shape: tuple[int, int], rise_dn: float = 0.25, *, subpixel: bool = False) -> None:
         if not rise_dn >= 0:
             raise ValueError(f"rise_dn: expected >= 0 DN per block, got {rise_dn}")
         m = MAX_SHIFT_PX
@@ -134,6 +146,11 @@ class RegisteredBackground:
         only the last shift was judged). A sharp texture: 2-25; a blurred or flat one: ~1."""
         self._hint_last: np.ndarray | None = None
         """The last hint row of the previous block (the move into this block's first frame)."""
+        self.subpixel = bool(subpixel)
+        """Also the residual (subpixel) shift of each frame, and the light above the map moved
+        on by it (:func:`measure_block_reference`)."""
+        self.residual = np.zeros((0, 2))
+        """(F, 2) the last block's residual shifts (x, y), px (zeros without ``subpixel``)."""
         self.level = np.array([np.inf, 0.0])
         """The running ring variance at the shift taken, DN^2 (:data:`SEARCH_RATIO`), and
         the frames judged so far."""
@@ -175,10 +192,11 @@ class RegisteredBackground:
         h = self._hint_rows(hint, F)
         self._hint_last = None if hint is None else h[-1:].copy()
         self.contrast = np.full(F, np.nan)
+        self.residual = np.zeros((F, 2))
         fn = measure_block if compiled else measure_block_reference
         fn(np.ascontiguousarray(frames), np.ascontiguousarray(c), float(sigma_px), window_half(sigma_px),
            RING_PX, self.bg, self.stamp, self.block, self.rise_dn, MAX_SHIFT_PX, self.shift, self.level, lum, shifts,
-           h, self.contrast, True)
+           h, self.contrast, True, self.subpixel, self.residual)
         return lum, shifts
 
     def predict_shifts(self, frames: np.ndarray, centres: np.ndarray, sigma_px: float, *,
@@ -216,7 +234,8 @@ class RegisteredBackground:
         fn = measure_block if compiled else measure_block_reference
         fn(np.ascontiguousarray(frames), np.ascontiguousarray(c), float(sigma_px), window_half(sigma_px),
            RING_PX, self.bg, self.stamp, self.block + 1, self.rise_dn, MAX_SHIFT_PX, self.shift.copy(),
-           self.level.copy(), np.zeros((F, c.shape[1])), shifts, self._hint_rows(hint, F), np.full(F, np.nan), False)
+           self.level.copy(), np.zeros((F, c.shape[1])), shifts, self._hint_rows(hint, F), np.full(F, np.nan), False,
+           False, np.zeros((F, 2)))
         return shifts
 
     def _checked(self, frames: np.ndarray, centres: np.ndarray, sigma_px: float) -> np.ndarray:
@@ -313,11 +332,73 @@ def _paired_vars_reference(pix_r: np.ndarray, ys_r: np.ndarray, xs_r: np.ndarray
     return True, float(np.var(pix_r[ok] - b0[ok])), float(np.var(pix_r[ok] - bc[ok]))
 
 
+def map_gradient(bg: np.ndarray, qy: int, qx: int) -> tuple[float, float, bool]:
+    """The map's central-difference gradient at map point (qy, qx).
+
+    Parameters
+    ----------
+    bg : ndarray
+        (Hm, Wm) the map, float32 DN (+inf: unseen).
+    qy, qx : int
+        Map row and column, px.
+
+    Returns
+    -------
+    gx, gy : float
+        d/dx and d/dy, DN/px; (0, 0) where it is not known.
+    ok : bool
+        The point and its four neighbours are on the map and seen.
+    """
+    Hm, Wm = bg.shape
+    if qy < 1 or qx < 1 or qy > Hm - 2 or qx > Wm - 2:
+        return 0.0, 0.0, False
+    a, b = float(bg[qy, qx - 1]), float(bg[qy, qx + 1])
+    c, d = float(bg[qy - 1, qx]), float(bg[qy + 1, qx])
+    if not (a < np.inf and b < np.inf and c < np.inf and d < np.inf and bg[qy, qx] < np.inf):
+        return 0.0, 0.0, False
+    return 0.5 * (b - a), 0.5 * (d - c), True
+
+
+def _residual_reference(img: np.ndarray, ys_r: np.ndarray, xs_r: np.ndarray, bg: np.ndarray, m: int,
+                        sx: int, sy: int) -> tuple[float, float]:
+    """The residual (subpixel) image shift (rx, ry) px beyond the whole-pixel (sx, sy): the
+    least-squares fit of ``frame - map = -grad(map) . r + c`` over the ring pixels where the
+    map and its neighbours are seen (one Lucas-Kanade step); (0, 0) when the ring's
+    gradients do not determine it, clipped to :data:`MAX_RESIDUAL_PX`."""
+    rows = []
+    for y, x in zip(ys_r.tolist(), xs_r.tolist()):
+        qy, qx = y - sy + m, x - sx + m
+        gx, gy, ok = map_gradient(bg, qy, qx)
+        if ok:
+            rows.append((gx, gy, float(img[y, x]) - float(bg[qy, qx])))
+    return _residual_solve(np.array(rows, dtype=np.float64).reshape(-1, 3))
+
+
+def _residual_solve(rows: np.ndarray) -> tuple[float, float]:
+    """(rx, ry) from the ring's (gx, gy, e) rows (:func:`_residual_reference`)."""
+    n = rows.shape[0]
+    if n < MIN_RESIDUAL_PIXELS:
+        return 0.0, 0.0
+    mean = rows.mean(axis=0)
+    g = rows[:, :2] - mean[:2]
+    e = rows[:, 2] - mean[2]
+    cxx, cxy, cyy = float(g[:, 0] @ g[:, 0]), float(g[:, 0] @ g[:, 1]), float(g[:, 1] @ g[:, 1])
+    bx, by = float(g[:, 0] @ e), float(g[:, 1] @ e)
+    det = cxx * cyy - cxy * cxy
+    if not det > MIN_RESIDUAL_DET * n * n:
+        return 0.0, 0.0
+    rx = -(cyy * bx - cxy * by) / det
+    ry = -(cxx * by - cxy * bx) / det
+    lim = MAX_RESIDUAL_PX
+    return min(max(float(rx), -lim), lim), min(max(float(ry), -lim), lim)
+
+
 def measure_block_reference(frames: np.ndarray, centres: np.ndarray, sigma: float, half: int, ring: int,
                             bg: np.ndarray, stamp: np.ndarray, blk: int, rise: float, m: int,
                             shift: np.ndarray, level: np.ndarray, out_lum: np.ndarray,
                             out_shift: np.ndarray, hint: np.ndarray | None = None,
-                            out_contrast: np.ndarray | None = None, fold: bool = True) -> None:
+                            out_contrast: np.ndarray | None = None, fold: bool = True,
+                            subpixel: bool = False, out_res: np.ndarray | None = None) -> None:
     """Pure-numpy reference of :func:`measure_block` (see
     :meth:`RegisteredBackground.measure`). Per frame: the shift (ring match), then the
     block's relaxation and the least value folded in over each LED's outer box; then, the
@@ -361,6 +442,13 @@ def measure_block_reference(frames: np.ndarray, centres: np.ndarray, sigma: floa
         tried (NaN: none tried), :attr:`RegisteredBackground.contrast`.
     fold : bool
         False: the shifts only (the map is not touched, ``out_lum`` not written).
+    subpixel : bool
+        Also the residual shift beyond the whole pixels, per frame (:func:`_residual_reference`,
+        against the map before the frame is folded in), and the light above the map moved
+        on by it to first order: ``frame - (map - grad(map) . r)``.
+    out_res : ndarray, optional
+        (F, 2) float64 output: the residual shift (x, y) of each frame, px (0 without
+        ``subpixel``).
     """
     F, H, W = frames.shape
     hint = np.zeros((0, 2), np.int64) if hint is None else hint
@@ -418,6 +506,8 @@ def measure_block_reference(frames: np.ndarray, centres: np.ndarray, sigma: floa
             level[1] += 1
         sx, sy = int(shift[0]), int(shift[1])
         out_shift[f, 0], out_shift[f, 1] = sx, sy
+        if subpixel and judged and out_res is not None:
+            out_res[f] = _residual_reference(img, ys_r, xs_r, bg, m, sx, sy)
         if not fold:
             continue
         # ---- fold the frame in: relax once per block, then the least value
@@ -440,6 +530,12 @@ def measure_block_reference(frames: np.ndarray, centres: np.ndarray, sigma: floa
             wx = np.exp(a * np.square(np.arange(x0, x1) - cx))
             wy = np.exp(a * np.square(np.arange(y0, y1) - cy))
             light = img[y0:y1, x0:x1] - bg[y0 - sy + m:y1 - sy + m, x0 - sx + m:x1 - sx + m].astype(np.float64)
+            if subpixel and out_res is not None and (out_res[f, 0] != 0.0 or out_res[f, 1] != 0.0):
+                rx, ry = float(out_res[f, 0]), float(out_res[f, 1])
+                for yy in range(y0, y1):
+                    for xx in range(x0, x1):
+                        gx, gy, _ = map_gradient(bg, yy - sy + m, xx - sx + m)
+                        light[yy - y0, xx - x0] += gx * rx + gy * ry
             s = wy.sum() * wx.sum()
             out_lum[f, i] = float(wy @ light @ wx) / s if s > 0 else 0.0
 
@@ -449,7 +545,7 @@ def _warm_args() -> tuple:
     bg = np.full((24 + 2 * MAX_SHIFT_PX, 24 + 2 * MAX_SHIFT_PX), np.inf, np.float32)
     return (fr, np.full((2, 1, 2), 12.0), 1.0, 4, RING_PX, bg, np.zeros(bg.shape, np.int64), 1, 0.25,
             MAX_SHIFT_PX, np.zeros(2, np.int64), np.array([np.inf, 0.0]), np.zeros((2, 1)), np.zeros((2, 2), np.int64),
-            np.zeros((0, 2), np.int64), np.zeros(2), True)
+            np.zeros((0, 2), np.int64), np.zeros(2), True, False, np.zeros((2, 2)))
 
 
 def _warm_args16() -> tuple:
@@ -489,11 +585,74 @@ def _paired_vars(frame: np.ndarray, ring_y: np.ndarray, ring_x: np.ndarray, n_al
     return True, max(q0 / k - m0 * m0, 0.0), max(qc / k - mc * mc, 0.0)
 
 
+@njit(inline="always")
+def _gradient(bg: np.ndarray, qy: int, qx: int) -> tuple[float, float, bool]:
+    """:func:`map_gradient` (compiled)."""
+    Hm, Wm = bg.shape
+    if qy < 1 or qx < 1 or qy > Hm - 2 or qx > Wm - 2:
+        return 0.0, 0.0, False
+    a = bg[qy, qx - 1]
+    b = bg[qy, qx + 1]
+    c = bg[qy - 1, qx]
+    d = bg[qy + 1, qx]
+    if not (a < np.inf and b < np.inf and c < np.inf and d < np.inf and bg[qy, qx] < np.inf):
+        return 0.0, 0.0, False
+    return 0.5 * (float(b) - float(a)), 0.5 * (float(d) - float(c)), True
+
+
+@njit
+def _residual(frame: np.ndarray, ring_y: np.ndarray, ring_x: np.ndarray, n_all: int, bg: np.ndarray,
+              m: int, sx: int, sy: int) -> tuple[float, float]:
+    """:func:`_residual_reference` (compiled; two passes: the means, then the centred sums)."""
+    n = 0
+    mx = 0.0
+    my = 0.0
+    me = 0.0
+    for j in range(n_all):
+        qy, qx = ring_y[j] - sy + m, ring_x[j] - sx + m
+        gx, gy, ok = _gradient(bg, qy, qx)
+        if ok:
+            mx += gx
+            my += gy
+            me += float(frame[ring_y[j], ring_x[j]]) - float(bg[qy, qx])
+            n += 1
+    if n < MIN_RESIDUAL_PIXELS:
+        return 0.0, 0.0
+    mx /= n
+    my /= n
+    me /= n
+    cxx = 0.0
+    cxy = 0.0
+    cyy = 0.0
+    bx = 0.0
+    by = 0.0
+    for j in range(n_all):
+        qy, qx = ring_y[j] - sy + m, ring_x[j] - sx + m
+        gx, gy, ok = _gradient(bg, qy, qx)
+        if ok:
+            ux = gx - mx
+            uy = gy - my
+            e = float(frame[ring_y[j], ring_x[j]]) - float(bg[qy, qx]) - me
+            cxx += ux * ux
+            cxy += ux * uy
+            cyy += uy * uy
+            bx += ux * e
+            by += uy * e
+    det = cxx * cyy - cxy * cxy
+    if not det > MIN_RESIDUAL_DET * n * n:
+        return 0.0, 0.0
+    rx = -(cyy * bx - cxy * by) / det
+    ry = -(cxx * by - cxy * bx) / det
+    lim = MAX_RESIDUAL_PX
+    return min(max(rx, -lim), lim), min(max(ry, -lim), lim)
+
+
 @njit(warm=_warm_args)
 def measure_block(frames: np.ndarray, centres: np.ndarray, sigma: float, half: int, ring: int,
                   bg: np.ndarray, stamp: np.ndarray, blk: int, rise: float, m: int,
                   shift: np.ndarray, level: np.ndarray, out_lum: np.ndarray, out_shift: np.ndarray,
-                  hint: np.ndarray, out_contrast: np.ndarray, fold: bool) -> None:
+                  hint: np.ndarray, out_contrast: np.ndarray, fold: bool, subpixel: bool,
+                  out_res: np.ndarray) -> None:
     """One camera's block (:meth:`RegisteredBackground.measure`): per frame the image shift
     (ring match within 1 px of the last, or the move of another camera's shifts ``hint``
     (F + 1, 2) -- (0, 2): none -- where that matches at least as well; how clearly the ring
@@ -503,7 +662,9 @@ def measure_block(frames: np.ndarray, centres: np.ndarray, sigma: float, half: i
     half-size ``half`` px) into out_lum (F, N); the shifts into out_shift (F, 2), the last
     one into ``shift`` (2,) and the running ring variance and the frames judged into ``level`` (2,).
     With ``fold`` False only the shifts: nothing is folded into the map (``bg``, ``stamp``
-    untouched) and ``out_lum`` is not written. The same numbers as
+    untouched) and ``out_lum`` is not written. With ``subpixel`` also each frame's residual
+    shift beyond the whole pixels into ``out_res`` (F, 2) and the light above the map moved
+    on by it (:func:`measure_block_reference`). The same numbers as
     :func:`measure_block_reference` (float64 sums in a different order: ~1e-12 relative)."""
     F, H, W = frames.shape
     N = centres.shape[1]
@@ -588,6 +749,8 @@ def measure_block(frames: np.ndarray, centres: np.ndarray, sigma: float, half: i
             level[1] += 1
         sx, sy = shift[0], shift[1]
         out_shift[f, 0], out_shift[f, 1] = sx, sy
+        if subpixel and judged:
+            out_res[f, 0], out_res[f, 1] = _residual(frames[f], ring_y, ring_x, n_all, bg, m, sx, sy)
         if not fold:
             continue
         # ---- fold the frame in
@@ -605,6 +768,9 @@ def measure_block(frames: np.ndarray, centres: np.ndarray, sigma: float, half: i
     # ---- the light above it (the whole block folded in first)
     for f in range(F if fold else 0):
         sx, sy = out_shift[f, 0], out_shift[f, 1]
+        rx = out_res[f, 0] if subpixel else 0.0
+        ry = out_res[f, 1] if subpixel else 0.0
+        moved = rx != 0.0 or ry != 0.0
         for i in range(N):
             xr = int(np.rint(centres[f, i, 0]))
             yr = int(np.rint(centres[f, i, 1]))
@@ -623,8 +789,13 @@ def measure_block(frames: np.ndarray, centres: np.ndarray, sigma: float, half: i
                 wy = np.exp(a * (y - cy) * (y - cy))
                 wsy += wy
                 r = 0.0
-                for x in range(x0, x1):
-                    r += (float(frames[f, y, x]) - float(bg[y - sy + m, x - sx + m])) * wx[x - x0]
+                if moved:
+                    for x in range(x0, x1):
+                        gx, gy, _ = _gradient(bg, y - sy + m, x - sx + m)
+                        r += (float(frames[f, y, x]) - float(bg[y - sy + m, x - sx + m]) + (gx * rx + gy * ry)) * wx[x - x0]
+                else:
+                    for x in range(x0, x1):
+                        r += (float(frames[f, y, x]) - float(bg[y - sy + m, x - sx + m])) * wx[x - x0]
                 s += wy * r
             out_lum[f, i] = s / (wsx * wsy) if wsx * wsy > 0 else 0.0
 
