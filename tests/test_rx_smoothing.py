@@ -314,7 +314,9 @@ def test_packets_every_other_attempt_lost_are_delivered(key: str, seed: int, mod
     from iscd.eval.sweeps import ReceiverMode
     from scenes import motion_scene
 
-    cfg = motion_scene(key, seed, model)
+    # the background read at whole pixels only, as when these were found: with the residual
+    # shift fitted (session 36) 1657517190 is delivered without the smoothed attempt
+    cfg = motion_scene(key, seed, model, registered_subpixel=False)
     mode = ReceiverMode("diversity", "both")
     res = run_oracle(cfg, 2, mode=mode, block=16, genie=False).receiver
     monkeypatch.setattr(packets, "SMOOTH_RETRY", False)
