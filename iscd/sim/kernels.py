@@ -215,20 +215,26 @@ def add_residual_shift_ref(out: np.ndarray, bg: np.ndarray, prnu: np.ndarray, oy
         Top grey level, DN.
     """
     H, W = out.shape
+    s = _bilinear(bg, oy, ox, H, W, ry, rx)
+    q = bg[oy:oy + H, ox:ox + W].astype(np.float64)
+    d = np.floor(prnu[oy:oy + H, ox:ox + W].astype(np.float64) * (s - q) + 0.5)
+    out[...] = np.clip(out.astype(np.float64) + d, 0.0, top).astype(out.dtype)
+
+
+def _bilinear(bg: np.ndarray, y: int, x: int, h: int, w: int, ry: float, rx: float) -> np.ndarray:
+    """(h, w) float64: the padded background from (y, x) under the residual shift (ry, rx),
+    bilinear, indices clamped at the padded edge (:func:`bilinear_weights`)."""
     Hp, Wp = bg.shape
     dy, dx, fy, fx = bilinear_weights(ry, rx)
-    ys = np.arange(oy, oy + H)
-    xs = np.arange(ox, ox + W)
+    ys = np.arange(y, y + h)
+    xs = np.arange(x, x + w)
     y0 = np.clip(ys + dy, 0, Hp - 1)[:, None]
     y1 = np.clip(ys + dy + 1, 0, Hp - 1)[:, None]
     x0 = np.clip(xs + dx, 0, Wp - 1)[None, :]
     x1 = np.clip(xs + dx + 1, 0, Wp - 1)[None, :]
     b = bg.astype(np.float64)
-    s = ((1 - fy) * (1 - fx) * b[y0, x0] + (1 - fy) * fx * b[y0, x1]
-         + fy * (1 - fx) * b[y1, x0] + fy * fx * b[y1, x1])
-    q = b[oy:oy + H, ox:ox + W]
-    d = np.floor(prnu[oy:oy + H, ox:ox + W].astype(np.float64) * (s - q) + 0.5)
-    out[...] = np.clip(out.astype(np.float64) + d, 0.0, top).astype(out.dtype)
+    return ((1 - fy) * (1 - fx) * b[y0, x0] + (1 - fy) * fx * b[y0, x1]
+            + fy * (1 - fx) * b[y1, x0] + fy * fx * b[y1, x1])
 
 
 def shifted_window(bg: np.ndarray, y: int, x: int, h: int, w: int, ry: float, rx: float) -> np.ndarray:
@@ -251,18 +257,7 @@ def shifted_window(bg: np.ndarray, y: int, x: int, h: int, w: int, ry: float, rx
     ndarray of float32
         (h, w) background, DN.
     """
-    Hp, Wp = bg.shape
-    dy, dx, fy, fx = bilinear_weights(ry, rx)
-    ys = np.arange(y, y + h)
-    xs = np.arange(x, x + w)
-    y0 = np.clip(ys + dy, 0, Hp - 1)[:, None]
-    y1 = np.clip(ys + dy + 1, 0, Hp - 1)[:, None]
-    x0 = np.clip(xs + dx, 0, Wp - 1)[None, :]
-    x1 = np.clip(xs + dx + 1, 0, Wp - 1)[None, :]
-    b = bg.astype(np.float64)
-    s = ((1 - fy) * (1 - fx) * b[y0, x0] + (1 - fy) * fx * b[y0, x1]
-         + fy * (1 - fx) * b[y1, x0] + fy * fx * b[y1, x1])
-    return np.ascontiguousarray(s, dtype=np.float32)
+    return np.ascontiguousarray(_bilinear(bg, y, x, h, w, ry, rx), dtype=np.float32)
 
 
 # ---------------------------------------------------------------- light of the sources
